@@ -1,0 +1,433 @@
+"""Batched, differentiable friction-cone QP: ``solve_cone_qp``.
+
+For every problem of a batch, with contact blocks ``f_k = (f_n, f_t)`` of
+``d`` numbers,
+
+    minimize_f  0.5 f^T A f + b^T f
+    subject to  f_n,k >= l_k  and  ||f_t,k|| <= mu_k f_n,k      for each contact k.
+
+This is the compression (5) and restitution (7) problem of the paper, with
+``A = J_C Mhat^-1 J_C^T`` positive *semi*-definite.
+
+How it is solved (all problems of the batch at once, no Python loop over
+problems or contacts):
+
+1. Inactive contacts are decoupled (identity block, a separating velocity) so
+   their impulse is exactly zero and they do not touch the others; ``mu = 0``
+   tangential components are decoupled for the interior-point phase.
+2. The problem is scaled (diag(A) ~ 1, |b| ~ 1) and a log-barrier interior-point
+   method (:mod:`diffcontact.contact.interior_point`) approaches the solution
+   to ``gap``; problems leave the batch as they finish.
+3. A Newton polish on the natural map ``F(f) = f - Pi_C(f - rho (A f + b)) = 0``
+   (:mod:`diffcontact.contact.cone`), whose zeros are exactly the minimisers,
+   identifies the active constraints and drives ``F`` to rounding level
+   (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
+4. The backward pass differentiates ``F(f; A, b, mu, l) = 0`` implicitly, reusing
+   the LU factorisation of ``dF/df = I - P + rho P (A + delta I)`` from the
+   polish: one transposed solve per batch. ``delta`` (``SolverSettings.kkt_reg``,
+   relative to diag(A)) keeps it invertible when the minimiser is not unique
+   (singular ``A`` with a free direction inside the cones); the returned
+   minimiser is then the one the interior-point path reached, and gradients
+   along the free directions are not meaningful (the velocity change
+   ``Mhat^-1 J_C^T f`` and therefore any physical loss does not depend on them).
+
+Gradients at degenerate points follow the one-sided choices documented in
+:mod:`diffcontact.contact.cone` (right derivatives at ``mu = 0`` and ``l = 0``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diffcontact.contact.cone import project_contact_set
+from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
+
+
+class ConeQPError(RuntimeError):
+    """Raised when some problems of a batch are unbounded or did not converge."""
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Tolerances and caps of :func:`solve_cone_qp`. ``None`` picks a dtype default.
+
+    Attributes:
+        tol: accepted natural-map residual ``||F||_inf / max(1, ||f||_inf)`` after
+            scaling (float64: 1e-12, float32: 1e-5).
+        gap: interior-point target for the complementarity gap per cone and the
+            residuals (scaled), before polishing (float64: 1e-9, float32: 1e-4).
+        max_iter: interior-point iteration cap.
+        polish_steps: Newton steps on the natural map.
+        kkt_reg: relative regularisation ``delta`` of ``A`` in the polish and
+            backward Jacobian (float64: 1e-12, float32: 1e-7).
+        check_inputs: validate shapes, signs, finiteness and symmetry.
+        compute_dtype: precision of the internal solve (float64 by default; the
+            result and gradients come back in the input dtype). ``None`` solves in
+            the input dtype: faster, but in float32 about 1% of random 5-30 contact
+            problems end with residuals ~1e-2 (``benchmarks/run.py --dtype float32``
+            with ``compute_dtype=None`` shows it).
+    """
+
+    tol: float | None = None
+    gap: float | None = None
+    max_iter: int = 100
+    polish_steps: int = 4
+    kkt_reg: float | None = None
+    check_inputs: bool = True
+    compute_dtype: torch.dtype | None = torch.float64
+
+    def resolved(self, dtype: torch.dtype) -> SolverSettings:
+        dtype = self.compute_dtype or dtype
+        double = dtype == torch.float64
+        return SolverSettings(
+            tol=self.tol if self.tol is not None else (1e-12 if double else 1e-5),
+            gap=self.gap if self.gap is not None else (1e-9 if double else 1e-4),
+            max_iter=self.max_iter,
+            polish_steps=self.polish_steps,
+            kkt_reg=self.kkt_reg if self.kkt_reg is not None else (1e-12 if double else 1e-7),
+            check_inputs=self.check_inputs,
+            compute_dtype=dtype,
+        )
+
+
+@dataclass
+class SolverStatus:
+    """Per-problem outcome, shaped like the batch dims of the call.
+
+    Attributes:
+        converged: bool, the residual is within ``tol``.
+        unbounded: bool, the objective is unbounded below (no minimiser).
+        iterations: int64, interior-point iterations used.
+        residual: scaled natural-map residual ``||F||_inf / max(1, ||f||_inf)``.
+    """
+
+    converged: Tensor
+    unbounded: Tensor
+    iterations: Tensor
+    residual: Tensor
+
+    @property
+    def all_converged(self) -> bool:
+        return bool(self.converged.all())
+
+
+def _blockwise(P: Tensor, x: Tensor) -> Tensor:
+    """Apply per-contact blocks. P: (B, K, d, d), x: (B, K*d, ...) -> (B, K*d, ...)."""
+    B, K, d, _ = P.shape
+    xs = x.reshape(B, K, d, -1)
+    return torch.einsum("bkij,bkjm->bkim", P, xs).reshape(x.shape)
+
+
+def _natural_map(A: Tensor, b: Tensor, mu: Tensor, lower: Tensor, f: Tensor, rho: Tensor):
+    """Residual F(f) (B, C) and the projection's derivatives at z = f - rho (A f + b)."""
+    B, C = f.shape
+    K = mu.shape[-1]
+    d = C // K
+    r = torch.einsum("bij,bj->bi", A, f) + b
+    z = (f - rho[:, None] * r).reshape(B, K, d)
+    proj, P, dmu, dl = project_contact_set(z, mu, lower)
+    return f - proj.reshape(B, C), P, dmu, dl
+
+
+def _scaled_residual(F: Tensor, f: Tensor, c: Tensor) -> Tensor:
+    return F.abs().amax(-1) / torch.maximum(c, f.abs().amax(-1))
+
+
+def _jacobian(A: Tensor, P: Tensor, rho: Tensor, reg: Tensor) -> Tensor:
+    """dF/df = I - P + rho P (A + reg I), (B, C, C)."""
+    C = A.shape[-1]
+    eye = torch.eye(C, dtype=A.dtype, device=A.device)
+    A_reg = A + reg[:, None, None] * eye
+    return add_block_diag(eye + rho[:, None, None] * _blockwise(P, A_reg), -P)
+
+
+def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
+    """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K)."""
+    C = b.shape[-1]
+    dtype, device = A.dtype, A.device
+    act_c = active.repeat_interleave(d, dim=-1)  # (B, C)
+    pair = act_c[:, :, None] & act_c[:, None, :]
+
+    # scales from the active part
+    diag = A.diagonal(dim1=-2, dim2=-1)
+    n_act = act_c.sum(-1).clamp_min(1)
+    a_s = (torch.where(act_c, diag, 0).sum(-1) / n_act).clamp_min(torch.finfo(dtype).tiny)
+    a_s = torch.where(a_s > 1e3 * torch.finfo(dtype).tiny, a_s, torch.ones_like(a_s))
+    lower_m = torch.where(active, lower, 0)
+    b_s = torch.where(act_c, b.abs(), 0).amax(-1)
+    b_s = torch.maximum(b_s, a_s * lower_m.amax(-1))
+    b_s = torch.where(b_s > 0, b_s, a_s)
+    c = b_s / a_s  # impulse scale
+
+    eye = torch.eye(C, dtype=dtype, device=device)
+    is_normal = torch.zeros(C, dtype=torch.bool, device=device)
+    is_normal[::d] = True
+    # decouple inactive contacts: identity block, separating velocity
+    A_m = torch.where(pair, A, 0) + torch.where(~act_c, a_s[:, None], 0)[:, :, None] * eye
+    b_m = torch.where(act_c, b, torch.where(is_normal, b_s[:, None], 0))
+    mu_m = torch.where(active, mu, 1) if d > 1 else torch.ones_like(mu)
+
+    # interior point on the scaled problem, mu = 0 tangents decoupled
+    if d > 1:
+        free_t = (mu_m == 0).repeat_interleave(d, dim=-1) & ~is_normal
+        keep = ~free_t
+        A_ipm = torch.where(keep[:, :, None] & keep[:, None, :], A_m, 0)
+        A_ipm = A_ipm + torch.where(free_t, a_s[:, None], 0)[:, :, None] * eye
+        b_ipm = torch.where(free_t, 0, b_m)
+        mu_ipm = torch.where(mu_m > 0, mu_m, 1)
+    else:
+        A_ipm, b_ipm, mu_ipm = A_m, b_m, mu_m
+    ipm = interior_point_solve(
+        A_ipm / a_s[:, None, None],
+        b_ipm / b_s[:, None],
+        mu_ipm,
+        lower_m / c[:, None],
+        d,
+        tol=settings.gap,
+        max_iter=settings.max_iter,
+    )
+    f = ipm.f * c[:, None]
+
+    # natural-map Newton polish
+    rho = 1 / a_s
+    reg = settings.kkt_reg * a_s
+    F, P, dmu, dl = _natural_map(A_m, b_m, mu_m, lower_m, f, rho)
+    res = _scaled_residual(F, f, c)
+    for step in range(settings.polish_steps + 1):
+        # the factorisation at the final point is reused by the backward pass
+        LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A_m, P, rho, reg))
+        if step == settings.polish_steps or bool((res <= settings.tol).all()):
+            break
+        delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
+        f_new = f + torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        F_new, P_new, dmu_new, dl_new = _natural_map(A_m, b_m, mu_m, lower_m, f_new, rho)
+        res_new = _scaled_residual(F_new, f_new, c)
+        better = res_new < res
+        f = torch.where(better[:, None], f_new, f)
+        F = torch.where(better[:, None], F_new, F)
+        P = torch.where(better[:, None, None, None], P_new, P)
+        dmu = torch.where(better[:, None, None], dmu_new, dmu)
+        dl = torch.where(better[:, None, None], dl_new, dl)
+        res = torch.where(better, res_new, res)
+
+    f = torch.where(act_c, f, 0)
+    # an iterate that ran off along a direction of zero curvature and descent is a
+    # certificate of unboundedness, whichever phase noticed it
+    g = f / c[:, None]
+    size = g.abs().amax(-1)
+    dirn = g / size.clamp_min(1)[:, None]
+    curv = (dirn * torch.einsum("bij,bj->bi", A_m / a_s[:, None, None], dirn)).sum(-1)
+    descent = (dirn * b_m / b_s[:, None]).sum(-1)
+    runaway = (size > 1e8) & (curv <= 1e-6) & (descent < 0)
+    unbounded = ipm.unbounded | runaway
+    converged = (res <= settings.tol) & ~unbounded
+    status = SolverStatus(
+        converged=converged, unbounded=unbounded, iterations=ipm.iterations, residual=res
+    )
+    saved = (f, P, dmu, dl, rho, LU, piv, act_c, active)
+    return f, status, saved
+
+
+class _ConeQPFunction(torch.autograd.Function):
+    """Autograd wrapper: forward solve + implicit-differentiation backward."""
+
+    @staticmethod
+    def forward(A, b, mu, lower, active, d, settings):
+        work = settings.compute_dtype
+        A = 0.5 * (A + A.transpose(-1, -2))
+        f, status, saved = _forward(
+            A.to(work), b.to(work), mu.to(work), lower.to(work), active, d, settings
+        )
+        return (
+            f.to(A.dtype),
+            status.converged,
+            status.unbounded,
+            status.iterations,
+            status.residual,
+            saved,
+        )
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        ctx.d = inputs[5]
+        # intermediates of the solve (not inputs/outputs), kept on ctx
+        ctx.solution = output[5]
+        ctx.mark_non_differentiable(*output[1:5])
+
+    @staticmethod
+    def backward(ctx, grad_f, *_):
+        f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.solution
+        d = ctx.d
+        B = f.shape[0]
+        out_dtype = grad_f.dtype
+        g = torch.where(act_c, grad_f.to(f.dtype), 0)
+        v = torch.linalg.lu_solve(LU, piv, g.unsqueeze(-1), adjoint=True).squeeze(-1)
+        Pv = _blockwise(P.transpose(-1, -2), v.unsqueeze(-1)).squeeze(-1)
+        grad_b = grad_A = grad_mu = grad_l = None
+        if ctx.needs_input_grad[1]:
+            grad_b = torch.where(act_c, -rho[:, None] * Pv, 0)
+        if ctx.needs_input_grad[0]:
+            G = -rho[:, None, None] * Pv.unsqueeze(-1) * f.unsqueeze(-2)
+            grad_A = 0.5 * (G + G.transpose(-1, -2))
+        vk = v.reshape(B, -1, d)
+        if ctx.needs_input_grad[2]:
+            grad_mu = torch.where(active, (dmu * vk).sum(-1), 0)
+            if d == 1:
+                grad_mu = torch.zeros_like(grad_mu)
+        if ctx.needs_input_grad[3]:
+            grad_l = torch.where(active, (dl * vk).sum(-1), 0)
+        grads = [None if x is None else x.to(out_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
+        return *grads, None, None, None
+
+
+def _check(name: str, x: Tensor) -> None:
+    if not isinstance(x, Tensor):
+        raise ValueError(f"solve_cone_qp: {name} must be a torch.Tensor, got {type(x).__name__}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"solve_cone_qp: {name} contains NaN or infinite values")
+
+
+def solve_cone_qp(
+    A: Tensor,
+    b: Tensor,
+    mu: Tensor,
+    d: int,
+    lower: Tensor | None = None,
+    active: Tensor | None = None,
+    *,
+    settings: SolverSettings | None = None,
+    return_status: bool = False,
+) -> Tensor | tuple[Tensor, SolverStatus]:
+    """Solve a batch of friction-cone QPs, differentiably.
+
+    ``minimize 0.5 f^T A f + b^T f`` s.t. ``f_n,k >= lower_k`` and
+    ``||f_t,k|| <= mu_k f_n,k`` for every contact ``k``, block
+    ``f[..., k*d:(k+1)*d] = (f_n, f_t)``.
+
+    Args:
+        A: (..., C, C) symmetric positive semi-definite, C = K * d.
+        b: (..., C).
+        mu: (..., K) friction coefficients >= 0 (ignored when d == 1).
+        d: contact-space dimension per contact: 1 (frictionless), 2 (2D), 3 (3D).
+        lower: (..., K) lower bounds >= 0 on the normal impulses; None means 0.
+        active: (..., K) bool; inactive contacts get f = 0 exactly and do not
+            influence the others. None means all active.
+        settings: :class:`SolverSettings`; defaults depend on the dtype.
+        return_status: also return a :class:`SolverStatus`. Without it, a batch
+            with unbounded or unconverged problems raises :class:`ConeQPError`.
+
+    Leading batch dims broadcast against each other; a parameter shared across
+    the batch (e.g. ``mu.expand(N, K)``) receives the summed gradient.
+
+    Returns:
+        f: (..., C), same dtype and device as ``A`` (and the status if asked).
+
+    Raises:
+        ValueError: bad shapes, ``d``, dtypes, signs or non-finite inputs.
+        ConeQPError: unbounded or unconverged problems (unless ``return_status``).
+    """
+    settings = settings or SolverSettings()
+    if d not in (1, 2, 3):
+        raise ValueError(f"solve_cone_qp: d must be 1, 2 or 3, got {d!r}")
+    for name, x in (("A", A), ("b", b), ("mu", mu)):
+        _check(name, x)
+    if not A.is_floating_point():
+        raise ValueError(f"solve_cone_qp: A must be a floating-point tensor, got {A.dtype}")
+    if A.dim() < 2 or A.shape[-1] != A.shape[-2]:
+        raise ValueError(f"solve_cone_qp: A must have shape (..., C, C), got {tuple(A.shape)}")
+    C = A.shape[-1]
+    if C == 0 or C % d:
+        raise ValueError(
+            f"solve_cone_qp: C = {C} (A's size) must be a positive multiple of d = {d}"
+        )
+    K = C // d
+    if b.dim() < 1 or b.shape[-1] != C:
+        raise ValueError(f"solve_cone_qp: b must have shape (..., {C}), got {tuple(b.shape)}")
+    if mu.dim() < 1 or mu.shape[-1] != K:
+        raise ValueError(
+            f"solve_cone_qp: mu must have shape (..., K) with K = {K} contacts, "
+            f"got {tuple(mu.shape)}"
+        )
+    if lower is None:
+        lower = torch.zeros((), dtype=A.dtype, device=A.device).expand(K)
+    else:
+        _check("lower", lower)
+        if lower.dim() < 1 or lower.shape[-1] != K:
+            raise ValueError(
+                f"solve_cone_qp: lower must have shape (..., {K}), got {tuple(lower.shape)}"
+            )
+    if active is None:
+        active = torch.ones(K, dtype=torch.bool, device=A.device)
+    elif not isinstance(active, Tensor) or active.dtype != torch.bool:
+        raise ValueError("solve_cone_qp: active must be a bool tensor of shape (..., K)")
+    elif active.dim() < 1 or active.shape[-1] != K:
+        raise ValueError(
+            f"solve_cone_qp: active must have shape (..., {K}), got {tuple(active.shape)}"
+        )
+    for name, x in (("b", b), ("mu", mu), ("lower", lower)):
+        if x.dtype != A.dtype:
+            raise ValueError(f"solve_cone_qp: {name} has dtype {x.dtype}, A has {A.dtype}")
+    for name, x in (("b", b), ("mu", mu), ("lower", lower), ("active", active)):
+        if x.device != A.device:
+            raise ValueError(f"solve_cone_qp: {name} is on {x.device}, A is on {A.device}")
+    try:
+        batch = torch.broadcast_shapes(
+            A.shape[:-2], b.shape[:-1], mu.shape[:-1], lower.shape[:-1], active.shape[:-1]
+        )
+    except RuntimeError as err:
+        raise ValueError(f"solve_cone_qp: batch dimensions do not broadcast: {err}") from None
+    if settings.check_inputs:
+        if bool((mu < 0).any()):
+            raise ValueError("solve_cone_qp: mu must be >= 0 (friction coefficients)")
+        if bool((lower < 0).any()):
+            raise ValueError("solve_cone_qp: lower must be >= 0")
+        scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True).unsqueeze(-1)
+        asym = (A - A.transpose(-1, -2)).abs()
+        if bool((asym > 1e-6 * scale + 1e-12).any()):
+            raise ValueError("solve_cone_qp: A must be symmetric")
+        if bool((A.diagonal(dim1=-2, dim2=-1) < -1e-9 * scale.squeeze(-1)).any()):
+            raise ValueError("solve_cone_qp: A must be positive semi-definite (negative diagonal)")
+
+    resolved = settings.resolved(A.dtype)
+    n = 1
+    for s in batch:
+        n *= s
+    flat = (
+        A.expand(*batch, C, C).reshape(n, C, C),
+        b.expand(*batch, C).reshape(n, C),
+        mu.expand(*batch, K).reshape(n, K),
+        lower.expand(*batch, K).reshape(n, K),
+        active.expand(*batch, K).reshape(n, K),
+    )
+    f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(*flat, d, resolved)
+    f = f.reshape(*batch, C)
+    status = SolverStatus(
+        converged=converged.reshape(batch),
+        unbounded=unbounded.reshape(batch),
+        iterations=iterations.reshape(batch),
+        residual=residual.reshape(batch),
+    )
+    if return_status:
+        return f, status
+    if not status.all_converged:
+        n_unb = int(status.unbounded.sum())
+        n_bad = int((~status.converged).sum()) - n_unb
+        parts = []
+        if n_unb:
+            parts.append(
+                f"{n_unb} of {n} problems are unbounded below (A is singular and b has a "
+                "descending direction inside the friction cones)"
+            )
+        if n_bad:
+            worst = float(status.residual[~status.converged & ~status.unbounded].max())
+            parts.append(
+                f"{n_bad} of {n} problems did not converge (worst residual {worst:.3g}, "
+                f"tol {resolved.tol:.3g})"
+            )
+        raise ConeQPError(
+            "solve_cone_qp: " + "; ".join(parts) + ". Pass return_status=True to inspect them."
+        )
+    return f

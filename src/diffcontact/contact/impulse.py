@@ -1,0 +1,136 @@
+"""The two-phase (compression / restitution) contact impulse with Poisson's hypothesis.
+
+Paper eqs. (5) and (7), S.11-S.16 and appendix G. Given the contact Jacobian
+of the (padded) candidate contacts, the constrained inverse inertia and the
+pre-impact velocity:
+
+1. compression (5): ``f_c = argmin 0.5 f'A f + f' v_C`` over the friction cones;
+2. Poisson: the restitution normal impulse is at least ``e_P * f_c,n``;
+3. restitution (7): ``f_r = argmin 0.5 f'A f + f'(v_C + A f_c - v_C^*)`` over the
+   cones with ``f_n >= e_P f_c,n``, where ``v_C^*`` is the penetration-compensation
+   target (appendix G);
+4. ``v+ = v + Mhat^-1 J_C^T (f_c + f_r)`` (S.11).
+
+CM solves with ``A = J_C Mhat^-1 J_C^T`` (PSD, singular with equality
+constraints); CMr with ``A + eps I`` (eps = 0.01 by default).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
+
+CONTACT_MODELS = ("CM", "CMr")
+
+
+@dataclass
+class ImpulseResult:
+    """Impulses of one contact resolution.
+
+    Attributes:
+        v_plus: (..., D) post-impact velocities.
+        f_c: (..., K*d) compression impulses (contact space).
+        f_r: (..., K*d) restitution impulses.
+    """
+
+    v_plus: Tensor
+    f_c: Tensor
+    f_r: Tensor
+
+
+def penetration_target(
+    J_C: Tensor,
+    depth: Tensor,
+    active: Tensor,
+    dt: float,
+    d: int,
+    fraction: float = 1 / 8,
+    J_E: Tensor | None = None,
+) -> Tensor:
+    """Penetration-compensation target ``v_C^*`` (appendix G, S.22-S.24).
+
+    The desired contact velocity has normal components ``fraction * depth / dt``
+    and zero tangential ones; it is lifted to Cartesian space with the
+    pseudo-inverse of ``J_C`` (S.24; computed by SVD so that padded zero rows are
+    harmless), projected onto the null space of ``J_E`` so that it respects the
+    equality constraints (S.22), and mapped back with ``J_C`` (S.23). No gradient
+    flows through it.
+
+    Args:
+        J_C: (..., K*d, D) contact Jacobian (padded rows may be zero).
+        depth: (..., K) penetration depths (>= 0 where active).
+        active: (..., K) bool.
+        dt: time step.
+        d: contact-space dimension.
+        fraction: share of the depth removed per step (the released code used 1/8).
+        J_E: (..., E, D) equality-constraint Jacobian, or None.
+
+    Returns:
+        v_C_star: (..., K*d).
+    """
+    with torch.no_grad():
+        depth = torch.where(active, depth.clamp_min(0), 0)
+        v_d = torch.zeros(*depth.shape, d, dtype=J_C.dtype, device=J_C.device)
+        v_d[..., 0] = fraction * depth / dt
+        v_d = v_d.flatten(-2)
+        v_star = (torch.linalg.pinv(J_C) @ v_d.unsqueeze(-1)).squeeze(-1)
+        if J_E is not None and J_E.shape[-2] > 0:
+            JJt = J_E @ J_E.transpose(-1, -2)
+            corr = torch.linalg.solve(JJt, (J_E @ v_star.unsqueeze(-1)))
+            v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
+        return (J_C @ v_star.unsqueeze(-1)).squeeze(-1)
+
+
+def two_phase_impulse(
+    J_C: Tensor,
+    Mhat_inv: Tensor,
+    v: Tensor,
+    mu: Tensor,
+    cor: Tensor,
+    active: Tensor,
+    d: int,
+    *,
+    v_C_star: Tensor | None = None,
+    contact_model: str = "CM",
+    eps: float | Tensor = 0.01,
+    settings: SolverSettings | None = None,
+) -> ImpulseResult:
+    """Resolve all active contacts of a batch of states at once.
+
+    Args:
+        J_C: (..., K*d, D) contact Jacobian of the (padded) contacts.
+        Mhat_inv: (..., D, D) constrained inverse inertia (S.12).
+        v: (..., D) pre-impact velocities.
+        mu: (..., K) friction coefficients.
+        cor: (..., K) Poisson coefficients of restitution in [0, 1].
+        active: (..., K) bool; inactive (padding) contacts receive no impulse.
+        d: contact-space dimension.
+        v_C_star: (..., K*d) penetration-compensation target, or None for zero.
+        contact_model: "CM" or "CMr".
+        eps: CMr's regulariser (number or tensor, learnable if you like).
+        settings: solver settings.
+
+    Returns:
+        An :class:`ImpulseResult`.
+    """
+    if contact_model not in CONTACT_MODELS:
+        raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
+    JM = J_C @ Mhat_inv
+    A = JM @ J_C.transpose(-1, -2)
+    A = 0.5 * (A + A.transpose(-1, -2))
+    A_qp = A
+    if contact_model == "CMr":
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        A_qp = A + torch.as_tensor(eps, dtype=A.dtype, device=A.device)[..., None, None] * eye
+    v_C = (J_C @ v.unsqueeze(-1)).squeeze(-1)
+    f_c = solve_cone_qp(A_qp, v_C, mu, d, None, active, settings=settings)
+    v_C_c = v_C + (A @ f_c.unsqueeze(-1)).squeeze(-1)
+    lower = (cor * f_c[..., ::d]).clamp_min(0)
+    target = v_C_c if v_C_star is None else v_C_c - v_C_star
+    f_r = solve_cone_qp(A_qp, target, mu, d, lower, active, settings=settings)
+    v_plus = v + (JM.transpose(-1, -2) @ (f_c + f_r).unsqueeze(-1)).squeeze(-1)
+    return ImpulseResult(v_plus, f_c, f_r)

@@ -1,0 +1,243 @@
+"""Shared pieces of the contact geometries.
+
+Every geometry is a small frozen dataclass holding static index tensors (built
+from plain config numbers) and offers
+
+- ``gaps(x) -> (..., K)``: signed gaps of all ``K = n_candidates`` candidates;
+- ``jacobian_sparse(x, idx) -> SparseJacobian``: the contact Jacobian rows of
+  the candidates ``idx`` as ``m`` (point, coefficient) entries per row;
+- ``jacobian(x, idx) -> (..., Ka, d, P, dim)``: the same rows, dense.
+
+The contact-space velocity of candidate ``idx[..., k]`` is
+``v_C[..., k, :] = sum_{p,c} J_C[..., k, :, p, c] v[..., p, c]`` with components
+``(normal, tangent...)``; the normal row is ``D_x gap``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar, NamedTuple, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "ContactGeometry",
+    "Geometry",
+    "GeometryBase",
+    "SparseJacobian",
+    "assemble_jacobian",
+    "broadcast_batch",
+    "gather_points",
+    "jacobian_matvec",
+    "jacobian_rmatvec",
+]
+
+
+class SparseJacobian(NamedTuple):
+    """Contact Jacobian rows as ``m`` entries per candidate.
+
+    ``J_C[..., k, r, points[..., k, a], :] += values[..., k, r, a, :]`` for every
+    entry ``a``; unused entries have zero ``values`` (and any valid point).
+
+    Attributes:
+        points: ``(..., Ka, m)`` long, point indices.
+        values: ``(..., Ka, d, m, dim)``.
+    """
+
+    points: Tensor
+    values: Tensor
+
+
+@runtime_checkable
+class Geometry(Protocol):
+    """What the simulator needs from a set of static contact candidates."""
+
+    d: int
+    n_candidates: int
+
+    def gaps(self, x: Tensor) -> Tensor:
+        """Signed gaps ``(..., K)`` of positions ``x: (..., P, dim)``."""
+        ...
+
+    def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
+        """Rows of the candidates ``idx: (..., Ka)`` as a :class:`SparseJacobian`."""
+        ...
+
+    def jacobian(self, x: Tensor, idx: Tensor) -> Tensor:
+        """Dense rows ``J_C: (..., Ka, d, P, dim)`` of the candidates ``idx``."""
+        ...
+
+    def to(self, device: torch.device | str) -> Geometry:
+        """A copy with its static tensors on ``device``."""
+        ...
+
+
+def broadcast_batch(x: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
+    """Expand ``x: (..., P, dim)`` and ``idx: (..., Ka)`` to common leading dims."""
+    batch = torch.broadcast_shapes(x.shape[:-2], idx.shape[:-1])
+    return x.expand(*batch, *x.shape[-2:]), idx.expand(*batch, idx.shape[-1])
+
+
+def gather_points(x: Tensor, points: Tensor) -> Tensor:
+    """Batched point lookup.
+
+    Args:
+        x: ``(*B, P, dim)``.
+        points: ``(*B, *S)`` long, with exactly ``x``'s leading dims ``B``.
+
+    Returns:
+        ``(*B, *S, dim)`` with ``out[b, s] = x[b, points[b, s]]``.
+    """
+    batch = x.shape[:-2]
+    tail = points.shape[len(batch) :]
+    flat = points.reshape(*batch, -1)
+    out = torch.gather(x, -2, flat.unsqueeze(-1).expand(*flat.shape, x.shape[-1]))
+    return out.reshape(*batch, *tail, x.shape[-1])
+
+
+def assemble_jacobian(jac: SparseJacobian, n_points: int) -> Tensor:
+    """Dense ``J_C: (..., Ka, d, P, dim)`` from a :class:`SparseJacobian`."""
+    values = jac.values
+    *lead, d, m, dim = values.shape
+    index = jac.points[..., None, :, None].expand(*lead, d, m, dim)
+    out = values.new_zeros(*lead, d, n_points, dim)
+    return out.scatter_add(-2, index, values)
+
+
+def jacobian_matvec(jac: SparseJacobian, v: Tensor) -> Tensor:
+    """Contact-space velocity ``J_C v``.
+
+    Args:
+        jac: rows for ``Ka`` candidates, leading dims ``B``.
+        v: ``(*B, P, dim)``.
+
+    Returns:
+        ``(*B, Ka, d)``.
+    """
+    v_pts = gather_points(v, jac.points)  # (*B, Ka, m, dim)
+    return (jac.values * v_pts.unsqueeze(-3)).sum((-1, -2))
+
+
+def jacobian_rmatvec(jac: SparseJacobian, f: Tensor, n_points: int) -> Tensor:
+    """Cartesian impulse ``J_C^T f``.
+
+    Args:
+        jac: rows for ``Ka`` candidates, leading dims ``B``.
+        f: ``(*B, Ka, d)``.
+        n_points: ``P``.
+
+    Returns:
+        ``(*B, P, dim)``.
+    """
+    contrib = (jac.values * f[..., None, None]).sum(-3)  # (*B, Ka, m, dim)
+    batch = contrib.shape[:-3]
+    dim = contrib.shape[-1]
+    contrib = contrib.reshape(*batch, -1, dim)
+    index = jac.points.reshape(*batch, -1, 1).expand(*batch, contrib.shape[-2], dim)
+    return contrib.new_zeros(*batch, n_points, dim).scatter_add(-2, index, contrib)
+
+
+class GeometryBase:
+    """Mix-in for frozen-dataclass geometries: dense Jacobian and device moves."""
+
+    d: ClassVar[int]
+
+    @property
+    def n_candidates(self) -> int:
+        raise NotImplementedError
+
+    def gaps(self, x: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
+        raise NotImplementedError
+
+    def jacobian(self, x: Tensor, idx: Tensor) -> Tensor:
+        """Dense rows ``J_C: (..., Ka, d, P, dim)`` of candidates ``idx: (..., Ka)``.
+
+        Padded entries of ``idx`` must hold a valid candidate index; their rows
+        are those of that candidate (the caller masks them).
+        """
+        return assemble_jacobian(self.jacobian_sparse(x, idx), x.shape[-2])
+
+    def to(self, device: torch.device | str):
+        """A copy with every tensor field on ``device`` (dtypes kept)."""
+        changes = {
+            f.name: getattr(self, f.name).to(device)
+            for f in dataclasses.fields(self)  # type: ignore[arg-type]
+            if isinstance(getattr(self, f.name), Tensor)
+        }
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ContactGeometry(GeometryBase):
+    """Several geometries with the same ``d``, candidates numbered part after part.
+
+    Candidate ``k`` of part ``i`` is candidate ``offsets[i] + k`` of the whole.
+
+    Attributes:
+        parts: the geometries, in numbering order.
+    """
+
+    parts: tuple[Geometry, ...]
+
+    def __post_init__(self) -> None:
+        if not self.parts:
+            raise ValueError("ContactGeometry needs at least one part")
+        ds = {p.d for p in self.parts}
+        if len(ds) != 1:
+            raise ValueError(f"ContactGeometry parts must share d, got {sorted(ds)}")
+
+    @property
+    def d(self) -> int:  # type: ignore[override]
+        return self.parts[0].d
+
+    @property
+    def n_candidates(self) -> int:
+        return sum(p.n_candidates for p in self.parts)
+
+    @property
+    def offsets(self) -> tuple[int, ...]:
+        """First candidate index of each part."""
+        out, acc = [], 0
+        for p in self.parts:
+            out.append(acc)
+            acc += p.n_candidates
+        return tuple(out)
+
+    def gaps(self, x: Tensor) -> Tensor:
+        """Signed gaps ``(..., K)`` of all candidates for ``x: (..., P, dim)``."""
+        return torch.cat([p.gaps(x) for p in self.parts], dim=-1)
+
+    def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
+        """Rows of candidates ``idx: (..., Ka)``; entries padded to the largest ``m``.
+
+        Each part is evaluated on all ``Ka`` entries (indices clamped into its
+        range) and the right part is selected per entry; the parts are few.
+        """
+        x, idx = broadcast_batch(x, idx)
+        parts = []
+        for part, off in zip(self.parts, self.offsets, strict=True):
+            local = (idx - off).clamp(0, part.n_candidates - 1)
+            jac = part.jacobian_sparse(x, local)
+            inside = (idx >= off) & (idx < off + part.n_candidates)
+            parts.append((jac, inside))
+        m = max(jac.points.shape[-1] for jac, _ in parts)
+        points = values = None
+        for jac, inside in parts:
+            pad = m - jac.points.shape[-1]
+            p_pts = torch.nn.functional.pad(jac.points, (0, pad))
+            p_val = torch.nn.functional.pad(jac.values, (0, 0, 0, pad))
+            if points is None:
+                points, values = p_pts, p_val
+            else:
+                points = torch.where(inside.unsqueeze(-1), p_pts, points)
+                values = torch.where(inside[..., None, None, None], p_val, values)
+        assert points is not None and values is not None
+        return SparseJacobian(points, values)
+
+    def to(self, device: torch.device | str) -> ContactGeometry:
+        """A copy with every part's tensors on ``device``."""
+        return ContactGeometry(tuple(p.to(device) for p in self.parts))

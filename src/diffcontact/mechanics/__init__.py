@@ -1,0 +1,60 @@
+"""Extended bodies, equality constraints, constrained dynamics and RK4.
+
+Pure tensor functions of ``(x, v, params)``; see ``docs/conventions.md`` for
+the state layout ``z: (..., 2, P, dim)`` and the point-major flattening.
+"""
+
+from diffcontact.mechanics.bodies import (
+    assemble_mass_matrix,
+    body_inverse_mass_matrix,
+    body_mass_matrix,
+    chain_points_2d,
+    disk_points_2d,
+    kinetic_energy,
+    kron_identity,
+    rigid_body_points_3d,
+)
+from diffcontact.mechanics.constraints import (
+    EqualityConstraints,
+    ball_joint,
+    chain_constraints,
+    concat_constraints,
+    dot_constraints,
+    linear_constraints,
+    rigid_body_constraints,
+)
+from diffcontact.mechanics.dynamics import (
+    Mhat_inv,
+    gravity_potential,
+    hamiltonian_flow,
+    hamiltonian_vector_field,
+    lagrangian_vector_field,
+    potential_gradient,
+)
+from diffcontact.mechanics.integrate import VectorField, rk4_step
+
+__all__ = [
+    "EqualityConstraints",
+    "Mhat_inv",
+    "VectorField",
+    "assemble_mass_matrix",
+    "ball_joint",
+    "body_inverse_mass_matrix",
+    "body_mass_matrix",
+    "chain_constraints",
+    "chain_points_2d",
+    "concat_constraints",
+    "disk_points_2d",
+    "dot_constraints",
+    "gravity_potential",
+    "hamiltonian_flow",
+    "hamiltonian_vector_field",
+    "kinetic_energy",
+    "kron_identity",
+    "lagrangian_vector_field",
+    "linear_constraints",
+    "potential_gradient",
+    "rigid_body_constraints",
+    "rigid_body_points_3d",
+    "rk4_step",
+]

@@ -1,0 +1,260 @@
+"""solve_cone_qp: optimality, masking, degenerate points, gradients and input errors.
+
+Agreement with an independent conic solver (Clarabel) is in
+test_reference_agreement.py; this file checks the solver against the
+optimality conditions and closed-form cases, which need no other solver.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffcontact.contact import ConeQPError, SolverSettings, solve_cone_qp
+from diffcontact.contact.cone import project_contact_set
+from diffcontact.testing import assert_gradients_close
+
+F64 = torch.float64
+
+
+def random_problems(n, K, d, seed, rank=None, lower_frac=0.0):
+    gen = torch.Generator().manual_seed(seed)
+    C = K * d
+    r = C if rank is None else rank
+    B = torch.randn(n, C, r, generator=gen, dtype=F64)
+    A = B @ B.transpose(-1, -2) / r
+    if rank is None:
+        A = A + 0.05 * torch.eye(C, dtype=F64)
+    b = torch.randn(n, C, generator=gen, dtype=F64)
+    mu = torch.rand(n, K, generator=gen, dtype=F64) * 1.2
+    lower = torch.rand(n, K, generator=gen, dtype=F64)
+    lower = lower * (torch.rand(n, K, generator=gen) < lower_frac)
+    return A, b, mu, lower
+
+
+def sym(x):
+    return 0.5 * (x + x.transpose(-1, -2))
+
+
+def natural_residual(A, b, mu, lower, f, d):
+    """||f - Pi_C(f - (A f + b))||_inf: zero exactly at minimisers."""
+    K = mu.shape[-1]
+    z = f - (A @ f.unsqueeze(-1)).squeeze(-1) - b
+    proj, *_ = project_contact_set(z.reshape(*z.shape[:-1], K, d), mu, lower)
+    return (f - proj.flatten(-2)).abs().amax(-1)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+@pytest.mark.parametrize("K", [1, 7, 30])
+def test_solution_is_feasible_and_optimal(d, K):
+    A, b, mu, lower = random_problems(16, K, d, seed=K * 10 + d, lower_frac=0.3)
+    f = solve_cone_qp(A, b, mu, d, lower)
+    fk = f.reshape(16, K, d)
+    assert (fk[..., 0] >= lower - 1e-12).all()
+    if d > 1:
+        assert (fk[..., 1:].norm(dim=-1) <= mu * fk[..., 0] + 1e-10).all()
+    assert natural_residual(A, b, mu, lower, f, d).max() < 1e-9
+    # no feasible perturbation lowers the objective
+    obj = lambda x: 0.5 * (x * (A @ x.unsqueeze(-1)).squeeze(-1)).sum(-1) + (b * x).sum(-1)  # noqa: E731
+    gen = torch.Generator().manual_seed(1)
+    for _ in range(20):
+        y = fk + 0.05 * torch.randn(fk.shape, generator=gen, dtype=F64)
+        y_proj, *_ = project_contact_set(y, mu, lower)
+        assert (obj(y_proj.flatten(-2)) >= obj(f) - 1e-10).all()
+
+
+def test_ball_hits_wall_with_friction_closed_form():
+    # unit mass point, wall contact: A = I (d = 2), so f = Pi_cone(-v_C) (maximum
+    # dissipation). v_C = (-2, 1), mu = 0.3: sliding, on the cone's surface,
+    # f = c (1, -mu) with c = (2 + mu * 1) / (1 + mu^2)
+    A = torch.eye(2, dtype=F64)
+    f = solve_cone_qp(A, torch.tensor([-2.0, 1.0], dtype=F64), torch.tensor([0.3], dtype=F64), 2)
+    c = (2 + 0.3) / (1 + 0.09)
+    torch.testing.assert_close(f, torch.tensor([c, -0.3 * c], dtype=F64))
+    # sticking when mu is large: the tangential velocity is removed
+    f = solve_cone_qp(A, torch.tensor([-2.0, 1.0], dtype=F64), torch.tensor([0.8], dtype=F64), 2)
+    torch.testing.assert_close(f, torch.tensor([2.0, -1.0], dtype=F64))
+    # separating: no impulse
+    f = solve_cone_qp(A, torch.tensor([2.0, 1.0], dtype=F64), torch.tensor([0.8], dtype=F64), 2)
+    assert (f == 0).all()
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_inactive_contacts_are_zero_and_do_not_interact(d):
+    K = 6
+    A, b, mu, lower = random_problems(8, K, d, seed=3, lower_frac=0.3)
+    active = torch.rand(8, K, generator=torch.Generator().manual_seed(0)) < 0.5
+    active[:, 0] = True
+    f = solve_cone_qp(A, b, mu, d, lower, active)
+    mask_c = active.repeat_interleave(d, -1)
+    assert (f[~mask_c] == 0).all()
+    for i in range(8):  # reference: the reduced problem without the inactive contacts
+        keep = mask_c[i]
+        f_red = solve_cone_qp(
+            A[i][keep][:, keep], b[i][keep], mu[i][active[i]], d, lower[i][active[i]]
+        )
+        torch.testing.assert_close(f[i][keep], f_red, rtol=1e-9, atol=1e-11)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_gradients_match_finite_differences(d):
+    A, b, mu, lower = random_problems(6, 5, d, seed=7 + d, lower_frac=0.4)
+    mu = mu + 0.1
+    assert_gradients_close(
+        lambda A, b, mu, lower: solve_cone_qp(A, b, mu, d, lower),
+        (A, b, mu, lower),
+        directions={0: sym, 3: lambda x: x * (lower > 0)},
+        rtol=1e-4,
+    )
+
+
+def test_gradient_at_mu_zero_is_the_right_derivative():
+    A = torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=F64)
+    b = torch.tensor([-1.0, 0.5], dtype=F64)
+    mu = torch.zeros(1, dtype=F64, requires_grad=True)
+    f = solve_cone_qp(A, b, mu, 2)
+    assert f[1] == 0
+    (g,) = torch.autograd.grad(f[1], mu)
+    eps = 1e-7
+    fd = solve_cone_qp(A, b, torch.tensor([eps], dtype=F64), 2)[1] / eps
+    assert torch.isfinite(g).all()
+    torch.testing.assert_close(g[0], fd, rtol=1e-5, atol=1e-9)
+    assert g[0] < 0  # friction opposes the positive tangential velocity
+
+
+def test_gradient_at_separating_contact_is_zero_and_finite():
+    A, b, mu, _ = random_problems(4, 3, 2, seed=2)
+    b[:, ::2] = 5.0  # all contacts separate fast: f = 0 at the cone's tip
+    A.requires_grad_()
+    b.requires_grad_()
+    mu.requires_grad_()
+    f = solve_cone_qp(A, b, mu, 2)
+    assert (f == 0).all()
+    grads = torch.autograd.grad((f * torch.randn_like(f)).sum(), (A, b, mu))
+    for g in grads:
+        assert torch.isfinite(g).all() and (g == 0).all()
+
+
+def test_gradient_with_lower_bound_active_and_lower_zero():
+    # one separating contact pushed by its lower bound (restitution phase, f_n = l)
+    A = torch.tensor([[1.5]], dtype=F64)
+    b = torch.tensor([1.0], dtype=F64)
+    for l0 in (0.0, 0.4):
+        lower = torch.tensor([l0], dtype=F64, requires_grad=True)
+        f = solve_cone_qp(A, b, torch.zeros(1, dtype=F64), 1, lower)
+        (g,) = torch.autograd.grad(f.sum(), lower)
+        assert f.item() == pytest.approx(l0)
+        assert g.item() == pytest.approx(1.0)  # right derivative at l = 0
+
+
+def test_rank_deficient_pendulum_contact():
+    # a pendulum bob moving only along n: A = n n^T (rank 1), d = 2
+    n = torch.tensor([0.6, 0.8], dtype=F64)
+    A = torch.outer(n, n)
+    b = torch.tensor([-1.0, 0.3], dtype=F64)
+    mu = torch.tensor([0.3], dtype=F64)
+    f = solve_cone_qp(A, b, mu, 2)
+    r = A @ f + b  # post-impact contact velocity: sliding, r_n = mu |r_t|
+    assert r[0] == pytest.approx(mu.item() * abs(r[1].item()), rel=1e-9)
+    assert abs(f[1]) == pytest.approx(mu.item() * f[0].item(), rel=1e-9)
+    assert_gradients_close(
+        lambda A, b, mu: solve_cone_qp(A, b, mu, 2),
+        (A, b, mu),
+        directions={0: lambda x: torch.outer(n, n) * x.sum()},  # stay rank 1
+    )
+
+
+def test_rank_deficient_batch_matches_optimality():
+    A, b, mu, lower = random_problems(32, 8, 2, seed=5, rank=10, lower_frac=0.3)
+    f, status = solve_cone_qp(A, b, mu, 2, lower, return_status=True)
+    ok = status.converged
+    assert ok.sum() >= 8  # most random problems are bounded
+    assert (status.unbounded | ok).all()  # the others are reported as unbounded
+    assert natural_residual(A, b, mu, lower, f, 2)[ok].max() < 1e-8
+
+
+def test_unbounded_problem_raises_or_reports():
+    n = torch.tensor([0.6, 0.8], dtype=F64)
+    A, b = torch.outer(n, n), torch.tensor([-1.0, 0.3], dtype=F64)
+    mu = torch.tensor([2.0], dtype=F64)  # (0.8, -0.6) is a free descent direction in the cone
+    with pytest.raises(ConeQPError, match="unbounded"):
+        solve_cone_qp(A, b, mu, 2)
+    _, status = solve_cone_qp(A, b, mu, 2, return_status=True)
+    assert bool(status.unbounded) and not bool(status.converged)
+
+
+def test_shared_parameter_receives_summed_gradient():
+    A, b, _, _ = random_problems(5, 4, 2, seed=11)
+    mu_shared = torch.full((4,), 0.4, dtype=F64, requires_grad=True)
+    w = torch.randn(5, 8, dtype=F64)
+    f = solve_cone_qp(A, b, mu_shared.expand(5, 4), 2)
+    (g_shared,) = torch.autograd.grad((f * w).sum(), mu_shared)
+    g_each = []
+    for i in range(5):
+        mu_i = mu_shared.detach().clone().requires_grad_()
+        fi = solve_cone_qp(A[i], b[i], mu_i, 2)
+        g_each.append(torch.autograd.grad((fi * w[i]).sum(), mu_i)[0])
+    torch.testing.assert_close(g_shared, torch.stack(g_each).sum(0))
+
+
+def test_leading_batch_dims_and_float32():
+    A, b, mu, lower = random_problems(12, 5, 3, seed=4, lower_frac=0.3)
+    f64 = solve_cone_qp(A, b, mu, 3, lower)
+    f = solve_cone_qp(
+        A.reshape(3, 4, 15, 15).float(),
+        b.reshape(3, 4, 15).float(),
+        mu.reshape(3, 4, 5).float(),
+        3,
+        lower.reshape(3, 4, 5).float(),
+    )
+    assert f.shape == (3, 4, 15) and f.dtype == torch.float32
+    torch.testing.assert_close(f.reshape(12, 15).double(), f64, rtol=1e-4, atol=1e-5)
+    f_native = solve_cone_qp(
+        A.float(),
+        b.float(),
+        mu.float(),
+        3,
+        lower.float(),
+        settings=SolverSettings(compute_dtype=None),
+        return_status=True,
+    )[0]
+    assert f_native.dtype == torch.float32
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu():
+    A, b, mu, lower = random_problems(64, 10, 2, seed=9, lower_frac=0.3)
+    f_cpu = solve_cone_qp(A, b, mu, 2, lower)
+    f_gpu = solve_cone_qp(A.cuda(), b.cuda(), mu.cuda(), 2, lower.cuda())
+    assert f_gpu.device.type == "cuda"
+    torch.testing.assert_close(f_gpu.cpu(), f_cpu, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"d": 4}, "d must be 1, 2 or 3"),
+        ({"mu": -torch.ones(2, dtype=F64)}, "mu must be >= 0"),
+        ({"lower": -torch.ones(2, dtype=F64)}, "lower must be >= 0"),
+        ({"b": torch.ones(3, dtype=F64)}, "b must have shape"),
+        ({"mu": torch.ones(3, dtype=F64)}, "mu must have shape"),
+        ({"b": torch.tensor([float("nan"), 0, 0, 0], dtype=F64)}, "b contains NaN"),
+        ({"A": torch.ones(4, 3, dtype=F64)}, "A must have shape"),
+        ({"A": torch.triu(torch.ones(4, 4, dtype=F64))}, "A must be symmetric"),
+        ({"active": torch.ones(2)}, "active must be a bool tensor"),
+        ({"b": torch.ones(4, dtype=torch.float32)}, "b has dtype"),
+        ({"mu": torch.ones(5, 2, dtype=F64), "b": torch.ones(3, 4, dtype=F64)}, "broadcast"),
+    ],
+)
+def test_bad_calls_name_the_problem(kwargs, message):
+    args = {
+        "A": torch.eye(4, dtype=F64),
+        "b": torch.ones(4, dtype=F64),
+        "mu": torch.ones(2, dtype=F64),
+        "d": 2,
+        "lower": None,
+        "active": None,
+    }
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        solve_cone_qp(**args)

@@ -1,0 +1,146 @@
+"""RK4 on free fall, convergence order, chain-pendulum invariants, rollout gradients."""
+
+import math
+
+import pytest
+import torch
+
+from diffcontact.mechanics import (
+    chain_constraints,
+    chain_points_2d,
+    gravity_potential,
+    hamiltonian_flow,
+    hamiltonian_vector_field,
+    kinetic_energy,
+    lagrangian_vector_field,
+    potential_gradient,
+    rk4_step,
+)
+
+DT = torch.float64
+GRAVITY = torch.tensor([0.0, -9.81], dtype=DT)
+
+
+def make_field(field, masses, constraints, create_graph=False):
+    M = torch.diag(masses)
+    M_inv = torch.diag(1 / masses)
+
+    def V(x):
+        return gravity_potential(x, M, GRAVITY)
+
+    def vector_field(x, v):
+        gV = potential_gradient(V, x, create_graph=create_graph)
+        return v, field(x, v, M_inv, gV, constraints)
+
+    return vector_field, V
+
+
+def test_free_fall_is_exact():
+    masses = torch.tensor([0.1, 2.0], dtype=DT)
+    vf, _ = make_field(lagrangian_vector_field, masses, None)
+    x0 = torch.tensor([[0.2, 0.9], [0.5, 0.1]], dtype=DT)
+    v0 = torch.tensor([[1.0, 3.0], [-0.5, 0.0]], dtype=DT)
+    x, v = x0, v0
+    dt, n = 0.01, 50
+    for _ in range(n):
+        x, v = rk4_step(vf, x, v, dt)
+    t = dt * n
+    torch.testing.assert_close(x, x0 + v0 * t + 0.5 * GRAVITY * t**2, rtol=0, atol=1e-14)
+    torch.testing.assert_close(v, v0 + GRAVITY * t, rtol=0, atol=1e-13)
+
+
+def test_fourth_order_convergence_and_tensor_dt():
+    """Harmonic oscillator x'' = -x: halving dt divides the error by ~16."""
+
+    def vf(x, v):
+        return v, -x
+
+    def error(dt, n):
+        x, v = torch.ones(1, 1, dtype=DT), torch.zeros(1, 1, dtype=DT)
+        for _ in range(n):
+            x, v = rk4_step(vf, x, v, dt)
+        return abs(x.item() - math.cos(dt * n))
+
+    ratio = error(0.2, 10) / error(0.1, 20)
+    assert 14.0 < ratio < 18.0
+    # a per-element step: element b uses dt[b]
+    dts = torch.tensor([0.1, 0.2], dtype=DT)
+    x, _ = rk4_step(vf, torch.ones(2, 1, 1, dtype=DT), torch.zeros(2, 1, 1, dtype=DT), dts)
+    x1, _ = rk4_step(vf, torch.ones(1, 1, dtype=DT), torch.zeros(1, 1, dtype=DT), 0.2)
+    torch.testing.assert_close(x[1], x1)
+
+
+def chain_rollout(mode: str, dt: float, steps: int):
+    """CP3-e chain from 4 task-like initial states; returns start and end states."""
+    masses = torch.tensor([0.2, 0.13, 0.15], dtype=DT)
+    lengths = torch.tensor([0.35, 0.4, 0.35], dtype=DT)
+    cons = chain_constraints(lengths)
+    field = lagrangian_vector_field if mode == "lagrangian" else hamiltonian_vector_field
+    vf, V = make_field(field, masses, cons)
+    if mode == "hamiltonian_flow":  # integrate S.7's projected x_dot as well
+
+        def vf(x, v):
+            gV = potential_gradient(V, x)
+            return hamiltonian_flow(x, v, torch.diag(1 / masses), gV, cons)
+
+    gen = torch.Generator().manual_seed(0)
+    q = torch.rand(4, 3, generator=gen, dtype=DT) * math.pi  # as the CP3 tasks sample
+    dq = torch.randn(4, 3, generator=gen, dtype=DT)
+    z = chain_points_2d(q, dq, lengths)
+    x, v = z[:, 0], z[:, 1]
+    for _ in range(steps):
+        x, v = rk4_step(vf, x, v, dt)
+    M = torch.diag(masses)
+    drift = (kinetic_energy(v, M) + V(x) - kinetic_energy(z[:, 1], M) - V(z[:, 0])).abs()
+    return z, x, v, cons, drift
+
+
+# tolerances over 1 s (100 steps of 0.01) from task-like states with |E| ~ 2 J and
+# joint speeds up to ~5 m/s: the error is RK4's truncation error (see the next test)
+TOLERANCES = {  # mode: (energy drift [J], |Phi| [m^2], |Phi_dot| [m^2/s])
+    "lagrangian": (2.5e-2, 2e-3, 5e-3),
+    "hamiltonian": (1e-2, 2e-3, 5e-3),
+    "hamiltonian_flow": (1e-2, 5e-5, 3e-3),
+}
+
+
+@pytest.mark.parametrize("mode", TOLERANCES)
+def test_chain_pendulum_conserves_energy_and_constraints(mode):
+    z, x, v, cons, drift = chain_rollout(mode, 0.01, 100)
+    tol_e, tol_phi, tol_phi_dot = TOLERANCES[mode]
+    assert drift.max() < tol_e
+    assert cons.phi(x).abs().max() < tol_phi  # squared link lengths ~ 0.12 m^2
+    assert cons.phi_dot(x, v).abs().max() < tol_phi_dot
+    assert (x - z[:, 0]).abs().max() > 0.1  # it moved
+
+
+def test_chain_pendulum_energy_error_is_truncation_error():
+    """Halving dt shrinks the energy drift by > 8x (RK4 order 4 gives ~16)."""
+    *_, coarse = chain_rollout("lagrangian", 0.01, 100)
+    *_, fine = chain_rollout("lagrangian", 0.005, 200)
+    assert (coarse / fine).min() > 8.0
+
+
+@pytest.mark.parametrize("field", [lagrangian_vector_field, hamiltonian_vector_field])
+def test_rollout_gradients_match_finite_differences(field):
+    lengths = torch.tensor([0.35, 0.4], dtype=DT)
+    cons = chain_constraints(lengths)
+
+    def rollout(masses, q, dq):
+        vf, _ = make_field(field, masses, cons, create_graph=True)
+        z = chain_points_2d(q, dq, lengths)
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        for _ in range(3):
+            x, v = rk4_step(vf, x, v, 0.05)
+        return torch.stack([x, v], dim=-3)
+
+    inputs = (
+        torch.tensor([0.2, 0.13], dtype=DT, requires_grad=True),
+        torch.tensor([[0.4, 1.3], [2.0, -0.5]], dtype=DT, requires_grad=True),
+        torch.tensor([[1.0, -0.3], [0.2, 0.8]], dtype=DT, requires_grad=True),
+    )
+    assert torch.autograd.gradcheck(rollout, inputs)
+    # the mass gradient is not trivially zero (it flows through the constraint forces)
+    out = rollout(*inputs)
+    (g_mass,) = torch.autograd.grad(out[..., 1, :, :].pow(2).sum(), inputs[0])
+    assert g_mass.abs().max() > 1e-3
