@@ -258,3 +258,22 @@ def test_bad_calls_name_the_problem(kwargs, message):
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         solve_cone_qp(**args)
+
+
+def test_problems_the_polish_cannot_finish_are_solved_again():
+    # a loose interior-point gap leaves active sets unidentified; the retries recover
+    A, b, mu, lower = random_problems(64, 20, 3, seed=21, lower_frac=0.3)
+    loose = SolverSettings(gap=1e-2, retries=0)
+    _, status = solve_cone_qp(A, b, mu, 3, lower, settings=loose, return_status=True)
+    assert not status.all_converged
+    f, status = solve_cone_qp(
+        A,
+        b,
+        mu,
+        3,
+        lower,
+        settings=SolverSettings(gap=1e-2, retries=3),
+        return_status=True,
+    )
+    assert status.all_converged
+    assert natural_residual(A, b, mu, lower, f, 3).max() < 1e-9

@@ -61,6 +61,8 @@ class SolverSettings:
             residuals (scaled), before polishing (float64: 1e-9, float32: 1e-4).
         max_iter: interior-point iteration cap.
         polish_steps: Newton steps on the natural map.
+        retries: re-solves, each with a 1000x tighter interior-point gap, of the
+            problems the polish could not finish.
         kkt_reg: relative regularisation ``delta`` of ``A`` in the polish and
             backward Jacobian (float64: 1e-12, float32: 1e-7).
         check_inputs: validate shapes, signs, finiteness and symmetry.
@@ -75,6 +77,7 @@ class SolverSettings:
     gap: float | None = None
     max_iter: int = 100
     polish_steps: int = 4
+    retries: int = 2
     kkt_reg: float | None = None
     check_inputs: bool = True
     compute_dtype: torch.dtype | None = torch.float64
@@ -87,6 +90,7 @@ class SolverSettings:
             gap=self.gap if self.gap is not None else (1e-9 if double else 1e-4),
             max_iter=self.max_iter,
             polish_steps=self.polish_steps,
+            retries=self.retries,
             kkt_reg=self.kkt_reg if self.kkt_reg is not None else (1e-12 if double else 1e-7),
             check_inputs=self.check_inputs,
             compute_dtype=dtype,
@@ -180,38 +184,33 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         mu_ipm = torch.where(mu_m > 0, mu_m, 1)
     else:
         A_ipm, b_ipm, mu_ipm = A_m, b_m, mu_m
-    ipm = interior_point_solve(
-        A_ipm / a_s[:, None, None],
-        b_ipm / b_s[:, None],
-        mu_ipm,
-        lower_m / c[:, None],
-        d,
-        tol=settings.gap,
-        max_iter=settings.max_iter,
-    )
-    f = ipm.f * c[:, None]
-
-    # natural-map Newton polish
     rho = 1 / a_s
     reg = settings.kkt_reg * a_s
-    F, P, dmu, dl = _natural_map(A_m, b_m, mu_m, lower_m, f, rho)
-    res = _scaled_residual(F, f, c)
-    for step in range(settings.polish_steps + 1):
-        # the factorisation at the final point is reused by the backward pass
-        LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A_m, P, rho, reg))
-        if step == settings.polish_steps or bool((res <= settings.tol).all()):
+    A_ipm = A_ipm / a_s[:, None, None]
+    b_ipm = b_ipm / b_s[:, None]
+    lower_ipm = lower_m / c[:, None]
+    data = (A_m, b_m, mu_m, lower_m, rho, reg, c)
+
+    # A problem the polish cannot finish (the interior point stopped too early to
+    # identify its active set: rare, near-degenerate) is solved again with a tighter gap.
+    rows = torch.arange(b.shape[0], device=device)
+    gap = settings.gap
+    for attempt in range(settings.retries + 1):
+        sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
+        ipm = interior_point_solve(*sub, d, tol=gap, max_iter=settings.max_iter)
+        polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
+        if attempt == 0:
+            f, res, P, dmu, dl, LU, piv = polished
+            unbounded, iterations = ipm.unbounded, ipm.iterations
+        else:
+            for full, part in zip((f, res, P, dmu, dl, LU, piv), polished, strict=True):
+                full[rows] = part
+            unbounded[rows] = ipm.unbounded
+            iterations[rows] += ipm.iterations
+        retry = (polished[1] > settings.tol) & ~ipm.unbounded
+        if not bool(retry.any()):
             break
-        delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
-        f_new = f + torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-        F_new, P_new, dmu_new, dl_new = _natural_map(A_m, b_m, mu_m, lower_m, f_new, rho)
-        res_new = _scaled_residual(F_new, f_new, c)
-        better = res_new < res
-        f = torch.where(better[:, None], f_new, f)
-        F = torch.where(better[:, None], F_new, F)
-        P = torch.where(better[:, None, None, None], P_new, P)
-        dmu = torch.where(better[:, None, None], dmu_new, dmu)
-        dl = torch.where(better[:, None, None], dl_new, dl)
-        res = torch.where(better, res_new, res)
+        rows, gap = rows[retry], gap * 1e-3
 
     f = torch.where(act_c, f, 0)
     # an iterate that ran off along a direction of zero curvature and descent is a
@@ -222,13 +221,38 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     curv = (dirn * torch.einsum("bij,bj->bi", A_m / a_s[:, None, None], dirn)).sum(-1)
     descent = (dirn * b_m / b_s[:, None]).sum(-1)
     runaway = (size > 1e8) & (curv <= 1e-6) & (descent < 0)
-    unbounded = ipm.unbounded | runaway
+    unbounded = unbounded | runaway
     converged = (res <= settings.tol) & ~unbounded
     status = SolverStatus(
-        converged=converged, unbounded=unbounded, iterations=ipm.iterations, residual=res
+        converged=converged, unbounded=unbounded, iterations=iterations, residual=res
     )
     saved = (f, P, dmu, dl, rho, LU, piv, act_c, active)
     return f, status, saved
+
+
+def _polish(f: Tensor, data, settings: SolverSettings):
+    """Newton steps on the natural map from ``f`` (B, C); steps that do not lower the
+    residual are rejected. Returns the point, its residual, the projection's derivatives
+    and the LU factorisation of dF/df there (reused by the backward pass)."""
+    A, b, mu, lower, rho, reg, c = data
+    F, P, dmu, dl = _natural_map(A, b, mu, lower, f, rho)
+    res = _scaled_residual(F, f, c)
+    for step in range(settings.polish_steps + 1):
+        LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
+        if step == settings.polish_steps or bool((res <= settings.tol).all()):
+            break
+        delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
+        f_new = f + torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
+        res_new = _scaled_residual(F_new, f_new, c)
+        better = res_new < res
+        f = torch.where(better[:, None], f_new, f)
+        F = torch.where(better[:, None], F_new, F)
+        P = torch.where(better[:, None, None, None], P_new, P)
+        dmu = torch.where(better[:, None, None], dmu_new, dmu)
+        dl = torch.where(better[:, None, None], dl_new, dl)
+        res = torch.where(better, res_new, res)
+    return f, res, P, dmu, dl, LU, piv
 
 
 class _ConeQPFunction(torch.autograd.Function):
