@@ -122,26 +122,23 @@ def _soc_max_step(x: Tensor, dx: Tensor) -> Tensor:
     c = _soc_det(x)
     bq = x[..., 0] * dx[..., 0] - (x[..., 1:] * dx[..., 1:]).sum(-1)
     a = _soc_det(dx)
-    inf = torch.full_like(c, float("inf"))
     disc = bq * bq - a * c
     sq = disc.clamp_min(0).sqrt()
     q = -(bq + torch.where(bq >= 0, sq, -sq))
-    q_safe = torch.where(q == 0, torch.ones_like(q), q)
-    a_safe = torch.where(a == 0, torch.ones_like(a), a)
-    r1 = torch.where(a != 0, q / a_safe, inf)
-    r2 = torch.where(q != 0, c / q_safe, inf)
+    # roots of a t^2 + 2 bq t + c: q / a and c / q (c > 0); the smallest positive one
+    # is where the line leaves the cone (none if disc < 0). Divisions by zero give
+    # +-inf or nan, which the positivity tests below discard.
+    r1 = q / a
+    r2 = c / q
+    inf = torch.full_like(c, float("inf"))
     r1 = torch.where(r1 > 0, r1, inf)
     r2 = torch.where(r2 > 0, r2, inf)
-    roots = torch.minimum(r1, r2)
-    # linear case a == 0: root -c / (2 bq) when bq < 0
-    lin = torch.where(bq < 0, -c / (2 * torch.where(bq < 0, bq, -torch.ones_like(bq))), inf)
-    roots = torch.where(a == 0, lin, roots)
-    return torch.where(disc < 0, inf, roots)
+    return torch.where(disc < 0, inf, torch.minimum(r1, r2))
 
 
 def _orth_max_step(x: Tensor, dx: Tensor) -> Tensor:
-    neg = dx < 0
-    return torch.where(neg, -x / torch.where(neg, dx, -torch.ones_like(dx)), float("inf"))
+    ratio = -x / dx
+    return torch.where(dx < 0, ratio, float("inf"))
 
 
 # --- the method -------------------------------------------------------------------
@@ -315,11 +312,14 @@ def interior_point_solve(
                 dzq = dsq = None
             return df, dsl, dsq, dzl, dzq
 
+        # primal and dual blocks side by side: one call per cone type
+        slz = torch.cat([sl, zl], -1)
+        sqz = torch.cat([sq, zq], -2) if d > 1 else None
+
         def max_step(dsl, dsq, dzl, dzq):
-            a = torch.minimum(_orth_max_step(sl, dsl), _orth_max_step(zl, dzl)).amin(-1)
+            a = _orth_max_step(slz, torch.cat([dsl, dzl], -1)).amin(-1)
             if d > 1:
-                a = torch.minimum(a, _soc_max_step(sq, dsq).amin(-1))
-                a = torch.minimum(a, _soc_max_step(zq, dzq).amin(-1))
+                a = torch.minimum(a, _soc_max_step(sqz, torch.cat([dsq, dzq], -2)).amin(-1))
             return a
 
         # predictor
