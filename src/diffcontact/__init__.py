@@ -13,4 +13,13 @@ try:
 except PackageNotFoundError:  # running from a source tree without installation
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+__all__ = ["System", "__version__", "load_system"]
+
+
+def __getattr__(name: str):
+    # lazy: importing diffcontact stays cheap; torch loads with the first use
+    if name in ("System", "load_system"):
+        from diffcontact import systems
+
+        return getattr(systems, name)
+    raise AttributeError(f"module 'diffcontact' has no attribute {name!r}")

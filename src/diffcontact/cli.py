@@ -1,22 +1,118 @@
-"""The ``diffcontact`` command line."""
+"""The ``diffcontact`` command line.
+
+Subcommands:
+
+- ``diffcontact demo``: the solver demonstration (a ball hitting a wall).
+- ``diffcontact simulate TASK_OR_CONFIG``: simulate a built-in task or a config
+  file, save the trajectories as ``.npz`` and optionally a GIF.
+
+Bad input (unknown task, missing file, bad numbers, unwritable output, CUDA
+not available) gives a one-line error on stderr and exit status 2. Heavy
+imports (torch, matplotlib) happen inside the subcommands.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import time
+from typing import NoReturn
 
 from diffcontact import __version__
 
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """Bad input from the command line; reported as one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``PROG: error: MESSAGE``) and exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="diffcontact",
-        description="Learn and simulate colliding physical systems with differentiable contact models.",
+        description=(
+            "Learn and simulate colliding physical systems with differentiable contact models."
+        ),
     )
     parser.add_argument("--version", action="version", version=f"diffcontact {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
     demo = sub.add_parser("demo", help="run the solver demonstration (a ball hitting a wall)")
     demo.set_defaults(func=_cmd_demo)
+
+    sim = sub.add_parser(
+        "simulate",
+        help="simulate a task and save the trajectories (.npz) and optionally a GIF",
+        description=(
+            "Sample initial conditions of a task, simulate them with the ground-truth "
+            "contact model, and save traj (N, steps+1, 2, P, d), energy (N, steps+1), "
+            "t (steps+1,) and metadata (config as JSON, seed, task, dt, contact_model, "
+            "diffcontact_version) to an .npz file."
+        ),
+    )
+    sim.add_argument(
+        "task",
+        metavar="TASK_OR_CONFIG",
+        help="built-in task (BP5-e, BP5, BD5, CP3-e, CP3, Gyro-e, Gyro, Rope, Rope-D100, "
+        "Rope-D200, Rope-D400) or a path to a .yaml/.json config",
+    )
+    sim.add_argument("--n", type=_positive_int, default=4, help="trajectories (default 4)")
+    sim.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=None,
+        help="time steps per trajectory (default: the task's horizon, horizon/dt - 1)",
+    )
+    sim.add_argument(
+        "--seed", type=_non_negative_int, default=0, help="initial-condition seed (default 0)"
+    )
+    sim.add_argument("--out", default="sim.npz", help="output .npz file (default sim.npz)")
+    sim.add_argument("--gif", default=None, help="also write an animation to this .gif file")
+    sim.add_argument(
+        "--energy-plot", default=None, metavar="PNG", help="also plot the energy to this .png"
+    )
+    sim.add_argument(
+        "--contact-model",
+        choices=("CM", "CMr"),
+        default="CM",
+        help="contact model: CM (default) or CMr (regularised)",
+    )
+    sim.add_argument(
+        "--device", choices=("cpu", "cuda"), default="cpu", help="where to simulate (default cpu)"
+    )
+    sim.add_argument(
+        "--fps", type=_positive_int, default=20, help="GIF frames per second (default 20)"
+    )
+    sim.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    sim.set_defaults(func=_cmd_simulate)
     return parser
 
 
@@ -26,13 +122,140 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo()
 
 
+def _one_line(err: BaseException) -> str:
+    """An exception message on one line (multi-line validation messages joined by '; ')."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    if len(lines) == 1:
+        return lines[0]
+    return f"{lines[0].rstrip(':')}: " + "; ".join(lines[1:])
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    from diffcontact.io import check_writable
+
+    paths = [("--out", args.out), ("--gif", args.gif), ("--energy-plot", args.energy_plot)]
+    seen: dict[str, str] = {}
+    for flag, path in paths:
+        if path is None:
+            continue
+        try:
+            check_writable(path)
+        except OSError as err:
+            raise UsageError(f"cannot write {flag} {path!r}: {err}") from None
+        real = os.path.realpath(path)
+        if real in seen:
+            raise UsageError(f"{flag} and {seen[real]} name the same file {path!r}")
+        seen[real] = flag
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    _check_outputs(args)
+    import torch
+
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise UsageError("--device cuda requested but CUDA is not available (use --device cpu)")
+
+    import json
+
+    import numpy as np
+
+    from diffcontact.io import atomic_save_npz
+    from diffcontact.systems import load_system
+
+    try:
+        system = load_system(args.task)
+    except (ValueError, OSError) as err:
+        raise UsageError(_one_line(err)) from None
+    steps = args.steps if args.steps is not None else system.default_steps
+    if steps <= 0:  # a task whose horizon holds a single state
+        raise UsageError(f"--steps: the task's default is {steps}; give --steps explicitly")
+
+    start = time.perf_counter()
+    try:
+        z0 = system.sample_initial_conditions(args.n, seed=args.seed, device=args.device)
+        traj = system.simulate(
+            z0, steps=steps, contact_model=args.contact_model, progress=not args.quiet
+        )
+    except ValueError as err:
+        raise UsageError(_one_line(err)) from None
+    except RuntimeError as err:  # e.g. the contact solver did not converge
+        print(
+            f"diffcontact simulate: error: simulation failed: {type(err).__name__}: "
+            f"{_one_line(err)}",
+            file=sys.stderr,
+        )
+        return 1
+    with torch.no_grad():
+        energy = system.energy(traj)
+    elapsed = time.perf_counter() - start
+
+    traj_np = traj.detach().cpu().numpy()
+    energy_np = energy.detach().cpu().numpy()
+    config = system.config.model_dump(mode="json")
+    try:
+        atomic_save_npz(
+            args.out,
+            traj=traj_np,
+            energy=energy_np,
+            t=np.arange(steps + 1, dtype=np.float64) * system.dt,
+            config=np.str_(json.dumps(config)),
+            task=np.str_(args.task),
+            seed=np.int64(args.seed),
+            dt=np.float64(system.dt),
+            contact_model=np.str_(args.contact_model),
+            diffcontact_version=np.str_(__version__),
+        )
+        wrote = [args.out]
+        if args.gif is not None or args.energy_plot is not None:
+            from diffcontact.viz import animate, plot_energy, scene_from_system
+
+            if args.gif is not None:
+                animate(traj_np, scene_from_system(system), args.gif, fps=args.fps, dt=system.dt)
+                wrote.append(args.gif)
+            if args.energy_plot is not None:
+                plot_energy(energy_np, system.dt, args.energy_plot, title=system.name)
+                wrote.append(args.energy_plot)
+    except OSError as err:
+        print(f"diffcontact simulate: error: writing output failed: {err}", file=sys.stderr)
+        return 1
+
+    if not args.quiet:
+        e0, e1 = energy_np[:, 0], energy_np[:, -1]
+        change = e1 - e0
+        print(
+            f"{system.name}: {args.n} trajectories x {steps} steps "
+            f"(dt {system.dt:g} s, {args.contact_model}, {args.device}) in {elapsed:.2f} s"
+        )
+        print(f"  traj {tuple(traj_np.shape)} {traj_np.dtype}")
+        print(
+            f"  energy: E(0) mean {e0.mean():.6g}, E(end) mean {e1.mean():.6g}, "
+            f"E(end) - E(0) in [{change.min():.3g}, {change.max():.3g}]"
+        )
+        print(f"  wrote {', '.join(wrote)}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (also for ``--help``/``--version``)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors
+        code = exc.code
+        return code if isinstance(code, int) else (0 if code is None else EXIT_USAGE)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as err:
+        print(f"diffcontact {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"diffcontact {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -277,3 +277,28 @@ def test_problems_the_polish_cannot_finish_are_solved_again():
     )
     assert status.all_converged
     assert natural_residual(A, b, mu, lower, f, 3).max() < 1e-9
+
+
+@pytest.mark.parametrize(
+    ("name", "d"),
+    [
+        # 7 touching disks, mu = 0, restitution bounds, A of rank 11/14: the redundant
+        # constraints at the cone's tip used to stall the interior point
+        ("bd5_restitution_mu0_singular", 2),
+        ("gyro_compression_singular", 3),  # the gyroscope's rim contact, singular A
+        ("rope_d200_restitution", 1),  # many simultaneous rope limits
+    ],
+)
+def test_recorded_simulator_problems(name, d):
+    from pathlib import Path
+
+    data = torch.load(Path(__file__).parent / "data" / f"{name}.pt")
+    args = (data["A"], data["b"], data["mu"], d, data["lower"], data["active"])
+    f, status = solve_cone_qp(*args, return_status=True)
+    assert status.all_converged
+    lower = data["lower"] if data["lower"] is not None else torch.zeros_like(data["mu"])
+    active_c = data["active"].repeat_interleave(d, -1)
+    assert (f[~active_c] == 0).all()
+    A = torch.where(active_c[..., None] & active_c[..., None, :], data["A"], 0)
+    res = natural_residual(A, torch.where(active_c, data["b"], 1.0), data["mu"], lower, f, d)
+    assert res.max() < 1e-9

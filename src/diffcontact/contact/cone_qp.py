@@ -174,7 +174,12 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     b_m = torch.where(act_c, b, torch.where(is_normal, b_s[:, None], 0))
     mu_m = torch.where(active, mu, 1) if d > 1 else torch.ones_like(mu)
 
-    # interior point on the scaled problem, mu = 0 tangents decoupled
+    # interior point on the scaled problem. Redundant constraints are switched off so
+    # that no contact has two constraints active at the cone's tip (a degenerate point
+    # where interior-point steps stall): mu = 0 tangents are decoupled (their optimum is
+    # f_t = 0) and their dummy cone's apex moved out of the way; where the cone already
+    # implies f_n >= 0 (mu > 0, lower = 0) the orthant bound is relaxed to -1.
+    apex = None
     if d > 1:
         free_t = (mu_m == 0).repeat_interleave(d, dim=-1) & ~is_normal
         keep = ~free_t
@@ -182,13 +187,16 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         A_ipm = A_ipm + torch.where(free_t, a_s[:, None], 0)[:, :, None] * eye
         b_ipm = torch.where(free_t, 0, b_m)
         mu_ipm = torch.where(mu_m > 0, mu_m, 1)
+        apex = (mu_m == 0).to(dtype)
+        lower_ipm = torch.where((mu_m > 0) & (lower_m == 0), -1.0, lower_m / c[:, None])
     else:
         A_ipm, b_ipm, mu_ipm = A_m, b_m, mu_m
+        lower_ipm = lower_m / c[:, None]
     rho = 1 / a_s
     reg = settings.kkt_reg * a_s
     A_ipm = A_ipm / a_s[:, None, None]
     b_ipm = b_ipm / b_s[:, None]
-    lower_ipm = lower_m / c[:, None]
+    apex = torch.zeros_like(lower_ipm) if apex is None else apex
     data = (A_m, b_m, mu_m, lower_m, rho, reg, c)
 
     # A problem the polish cannot finish (the interior point stopped too early to
@@ -197,7 +205,7 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     gap = settings.gap
     for attempt in range(settings.retries + 1):
         sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
-        ipm = interior_point_solve(*sub, d, tol=gap, max_iter=settings.max_iter)
+        ipm = interior_point_solve(*sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows])
         polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
         if attempt == 0:
             f, res, P, dmu, dl, LU, piv = polished

@@ -145,10 +145,15 @@ def _orth_max_step(x: Tensor, dx: Tensor) -> Tensor:
 
 
 class _Cones:
-    """The constraint blocks of a (sub-)batch: G, its transpose and the scaling."""
+    """The constraint blocks of a (sub-)batch: G f and G^T z, and h.
 
-    def __init__(self, mu: Tensor, lower: Tensor, d: int):
-        self.mu, self.lower, self.d = mu, lower, d
+    The orthant block is ``f_n - lower >= 0``; the cone block is
+    ``(mu f_n + apex, f_t)``, i.e. its apex is shifted down by ``apex`` (used to
+    switch off a dummy cone that must never be active).
+    """
+
+    def __init__(self, mu: Tensor, lower: Tensor, apex: Tensor, d: int):
+        self.mu, self.lower, self.apex, self.d = mu, lower, apex, d
 
     def G(self, f: Tensor) -> tuple[Tensor, Tensor | None]:
         """G f as (orthant (B,K), cone (B,K,d) or None), f (B,K,d)."""
@@ -168,7 +173,9 @@ class _Cones:
         hl = -self.lower
         if self.d == 1:
             return hl, None
-        return hl, torch.zeros(*self.lower.shape, self.d, dtype=hl.dtype, device=hl.device)
+        hq = torch.zeros(*self.lower.shape, self.d, dtype=hl.dtype, device=hl.device)
+        hq[..., 0] = self.apex
+        return hl, hq
 
 
 def _shift_interior(xl: Tensor, xq: Tensor | None) -> tuple[Tensor, Tensor | None]:
@@ -193,6 +200,7 @@ def interior_point_solve(
     *,
     tol: float,
     max_iter: int,
+    apex: Tensor | None = None,
     blowup: float = 1e10,
 ) -> InteriorPointResult:
     """Run the batched primal-dual method on scaled problems.
@@ -201,10 +209,12 @@ def interior_point_solve(
         A: (B, C, C) symmetric PSD, diag ~ 1.
         b: (B, C), |b| ~ 1.
         mu: (B, K) strictly positive (callers decouple mu = 0 tangents).
-        lower: (B, K) >= 0.
+        lower: (B, K) bound of the orthant block ``f_n >= lower`` (callers pass a
+            negative bound to switch off a constraint the cone already implies).
         d: contact dimension.
         tol: target for the complementarity gap (per cone) and residuals.
         max_iter: iteration cap.
+        apex: (B, K) downward shift of each cone's apex (None: no shift).
 
     Returns:
         An :class:`InteriorPointResult`.
@@ -220,7 +230,7 @@ def interior_point_solve(
     iters_all = torch.full((B,), max_iter, dtype=torch.int64, device=device)
     idx = torch.arange(B, device=device)
 
-    cones = _Cones(mu, lower, d)
+    cones = _Cones(mu, lower, torch.zeros_like(lower) if apex is None else apex, d)
     hl, hq = cones.h()
 
     # initial point: minimise 0.5 f'Af + b'f + 0.5 ||G f - h||^2, z = G f - h, s = -z
@@ -243,7 +253,7 @@ def interior_point_solve(
         rx = (torch.einsum("bij,bj->bi", Ab, f.reshape(-1, C)) + bb).reshape(-1, K, d)
         rx = rx + cones.GT(zl, zq)
         rzl = gl + sl + cones.lower
-        rzq = gq + sq if d > 1 else None
+        rzq = gq + sq - hq if d > 1 else None
         gap = (sl * zl).sum(-1) + ((sq * zq).sum((-1, -2)) if d > 1 else 0)
         res = torch.maximum(rx.abs().flatten(1).amax(-1), rzl.abs().amax(-1))
         if d > 1:
@@ -266,7 +276,8 @@ def interior_point_solve(
             if d > 1:
                 sq, zq, rzq = sq[keep], zq[keep], rzq[keep]
             Ab, bb = Ab[keep], bb[keep]
-            cones = _Cones(cones.mu[keep], cones.lower[keep], d)
+            cones = _Cones(cones.mu[keep], cones.lower[keep], cones.apex[keep], d)
+            hl, hq = cones.h()
         Bn = idx.numel()
         mu_gap = gap / n_cones
 

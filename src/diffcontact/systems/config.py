@@ -1,0 +1,440 @@
+"""Validated system configurations (pydantic v2).
+
+A config is a plain mapping (from YAML, JSON or Python) whose ``type`` key picks
+one of five schemas: ``bouncing_masses``, ``bouncing_disks``,
+``chain_pendulum``, ``gyroscope`` and ``rope``. Every schema forbids unknown
+keys, and :func:`parse_config` turns any validation failure into a
+``ValueError`` whose message names the offending key. ``docs/config.md`` lists
+every key.
+
+Per-contact coefficients (``mu``, ``cor``) are given as one number for all
+contacts, a list in the contact numbering of ``docs/conventions.md`` (body
+pairs ``i < j`` first, then body-wall pairs body-major; rope: bending limits,
+then stretch limits), or a mapping from contact *groups* to a number or a
+list, e.g. ``{pairs: [...], walls: 0.1}``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+
+__all__ = [
+    "SYSTEM_TYPES",
+    "BouncingDisksConfig",
+    "BouncingMassesConfig",
+    "ChainPendulumConfig",
+    "ContactGroups",
+    "GyroscopeConfig",
+    "RopeConfig",
+    "SystemConfig",
+    "parse_config",
+]
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Line = tuple[Finite, Finite, Finite]
+Plane = tuple[Finite, Finite, Finite, Finite]
+Pair = tuple[Finite, Finite]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ContactGroups(_Strict):
+    """Per-contact values by group; each group is one number or one list.
+
+    Groups: ``pairs`` (body-body, ``i < j`` lexicographic) and ``walls``
+    (body-wall, body-major) for circle systems and the gyroscope;
+    ``bending`` and ``stretch`` for the rope.
+    """
+
+    pairs: float | list[float] | None = None
+    walls: float | list[float] | None = None
+    bending: float | list[float] | None = None
+    stretch: float | list[float] | None = None
+
+
+PerContact = float | list[float] | ContactGroups
+
+
+# --------------------------------------------------------------- initial conditions
+class BallInitialConditions(_Strict):
+    """Point masses: centres uniform in a box, velocities N(0, velocity_std^2)."""
+
+    position_low: Pair = (0.0, 0.0)
+    position_high: Pair = (1.0, 1.0)
+    velocity_std: NonNegFloat = 1.0
+
+    @model_validator(mode="after")
+    def _box(self) -> BallInitialConditions:
+        if not all(lo < hi for lo, hi in zip(self.position_low, self.position_high, strict=True)):
+            raise ValueError(
+                "initial_conditions.position_low must be below position_high in every "
+                f"coordinate; got {list(self.position_low)} and {list(self.position_high)}"
+            )
+        return self
+
+
+class DiskInitialConditions(BallInitialConditions):
+    """Disks: as point masses, plus angle U[0, 2 pi) and N(0, std^2) angular velocity."""
+
+    velocity_std: NonNegFloat = 0.5
+    angular_velocity_std: NonNegFloat = 0.5
+
+
+class ChainInitialConditions(_Strict):
+    """Absolute link angles from straight down, uniform; rates N(0, std^2)."""
+
+    angle_low: Finite = 0.0
+    angle_high: Finite = math.pi
+    angular_velocity_std: NonNegFloat = 1.0
+
+    @model_validator(mode="after")
+    def _range(self) -> ChainInitialConditions:
+        if not self.angle_low < self.angle_high:
+            raise ValueError("initial_conditions.angle_low must be below angle_high")
+        return self
+
+
+class GyroscopeInitialConditions(_Strict):
+    """Z-X-Z Euler angles and their rates (see ``docs/config.md``)."""
+
+    euler_low: Finite = -1.5
+    euler_high: Finite = 1.5
+    precession_rate_range: Pair = (-4.5, 4.5)
+    nutation_rate_range: Pair = (-0.3, 0.3)
+    spin_scale: NonNegFloat = 1.5
+    spin_mean: Finite = 7.0
+    spin_std: NonNegFloat = 1.0
+
+    @model_validator(mode="after")
+    def _ranges(self) -> GyroscopeInitialConditions:
+        if not self.euler_low < self.euler_high:
+            raise ValueError("initial_conditions.euler_low must be below euler_high")
+        for key in ("precession_rate_range", "nutation_rate_range"):
+            lo, hi = getattr(self, key)
+            if not lo < hi:
+                raise ValueError(f"initial_conditions.{key} must be [low, high] with low < high")
+        return self
+
+
+class RopeInitialConditions(_Strict):
+    """First segment angle uniform, relative angles within the bending limit."""
+
+    first_angle_low: Finite = 0.0
+    first_angle_high: Finite = math.pi
+    angular_velocity_std: NonNegFloat = 1.0
+
+    @model_validator(mode="after")
+    def _range(self) -> RopeInitialConditions:
+        if not self.first_angle_low < self.first_angle_high:
+            raise ValueError("initial_conditions.first_angle_low must be below first_angle_high")
+        return self
+
+
+# ----------------------------------------------------------------------- systems
+class _SystemBase(_Strict):
+    name: str | None = None
+    description: str | None = None
+    dt: PositiveFloat
+    horizon: PositiveFloat
+    gravity: NonNegFloat = 0.0
+    mu: PerContact = 0.0
+    cor: PerContact = 1.0
+    penetration_fraction: Annotated[float, Field(ge=0, le=1)] = 0.125
+    dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
+
+    # subclasses describe their contacts ------------------------------------
+    def contact_groups(self) -> list[tuple[str, int]]:
+        """``(group, count)`` in numbering order."""
+        raise NotImplementedError
+
+    @property
+    def n_contacts(self) -> int:
+        """Number of candidate contacts K."""
+        return sum(n for _, n in self.contact_groups())
+
+    @property
+    def n_states(self) -> int:
+        """States per trajectory, ``horizon / dt``."""
+        return round(self.horizon / self.dt)
+
+    def per_contact(self, key: str) -> list[float]:
+        """``mu`` or ``cor`` expanded to one value per candidate contact."""
+        return _expand(key, getattr(self, key), self.contact_groups())
+
+    @model_validator(mode="after")
+    def _common(self) -> _SystemBase:
+        ratio = self.horizon / self.dt
+        if abs(ratio - round(ratio)) > 1e-6 * max(1.0, ratio) or round(ratio) < 2:
+            raise ValueError(
+                f"horizon / dt must be a whole number of states >= 2; got horizon={self.horizon}, "
+                f"dt={self.dt} (ratio {ratio:g})"
+            )
+        self._check_sizes()
+        if self.n_contacts < 1:
+            raise ValueError("the system has no candidate contacts (add walls or bodies)")
+        for key, low, high in (("mu", 0.0, math.inf), ("cor", 0.0, 1.0)):
+            values = self.per_contact(key)
+            for k, value in enumerate(values):
+                if not (low <= value <= high) or math.isnan(value):
+                    rng = "must be >= 0" if key == "mu" else "must lie in [0, 1]"
+                    raise ValueError(f"{key}: value {value} of contact {k} {rng}")
+        return self
+
+    def _check_sizes(self) -> None:
+        pass
+
+
+def _expand(key: str, value: PerContact, groups: list[tuple[str, int]]) -> list[float]:
+    total = sum(n for _, n in groups)
+    layout = ", ".join(f"{n} {g}" for g, n in groups)
+    if isinstance(value, (int, float)):
+        return [float(value)] * total
+    if isinstance(value, list):
+        if len(value) != total:
+            raise ValueError(
+                f"{key}: expected one number or {total} values (one per contact: {layout}), "
+                f"got a list of {len(value)}"
+            )
+        return [float(v) for v in value]
+    names = [g for g, _ in groups]
+    given = {g for g in ContactGroups.model_fields if getattr(value, g) is not None}
+    unknown = given - set(names)
+    if unknown:
+        raise ValueError(
+            f"{key}: this system has no contact group(s) {sorted(unknown)}; its groups are {names}"
+        )
+    out: list[float] = []
+    for g, n in groups:
+        v = getattr(value, g)
+        if v is None:
+            raise ValueError(f"{key}: missing group '{g}' ({n} contacts)")
+        if isinstance(v, list):
+            if len(v) != n:
+                raise ValueError(
+                    f"{key}.{g}: expected one number or {n} values, got a list of {len(v)}"
+                )
+            out.extend(float(x) for x in v)
+        else:
+            out.extend([float(v)] * n)
+    return out
+
+
+def _check_lines(key: str, lines: list[tuple[float, ...]], n_normal: int) -> None:
+    for j, line in enumerate(lines):
+        if all(c == 0 for c in line[:n_normal]):
+            where = key if key == "wall" else f"{key}[{j}]"
+            raise ValueError(f"{where}: the normal part of {list(line)} must be non-zero")
+
+
+class _CircleBodies(_SystemBase):
+    masses: list[PositiveFloat] = Field(min_length=1)
+    radii: list[PositiveFloat] = Field(min_length=1)
+    walls: list[Line] = Field(default_factory=list)
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.masses)
+
+    def contact_groups(self) -> list[tuple[str, int]]:
+        B = len(self.masses)
+        groups = []
+        if B > 1:
+            groups.append(("pairs", B * (B - 1) // 2))
+        if self.walls:
+            groups.append(("walls", B * len(self.walls)))
+        return groups
+
+    def _check_sizes(self) -> None:
+        if len(self.radii) != len(self.masses):
+            raise ValueError(
+                f"radii: expected {len(self.masses)} values (one per mass), got {len(self.radii)}"
+            )
+        _check_lines("walls", self.walls, 2)
+
+
+class BouncingMassesConfig(_CircleBodies):
+    """Point masses (circles that do not rotate) in 2D."""
+
+    type: Literal["bouncing_masses"]
+    initial_conditions: BallInitialConditions = Field(default_factory=BallInitialConditions)
+
+
+class BouncingDisksConfig(_CircleBodies):
+    """Uniform rigid disks (3-point extended bodies) in 2D."""
+
+    type: Literal["bouncing_disks"]
+    second_moments: list[tuple[PositiveFloat, PositiveFloat]] | None = None
+    initial_conditions: DiskInitialConditions = Field(default_factory=DiskInitialConditions)
+
+    def _check_sizes(self) -> None:
+        super()._check_sizes()
+        if self.second_moments is not None and len(self.second_moments) != len(self.masses):
+            raise ValueError(
+                f"second_moments: expected {len(self.masses)} pairs (one per body), "
+                f"got {len(self.second_moments)}"
+            )
+
+    def body_second_moments(self) -> list[tuple[float, float]]:
+        """Second moments per unit mass along the body axes (default r^2/4 each)."""
+        if self.second_moments is not None:
+            return [tuple(s) for s in self.second_moments]
+        return [(r * r / 4, r * r / 4) for r in self.radii]
+
+
+class ChainPendulumConfig(_SystemBase):
+    """Planar chain pendulum with point masses at the joints and circular joints."""
+
+    type: Literal["chain_pendulum"]
+    masses: list[PositiveFloat] = Field(min_length=1)
+    link_lengths: list[PositiveFloat] = Field(min_length=1)
+    radii: list[PositiveFloat] = Field(min_length=1)
+    walls: list[Line] = Field(default_factory=lambda: [(0.0, 1.0, 1.0)], min_length=1)
+    pivot: Pair = (0.0, 0.0)
+    initial_conditions: ChainInitialConditions = Field(default_factory=ChainInitialConditions)
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.masses)
+
+    def contact_groups(self) -> list[tuple[str, int]]:
+        return [("walls", len(self.masses) * len(self.walls))]
+
+    def _check_sizes(self) -> None:
+        n = len(self.masses)
+        for key in ("link_lengths", "radii"):
+            got = len(getattr(self, key))
+            if got != n:
+                raise ValueError(f"{key}: expected {n} values (one per mass), got {got}")
+        _check_lines("walls", self.walls, 2)
+
+
+class GyroscopeConfig(_SystemBase):
+    """A 3D rigid body on a ball joint at the origin with a disk rim and a wall plane."""
+
+    type: Literal["gyroscope"]
+    mass: PositiveFloat
+    second_moments: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+    com_distance: PositiveFloat = 0.5
+    rim_radius: PositiveFloat = 0.3
+    wall: Plane
+    initial_conditions: GyroscopeInitialConditions = Field(
+        default_factory=GyroscopeInitialConditions
+    )
+
+    def contact_groups(self) -> list[tuple[str, int]]:
+        return [("walls", 1)]
+
+    def _check_sizes(self) -> None:
+        _check_lines("wall", [self.wall], 3)
+
+
+class RopeConfig(_SystemBase):
+    """Point masses joined by springs to a fixed anchor, with bending and stretch limits."""
+
+    type: Literal["rope"]
+    n_points: int = Field(ge=2)
+    mass: PositiveFloat | list[PositiveFloat]
+    rest_length: PositiveFloat
+    stiffness: NonNegFloat
+    max_angle: Annotated[float, Field(gt=0, le=math.pi)] = 0.2
+    min_ratio: NonNegFloat = 0.8
+    max_ratio: PositiveFloat = 1.2
+    anchor: Pair = (0.0, 0.0)
+    cor: PerContact = 0.0
+    initial_conditions: RopeInitialConditions = Field(default_factory=RopeInitialConditions)
+
+    def contact_groups(self) -> list[tuple[str, int]]:
+        return [("bending", self.n_points - 1), ("stretch", self.n_points)]
+
+    def point_masses(self) -> list[float]:
+        if isinstance(self.mass, list):
+            return list(self.mass)
+        return [float(self.mass)] * self.n_points
+
+    def _check_sizes(self) -> None:
+        if isinstance(self.mass, list) and len(self.mass) != self.n_points:
+            raise ValueError(
+                f"mass: expected one number or {self.n_points} values (one per point), "
+                f"got {len(self.mass)}"
+            )
+        if not self.min_ratio < 1.0 < self.max_ratio:
+            raise ValueError(
+                f"need min_ratio < 1 < max_ratio; got min_ratio={self.min_ratio}, "
+                f"max_ratio={self.max_ratio}"
+            )
+
+
+SystemConfig = Annotated[
+    BouncingMassesConfig | BouncingDisksConfig | ChainPendulumConfig | GyroscopeConfig | RopeConfig,
+    Field(discriminator="type"),
+]
+"""Any system config, discriminated by its ``type`` key."""
+
+SYSTEM_TYPES = ("bouncing_masses", "bouncing_disks", "chain_pendulum", "gyroscope", "rope")
+
+_ADAPTER: TypeAdapter = TypeAdapter(SystemConfig)
+
+
+def _format_error(err: ValidationError, source: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = [str(p) for p in e["loc"]]
+        # drop the discriminator tag and pydantic's union-branch names
+        if loc and loc[0] in SYSTEM_TYPES:
+            loc = loc[1:]
+        loc = [p for p in loc if p not in {"float", "list[float]", "ContactGroups"}]
+        msg = e["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, ") :]
+        if e["type"] == "missing":
+            msg = "missing key (required)"
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (not part of the schema; see docs/config.md)"
+        if e["type"] == "union_tag_invalid":
+            tag = e.get("ctx", {}).get("tag", "?")
+            msg = f"unknown system type {tag!r}; expected one of {list(SYSTEM_TYPES)}"
+        if e["type"] == "union_tag_not_found":
+            msg = f"missing key 'type' (one of {list(SYSTEM_TYPES)})"
+        key = ".".join(loc)
+        line = f"{key}: {msg}" if key else msg
+        if line not in lines:
+            lines.append(line)
+    return f"invalid system config{source}:\n  " + "\n  ".join(lines)
+
+
+def parse_config(
+    data: Any, source: str = ""
+) -> (
+    BouncingMassesConfig
+    | BouncingDisksConfig
+    | (ChainPendulumConfig | GyroscopeConfig | RopeConfig)
+):
+    """Validate a config mapping.
+
+    Args:
+        data: a mapping (already parsed YAML/JSON) or a config model instance.
+        source: where it came from, for error messages (e.g. ``" in BP5.yaml"``).
+
+    Returns:
+        The validated, immutable config model.
+
+    Raises:
+        ValueError: naming every bad or unknown key.
+    """
+    if isinstance(data, _SystemBase):
+        return data
+    if not isinstance(data, dict):
+        raise ValueError(
+            f"invalid system config{source}: expected a mapping of keys, got {type(data).__name__}"
+        )
+    try:
+        return _ADAPTER.validate_python(data)
+    except ValidationError as err:
+        raise ValueError(_format_error(err, source)) from None

@@ -1,0 +1,786 @@
+"""``System``: a validated config turned into a batched, differentiable simulator.
+
+A :class:`System` holds the static structure of a task (points, equality
+constraints, contact geometry, time step) and its physical parameters as
+float64 tensors (``mass``, ``second_moments``, ``mu``, ``cor``, ``gravity``
+and, for the rope, ``stiffness`` and ``rest_length``). Set ``requires_grad``
+on any of them (or replace them with tensors that carry a graph) and every
+quantity :meth:`System.simulate` returns is differentiable with respect to
+them and to the initial state.
+
+One step of :meth:`System.simulate` (paper-facts.md, "Time stepping"):
+
+1. RK4 over ``dt`` of the smooth constrained dynamics: the Lagrangian vector
+   field (S.2) by default, or the Hamiltonian one (S.4-S.7);
+2. collision detection on the new positions: the gaps of all candidates;
+3. for the states with an active candidate (gap < 0) only: the active
+   candidates are gathered and padded to the largest count in the batch (a
+   mask marks real ones; padded rows of ``J_C`` are exact zeros),
+   ``J_C: (n, Ka*d, D)``, ``Mhat^-1`` (S.12), the penetration-compensation
+   target (appendix G, ``fraction * depth / dt``) and the two-phase impulse
+   (CM or CMr) give the post-impact velocities.
+
+States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
+(``docs/conventions.md``); trajectories are ``(N, T, 2, P, dim)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from diffcontact.contact import SolverSettings, penetration_target, two_phase_impulse
+from diffcontact.contact.impulse import CONTACT_MODELS
+from diffcontact.geometry import RimPlane, circles_2d, rope_limits
+from diffcontact.mechanics import (
+    EqualityConstraints,
+    Mhat_inv,
+    ball_joint,
+    body_inverse_mass_matrix,
+    body_mass_matrix,
+    chain_constraints,
+    concat_constraints,
+    hamiltonian_flow,
+    kron_identity,
+    lagrangian_vector_field,
+    rigid_body_constraints,
+    rk4_step,
+)
+from diffcontact.systems import initial_conditions as ics
+from diffcontact.systems.config import (
+    BouncingDisksConfig,
+    BouncingMassesConfig,
+    ChainPendulumConfig,
+    GyroscopeConfig,
+    RopeConfig,
+    parse_config,
+)
+
+__all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
+
+_F = torch.float64
+_TASK_DIR = Path(__file__).parent / "tasks"
+DYNAMICS = ("lagrangian", "hamiltonian")
+
+
+def list_tasks() -> list[str]:
+    """Names of the built-in tasks (the YAML files in ``systems/tasks``)."""
+    return sorted(p.stem for p in _TASK_DIR.glob("*.yaml"))
+
+
+def _read_file(path: Path) -> Any:
+    text = path.read_text()
+    if path.suffix.lower() == ".json":
+        import json
+
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"cannot parse {path} as JSON: {err}") from None
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ValueError(f"cannot parse {path} as YAML: {err}") from None
+
+
+def load_config(spec: Any, **overrides: Any):
+    """Validated config from a built-in task name, a ``.yaml``/``.json`` path or a mapping.
+
+    Args:
+        spec: task name (see :func:`list_tasks`), path, mapping, or a config model.
+        overrides: top-level keys replacing those of ``spec`` (e.g. ``dt=0.005``).
+
+    Raises:
+        ValueError: unknown task name (the message lists the known ones), an
+            unreadable file or an invalid config (the message names the key).
+    """
+    source = ""
+    if isinstance(spec, (str, Path)):
+        name = str(spec)
+        builtin = _TASK_DIR / f"{name}.yaml"
+        path = Path(spec)
+        if builtin.is_file() and "/" not in name and "\\" not in name:
+            data, source = _read_file(builtin), f" of built-in task {name!r}"
+        elif path.suffix.lower() in (".yaml", ".yml", ".json"):
+            if not path.is_file():
+                raise ValueError(f"config file {str(path)!r} does not exist")
+            data, source = _read_file(path), f" in {path}"
+        else:
+            raise ValueError(
+                f"unknown task {name!r}; known tasks: {', '.join(list_tasks())} "
+                "(or pass a path to a .yaml/.json file, or a dict)"
+            )
+    elif isinstance(spec, Mapping):
+        data = dict(spec)
+    elif hasattr(spec, "model_dump"):
+        data = spec.model_dump()
+    else:
+        raise ValueError(
+            f"load_system expects a task name, a path or a dict; got {type(spec).__name__}"
+        )
+    if overrides:
+        if not isinstance(data, dict):
+            raise ValueError(f"invalid system config{source}: expected a mapping of keys")
+        data = {**data, **overrides}
+    return parse_config(data, source)
+
+
+def load_system(spec: Any, **overrides: Any) -> System:
+    """A :class:`System` from a built-in task name, a ``.yaml``/``.json`` path or a dict.
+
+    Example::
+
+        system = load_system("BP5")
+        z0 = system.sample_initial_conditions(16, seed=0)
+        traj = system.simulate(z0, steps=100)
+        E = system.energy(traj)
+    """
+    return System(load_config(spec, **overrides))
+
+
+@dataclass
+class ContactResult:
+    """Outcome of one contact resolution (:meth:`System.resolve_contacts`).
+
+    Attributes:
+        z: ``(N, 2, P, dim)`` the state with post-impact velocities.
+        gaps: ``(N, K)`` gaps of all candidates at the state's positions.
+        batch_index: ``(n,)`` long, the states that had an active contact.
+        contact_index: ``(n, Ka)`` long, their candidate indices, active ones
+            first in candidate order, padded with inactive candidates.
+        active: ``(n, Ka)`` bool, the real (active) entries.
+        f_c: ``(n, Ka, d)`` compression impulses (contact space; zero where padded).
+        f_r: ``(n, Ka, d)`` restitution impulses.
+        J_C: ``(n, Ka*d, D)`` contact Jacobian (padded rows zero).
+        v_C_star: ``(n, Ka*d)`` penetration-compensation target (zeros when off).
+    """
+
+    z: Tensor
+    gaps: Tensor
+    batch_index: Tensor
+    contact_index: Tensor
+    active: Tensor
+    f_c: Tensor
+    f_r: Tensor
+    J_C: Tensor
+    v_C_star: Tensor
+
+
+@dataclass
+class _Context:
+    """Parameters and static structure resolved for one dtype and device."""
+
+    dtype: torch.dtype
+    device: torch.device
+    geometry: Any
+    constraints: EqualityConstraints | None
+    M: Tensor  # (P, P)
+    M_inv: Tensor  # (P, P)
+    weights: Tensor  # (P,) gravity weights (masses at centres of mass)
+    g_vec: Tensor  # (dim,)
+    mu: Tensor  # (K,)
+    cor: Tensor  # (K,)
+    stiffness: Tensor | None
+    rest_length: Tensor | None
+    anchor: Tensor | None
+
+
+class System:
+    """A simulated system of extended bodies with contacts (see the module docstring).
+
+    Build it with :func:`load_system` (or ``System(config)`` with a validated
+    config). Attributes:
+
+    - structure: ``config``, ``name``, ``type``, ``dim``, ``n_points``,
+      ``n_bodies``, ``body_points`` (first point of each body), ``n_contacts``
+      (candidates K), ``d`` (contact-space dimension), ``contact_names``,
+      ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
+      ``penetration_fraction``, ``dynamics``;
+    - parameters (float64 tensors; any may require grad): ``mass (B,)``,
+      ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
+      ``cor (K,)`` (a 0-d tensor broadcasts to all contacts), ``gravity ()``
+      (magnitude, along -y in 2D and -z in 3D), and for the rope
+      ``stiffness ()`` and ``rest_length ()``.
+    """
+
+    def __init__(self, config: Any) -> None:
+        cfg = parse_config(config)
+        self.config = cfg
+        self.type: str = cfg.type
+        self.name: str = cfg.name or cfg.type
+        self.dt: float = float(cfg.dt)
+        self.horizon: float = float(cfg.horizon)
+        self.penetration_fraction: float = float(cfg.penetration_fraction)
+        self.dynamics: str = cfg.dynamics
+        self.second_moments: Tensor | None = None
+        self.stiffness: Tensor | None = None
+        self.rest_length: Tensor | None = None
+        self._anchor: Tensor | None = None
+        builder = {
+            "bouncing_masses": self._build_circles,
+            "bouncing_disks": self._build_circles,
+            "chain_pendulum": self._build_chain,
+            "gyroscope": self._build_gyroscope,
+            "rope": self._build_rope,
+        }[cfg.type]
+        builder(cfg)
+        self.n_contacts: int = self.geometry.n_candidates
+        assert self.n_contacts == cfg.n_contacts == len(self.contact_names)
+        self.d: int = self.geometry.d
+        self.mu: Tensor = torch.tensor(cfg.per_contact("mu"), dtype=_F)
+        self.cor: Tensor = torch.tensor(cfg.per_contact("cor"), dtype=_F)
+        self.gravity: Tensor = torch.tensor(float(cfg.gravity), dtype=_F)
+        self._device_cache: dict[str, tuple[Any, EqualityConstraints | None]] = {}
+
+    # ------------------------------------------------------------------ builders
+    def _build_circles(self, cfg: BouncingMassesConfig | BouncingDisksConfig) -> None:
+        disks = cfg.type == "bouncing_disks"
+        B = cfg.n_bodies
+        k = 3 if disks else 1
+        self.dim, self.n_bodies, self.n_points = 2, B, k * B
+        self.body_points = [k * b for b in range(B)]
+        self.mass = torch.tensor(cfg.masses, dtype=_F)
+        self.geometry = circles_2d(["disk" if disks else "point"] * B, cfg.radii, cfg.walls)
+        if disks:
+            self.second_moments = torch.tensor(cfg.body_second_moments(), dtype=_F)
+            self.constraints = concat_constraints(
+                *(rigid_body_constraints(k * b, 2, self.n_points) for b in range(B))
+            )
+        else:
+            self.constraints = None
+        W = len(cfg.walls)
+        names = [f"body {i} and body {j} overlap" for i in range(B) for j in range(i + 1, B)]
+        names += [f"body {i} penetrates wall {j}" for i in range(B) for j in range(W)]
+        self.contact_names = names
+
+    def _build_chain(self, cfg: ChainPendulumConfig) -> None:
+        L = len(cfg.masses)
+        self.dim, self.n_bodies, self.n_points = 2, L, L
+        self.body_points = list(range(L))
+        self.mass = torch.tensor(cfg.masses, dtype=_F)
+        self.geometry = circles_2d(["point"] * L, cfg.radii, cfg.walls, pairs=False)
+        self.constraints = chain_constraints(cfg.link_lengths, 2, pivot=cfg.pivot)
+        W = len(cfg.walls)
+        self.contact_names = [f"joint {i} penetrates wall {j}" for i in range(L) for j in range(W)]
+
+    def _build_gyroscope(self, cfg: GyroscopeConfig) -> None:
+        self.dim, self.n_bodies, self.n_points = 3, 1, 4
+        self.body_points = [0]
+        self.mass = torch.tensor([cfg.mass], dtype=_F)
+        self.second_moments = torch.tensor([cfg.second_moments], dtype=_F)
+        self.geometry = RimPlane.build([0], [cfg.rim_radius], [cfg.wall])
+        # pivot at body coordinates (0, 0, -com_distance), pinned to the origin
+        self.constraints = concat_constraints(
+            rigid_body_constraints(0, 3),
+            ball_joint(0, [0.0, 0.0, -cfg.com_distance], [0.0, 0.0, 0.0]),
+        )
+        self.contact_names = ["the rim penetrates the wall"]
+
+    def _build_rope(self, cfg: RopeConfig) -> None:
+        P = cfg.n_points
+        self.dim, self.n_bodies, self.n_points = 2, P, P
+        self.body_points = list(range(P))
+        self.mass = torch.tensor(cfg.point_masses(), dtype=_F)
+        self.geometry = rope_limits(
+            P,
+            max_angle=cfg.max_angle,
+            rest_length=cfg.rest_length,
+            min_ratio=cfg.min_ratio,
+            max_ratio=cfg.max_ratio,
+            anchor=cfg.anchor,
+        )
+        self.constraints = None
+        self.stiffness = torch.tensor(float(cfg.stiffness), dtype=_F)
+        self.rest_length = torch.tensor(float(cfg.rest_length), dtype=_F)
+        self._anchor = torch.tensor(cfg.anchor, dtype=_F)
+        self.contact_names = [f"bending limit at joint {k} exceeded" for k in range(P - 1)] + [
+            f"stretch limit of segment {k} exceeded" for k in range(P)
+        ]
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def default_steps(self) -> int:
+        """Steps of a full trajectory: ``horizon / dt - 1`` (it holds ``horizon / dt`` states)."""
+        return round(self.horizon / self.dt) - 1
+
+    @property
+    def state_shape(self) -> tuple[int, int, int]:
+        """``(2, P, dim)``."""
+        return (2, self.n_points, self.dim)
+
+    def parameters(self) -> dict[str, Tensor]:
+        """The physical parameter tensors by attribute name (``None`` ones left out)."""
+        names = ("mass", "second_moments", "mu", "cor", "gravity", "stiffness", "rest_length")
+        return {n: getattr(self, n) for n in names if getattr(self, n) is not None}
+
+    def __repr__(self) -> str:
+        return (
+            f"System(name={self.name!r}, type={self.type!r}, points={self.n_points}, "
+            f"dim={self.dim}, contacts={self.n_contacts}, dt={self.dt}, horizon={self.horizon})"
+        )
+
+    def _check_parameters(self) -> None:
+        B, K = self.n_bodies, self.n_contacts
+
+        def tensor(name: str) -> Tensor:
+            t = getattr(self, name)
+            if not isinstance(t, Tensor) or not t.is_floating_point():
+                raise ValueError(f"{name} must be a floating-point tensor, got {type(t).__name__}")
+            if not bool(torch.isfinite(t.detach()).all()):
+                raise ValueError(f"{name} contains NaN or infinite values: {t.detach().tolist()}")
+            return t.detach()
+
+        m = tensor("mass")
+        if m.shape != (B,):
+            raise ValueError(f"mass must have shape ({B},) (one per body), got {tuple(m.shape)}")
+        if bool((m <= 0).any()):
+            raise ValueError(f"mass must be positive, got {m.tolist()}")
+        if self.second_moments is not None:
+            s = tensor("second_moments")
+            k = self.dim
+            if s.shape != (B, k):
+                raise ValueError(f"second_moments must have shape ({B}, {k}), got {tuple(s.shape)}")
+            if bool((s <= 0).any()):
+                raise ValueError(f"second_moments must be positive, got {s.tolist()}")
+        for name, low, high in (("mu", 0.0, math.inf), ("cor", 0.0, 1.0)):
+            t = tensor(name)
+            if t.shape not in ((), (K,)):
+                raise ValueError(
+                    f"{name} must be one number or have shape ({K},) (one per contact), "
+                    f"got shape {tuple(t.shape)}"
+                )
+            if bool(((t < low) | (t > high)).any()):
+                rng = ">= 0" if name == "mu" else "in [0, 1]"
+                raise ValueError(f"{name} must be {rng}, got {t.tolist()}")
+        if tensor("gravity").shape != ():
+            raise ValueError(f"gravity must be a 0-d tensor (the magnitude), got {self.gravity}")
+        if self.type == "rope":
+            if float(tensor("stiffness")) < 0:
+                raise ValueError(f"stiffness must be >= 0, got {float(self.stiffness)}")
+            if float(tensor("rest_length")) <= 0:
+                raise ValueError(f"rest_length must be positive, got {float(self.rest_length)}")
+
+    # ------------------------------------------------------------- parameters
+    def _static_on(self, device: torch.device) -> tuple[Any, EqualityConstraints | None]:
+        key = str(device)
+        if key not in self._device_cache:
+            geometry = self.geometry.to(device)
+            constraints = None if self.constraints is None else self.constraints.to(device)
+            self._device_cache[key] = (geometry, constraints)
+        return self._device_cache[key]
+
+    def _body_blocks(self, inverse: bool, dtype: torch.dtype, device: torch.device) -> Tensor:
+        mass = self.mass.to(dtype=dtype, device=device)
+        if self.second_moments is None:
+            return torch.diag(1.0 / mass if inverse else mass)
+        s = self.second_moments.to(dtype=dtype, device=device)
+        fn = body_inverse_mass_matrix if inverse else body_mass_matrix
+        return torch.block_diag(*fn(mass, s).unbind(0))
+
+    def mass_matrix(self, dtype: torch.dtype = _F, device: torch.device | str = "cpu") -> Tensor:
+        """Mass matrix over points ``M: (P, P)`` built from ``mass`` and ``second_moments``."""
+        return self._body_blocks(False, dtype, torch.device(device))
+
+    def inverse_mass_matrix(
+        self, dtype: torch.dtype = _F, device: torch.device | str = "cpu"
+    ) -> Tensor:
+        """Inverse mass matrix over points ``M^-1: (P, P)`` (closed form per body)."""
+        return self._body_blocks(True, dtype, torch.device(device))
+
+    def _context(self, like: Tensor, check: bool = True) -> _Context:
+        if check:
+            self._check_parameters()
+        dtype, device = like.dtype, like.device
+        geometry, constraints = self._static_on(device)
+        K = self.n_contacts
+
+        def cast(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.to(dtype=dtype, device=device)
+
+        mass = cast(self.mass)
+        com = torch.tensor(self.body_points, dtype=torch.long, device=device)
+        weights = torch.zeros(self.n_points, dtype=dtype, device=device).index_put((com,), mass)
+        zero = torch.zeros((), dtype=dtype, device=device)
+        g = cast(self.gravity).reshape(())
+        g_vec = torch.stack([zero, -g] if self.dim == 2 else [zero, zero, -g])
+        return _Context(
+            dtype=dtype,
+            device=device,
+            geometry=geometry,
+            constraints=constraints,
+            M=self._body_blocks(False, dtype, device),
+            M_inv=self._body_blocks(True, dtype, device),
+            weights=weights,
+            g_vec=g_vec,
+            mu=cast(self.mu).expand(K),
+            cor=cast(self.cor).expand(K),
+            stiffness=cast(self.stiffness),
+            rest_length=cast(self.rest_length),
+            anchor=cast(self._anchor),
+        )
+
+    # ------------------------------------------------------------------ energy
+    def _potential(self, x: Tensor, ctx: _Context) -> Tensor:
+        V = -(ctx.weights * (x @ ctx.g_vec)).sum(-1)
+        if ctx.stiffness is not None:
+            seg = self._segments(x, ctx)
+            length = (seg * seg).sum(-1).sqrt()
+            V = V + (ctx.stiffness * (length - ctx.rest_length) ** 2).sum(-1)
+        return V
+
+    def _segments(self, x: Tensor, ctx: _Context) -> Tensor:
+        anchor = ctx.anchor.expand(*x.shape[:-2], 1, 2)
+        return x - torch.cat([anchor, x[..., :-1, :]], dim=-2)
+
+    def _grad_potential(self, x: Tensor, ctx: _Context) -> Tensor:
+        """Analytic ``grad_x V``: gravity plus, for the rope, the segment springs."""
+        grad = -ctx.weights[:, None] * ctx.g_vec  # (P, dim)
+        grad = grad.expand_as(x)
+        if ctx.stiffness is not None:
+            seg = self._segments(x, ctx)
+            length = (seg * seg).sum(-1, keepdim=True).clamp_min(1e-300).sqrt()
+            g_seg = 2.0 * ctx.stiffness * (length - ctx.rest_length) / length * seg
+            nxt = torch.cat([g_seg[..., 1:, :], torch.zeros_like(g_seg[..., :1, :])], dim=-2)
+            grad = grad + g_seg - nxt
+        return grad
+
+    def potential(self, x: Tensor) -> Tensor:
+        """Potential energy ``V(x): (...)`` of positions ``x: (..., P, dim)``.
+
+        Gravity ``-g . sum_b m_b c_b`` (centres of mass) and, for the rope,
+        ``sum_k k (l_k - l0)^2`` over the segments, the first from the anchor.
+        """
+        return self._potential(x, self._context(x))
+
+    def grad_potential(self, x: Tensor) -> Tensor:
+        """Analytic ``grad_x V: (..., P, dim)`` of :meth:`potential` (what the dynamics use)."""
+        return self._grad_potential(x, self._context(x))
+
+    def kinetic_energy(self, z: Tensor) -> Tensor:
+        """Kinetic energy ``0.5 sum_c v_c^T M v_c: (...)`` of states ``z: (..., 2, P, dim)``."""
+        ctx = self._context(z)
+        v = z[..., 1, :, :]
+        return 0.5 * (v * (ctx.M @ v)).sum((-2, -1))
+
+    def energy(self, z: Tensor) -> Tensor:
+        """Total energy (kinetic + potential) of states or trajectories.
+
+        Args:
+            z: ``(..., 2, P, dim)``, e.g. a trajectory ``(N, T, 2, P, dim)``.
+
+        Returns:
+            ``(...)``, e.g. ``(N, T)``.
+        """
+        self._check_state_shape(z, "z", batched=False)
+        ctx = self._context(z)
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        return 0.5 * (v * (ctx.M @ v)).sum((-2, -1)) + self._potential(x, ctx)
+
+    def gaps(self, x: Tensor) -> Tensor:
+        """Signed gaps ``(..., K)`` of all candidate contacts at positions ``(..., P, dim)``."""
+        geometry, _ = self._static_on(x.device)
+        return geometry.gaps(x)
+
+    # -------------------------------------------------------------- validation
+    def _check_state_shape(self, z: Tensor, name: str, batched: bool = True) -> None:
+        if not isinstance(z, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(z).__name__}")
+        shape = self.state_shape
+        if z.dim() < 3 or tuple(z.shape[-3:]) != shape or (batched and z.dim() != 4):
+            want = f"(N, {', '.join(map(str, shape))})" if batched else f"(..., {shape})"
+            raise ValueError(
+                f"{name} must have shape {want} for {self.name} (positions then velocities "
+                f"of {self.n_points} points in {self.dim}D); got {tuple(z.shape)}"
+            )
+        if not z.is_floating_point():
+            raise ValueError(f"{name} must be a floating-point tensor, got {z.dtype}")
+
+    def _check_state(self, z: Tensor, name: str) -> None:
+        self._check_state_shape(z, name)
+        bad = ~torch.isfinite(z.detach()).flatten(1).all(-1)
+        if bool(bad.any()):
+            rows = bad.nonzero().flatten().tolist()
+            raise ValueError(f"{name} contains NaN or infinite values (states {rows[:10]})")
+
+    def _check_no_overlap(self, z: Tensor, name: str) -> None:
+        with torch.no_grad():
+            gaps = self.gaps(z[..., 0, :, :].detach())
+        bad = gaps < 0
+        if bool(bad.any()):
+            rows, cols = bad.nonzero(as_tuple=True)
+            items = [
+                f"{name}[{r}]: {self.contact_names[c]} (gap {float(gaps[r, c]):.3g})"
+                for r, c in zip(rows.tolist()[:8], cols.tolist()[:8], strict=True)
+            ]
+            more = "" if rows.numel() <= 8 else f"\n  ... and {rows.numel() - 8} more"
+            raise ValueError(
+                f"{name} has overlapping bodies or violated limits (gap < 0) in "
+                f"{int(bad.any(-1).sum())} of {z.shape[0]} states:\n  " + "\n  ".join(items) + more
+            )
+
+    # ---------------------------------------------------------------- sampling
+    def sample_initial_conditions(
+        self, n: int, seed: int = 0, *, device: torch.device | str | None = None
+    ) -> Tensor:
+        """Draw ``n`` initial states from the task's distribution (paper-facts.md).
+
+        Candidates are drawn in batches from a ``torch.Generator`` seeded with
+        ``seed`` and those with any gap <= 0 (overlap, contact or a violated
+        limit) are rejected, until ``n`` are kept; the layouts are described in
+        :mod:`diffcontact.systems.initial_conditions`.
+
+        Args:
+            n: number of states (>= 1).
+            seed: the seed; the same seed gives the same bytes.
+            device: where to put the result (drawn on the CPU).
+
+        Returns:
+            ``(n, 2, P, dim)`` float64.
+        """
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise ValueError(f"n must be a positive integer, got {n!r}")
+        gen = torch.Generator().manual_seed(int(seed))
+        drawer = ics.DRAWERS[self.type]
+        geometry, _ = self._static_on(torch.device("cpu"))
+
+        def draw(m: int, g: torch.Generator) -> Tensor:
+            return drawer(self.config, m, g)
+
+        def valid(z: Tensor) -> Tensor:
+            return (geometry.gaps(z[:, 0]) > 0).all(-1)
+
+        z = ics.rejection_sample(draw, valid, n, gen)
+        return z if device is None else z.to(device)
+
+    # -------------------------------------------------------------- simulation
+    def _vector_field(self, ctx: _Context, dynamics: str):
+        constraints = ctx.constraints
+
+        if dynamics == "lagrangian":
+
+            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+                grad_V = self._grad_potential(x, ctx)
+                return v, lagrangian_vector_field(x, v, ctx.M_inv, grad_V, constraints)
+
+        else:
+
+            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+                grad_V = self._grad_potential(x, ctx)
+                return hamiltonian_flow(x, v, ctx.M_inv, grad_V, constraints)
+
+        return field
+
+    def _integrate(self, z: Tensor, ctx: _Context, dynamics: str) -> Tensor:
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        x1, v1 = rk4_step(self._vector_field(ctx, dynamics), x, v, self.dt)
+        return torch.stack([x1, v1], dim=-3)
+
+    def _resolve(
+        self,
+        z: Tensor,
+        ctx: _Context,
+        contact_model: str,
+        eps: float | Tensor,
+        fraction: float,
+        settings: SolverSettings | None = None,
+    ) -> ContactResult:
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        P, dim, d = self.n_points, self.dim, self.d
+        D = P * dim
+        with torch.no_grad():
+            gaps = ctx.geometry.gaps(x.detach())
+            active = gaps < 0
+            has = active.any(-1)
+        empty = torch.zeros(0, dtype=torch.long, device=z.device)
+        if not bool(has.any()):
+            zf = z.new_zeros(0, 0, d)
+            return ContactResult(
+                z, gaps, empty, empty.reshape(0, 0), active[:0, :0], zf, zf,
+                z.new_zeros(0, 0, D), z.new_zeros(0, 0),
+            )  # fmt: skip
+        b = has.nonzero().squeeze(-1)  # (n,)
+        act = active[b]  # (n, K)
+        n = b.shape[0]
+        Ka = int(act.sum(-1).max())
+        order = torch.argsort((~act).to(torch.uint8), dim=-1, stable=True)
+        idx = order[:, :Ka]  # active candidates first, in candidate order
+        mask = act.gather(-1, idx)  # (n, Ka)
+        xs, vs = x[b], v[b]
+        J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
+        J = torch.where(mask[:, :, None, None, None], J, torch.zeros_like(J)).reshape(n, Ka * d, D)
+        if ctx.constraints is not None:
+            J_E = ctx.constraints.jacobian(xs)  # (n, E, D)
+            Mh = Mhat_inv(ctx.M_inv, J_E)
+        else:
+            J_E = None
+            Mh = kron_identity(ctx.M_inv, dim).expand(n, D, D)
+        if fraction > 0:
+            depth = -gaps[b].gather(-1, idx)
+            v_star = penetration_target(J, depth, mask, self.dt, d, fraction, J_E)
+        else:
+            v_star = J.new_zeros(n, Ka * d)
+        res = two_phase_impulse(
+            J,
+            Mh,
+            vs.reshape(n, D),
+            ctx.mu[idx],
+            ctx.cor[idx],
+            mask,
+            d,
+            v_C_star=v_star if fraction > 0 else None,
+            contact_model=contact_model,
+            eps=eps,
+            settings=settings,
+        )
+        v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
+        return ContactResult(
+            z=torch.stack([x, v_new], dim=-3),
+            gaps=gaps,
+            batch_index=b,
+            contact_index=idx,
+            active=mask,
+            f_c=res.f_c.reshape(n, Ka, d),
+            f_r=res.f_r.reshape(n, Ka, d),
+            J_C=J,
+            v_C_star=v_star,
+        )
+
+    def _options(
+        self, contact_model: str, dynamics: str | None, fraction: float | None
+    ) -> tuple[str, float]:
+        if contact_model not in CONTACT_MODELS:
+            raise ValueError(
+                f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}"
+            )
+        dynamics = self.dynamics if dynamics is None else dynamics
+        if dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
+        fraction = self.penetration_fraction if fraction is None else float(fraction)
+        if not 0 <= fraction <= 1:
+            raise ValueError(f"penetration_fraction must lie in [0, 1], got {fraction}")
+        return dynamics, fraction
+
+    def integrate(self, z: Tensor, *, dynamics: str | None = None) -> Tensor:
+        """One RK4 step of the smooth constrained dynamics, no contacts.
+
+        Args:
+            z: ``(N, 2, P, dim)``.
+            dynamics: ``"lagrangian"`` or ``"hamiltonian"`` (default: the config's).
+
+        Returns:
+            ``(N, 2, P, dim)``.
+        """
+        self._check_state(z, "z")
+        dynamics, _ = self._options("CM", dynamics, None)
+        return self._integrate(z, self._context(z), dynamics)
+
+    def resolve_contacts(
+        self,
+        z: Tensor,
+        *,
+        contact_model: str = "CM",
+        eps: float | Tensor = 0.01,
+        penetration_fraction: float | None = None,
+        solver_settings: SolverSettings | None = None,
+    ) -> ContactResult:
+        """Collision detection and the two-phase impulse on the velocities of ``z``.
+
+        Only states with an active candidate (gap < 0) go through the solver.
+
+        Args:
+            z: ``(N, 2, P, dim)``.
+            contact_model: ``"CM"`` or ``"CMr"``.
+            eps: CMr's regulariser.
+            penetration_fraction: share of the depth removed per step by the
+                compensation target (default: the config's; 0 switches it off).
+            solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
+
+        Returns:
+            A :class:`ContactResult` (positions unchanged).
+        """
+        self._check_state(z, "z")
+        _, fraction = self._options(contact_model, None, penetration_fraction)
+        return self._resolve(z, self._context(z), contact_model, eps, fraction, solver_settings)
+
+    def step(
+        self,
+        z: Tensor,
+        *,
+        contact_model: str = "CM",
+        eps: float | Tensor = 0.01,
+        dynamics: str | None = None,
+        penetration_fraction: float | None = None,
+        solver_settings: SolverSettings | None = None,
+    ) -> Tensor:
+        """One full step: :meth:`integrate`, then :meth:`resolve_contacts`. ``(N, 2, P, dim)``."""
+        self._check_state(z, "z")
+        dynamics, fraction = self._options(contact_model, dynamics, penetration_fraction)
+        ctx = self._context(z)
+        z1 = self._integrate(z, ctx, dynamics)
+        return self._resolve(z1, ctx, contact_model, eps, fraction, solver_settings).z
+
+    def simulate(
+        self,
+        z0: Tensor,
+        steps: int | None = None,
+        *,
+        contact_model: str = "CM",
+        eps: float | Tensor = 0.01,
+        progress: bool = False,
+        dynamics: str | None = None,
+        penetration_fraction: float | None = None,
+        check_overlap: bool = True,
+        solver_settings: SolverSettings | None = None,
+    ) -> Tensor:
+        """Roll out trajectories from initial states.
+
+        Args:
+            z0: ``(N, 2, P, dim)`` initial states (float64 for ground truth;
+                the computation follows its dtype and device).
+            steps: number of steps (default :attr:`default_steps`, so that the
+                trajectory holds ``horizon / dt`` states).
+            contact_model: ``"CM"`` or ``"CMr"``.
+            eps: CMr's regulariser (a number or a tensor).
+            progress: show a progress bar over the steps.
+            dynamics: ``"lagrangian"`` (S.2) or ``"hamiltonian"`` (S.4-S.7);
+                default the config's.
+            penetration_fraction: override of the config's compensation fraction.
+            check_overlap: reject initial states with a gap < 0.
+            solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
+
+        Returns:
+            ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
+
+        Raises:
+            ValueError: bad shape, NaN, overlapping bodies in ``z0``, bad
+                parameters or options.
+        """
+        self._check_state(z0, "z0")
+        if steps is None:
+            steps = self.default_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
+        dynamics, fraction = self._options(contact_model, dynamics, penetration_fraction)
+        if check_overlap:
+            self._check_no_overlap(z0, "z0")
+        ctx = self._context(z0)
+        states = [z0]
+        z = z0
+        iterator: Any = range(steps)
+        if progress:
+            from tqdm.auto import tqdm
+
+            iterator = tqdm(iterator, desc=f"simulate {self.name}", unit="step")
+        for _ in iterator:
+            z1 = self._integrate(z, ctx, dynamics)
+            z = self._resolve(z1, ctx, contact_model, eps, fraction, solver_settings).z
+            states.append(z)
+        return torch.stack(states, dim=1)

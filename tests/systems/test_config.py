@@ -1,0 +1,253 @@
+"""Config loading and validation: built-in tasks hold the paper-facts.md numbers,
+bad input raises ValueError naming the problem, custom systems from dicts and files."""
+
+import json
+import math
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.systems import list_tasks, load_config
+
+TASKS = [
+    "BP5-e", "BP5", "BD5", "CP3-e", "CP3", "Gyro-e", "Gyro",
+    "Rope", "Rope-D100", "Rope-D200", "Rope-D400",
+]  # fmt: skip
+
+BOX = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 1.0], [0.0, -1.0, 1.0]]
+
+
+def test_builtin_task_list():
+    assert sorted(list_tasks()) == sorted(TASKS)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_every_task_loads(task):
+    system = dc.load_system(task)
+    assert system.name == task
+    assert system.n_contacts == len(system.contact_names) == system.mu.shape[0]
+    assert system.mu.dtype == system.cor.dtype == system.mass.dtype == torch.float64
+    T = round(system.horizon / system.dt)
+    assert system.default_steps == T - 1
+    assert T == (20 if task.startswith("Rope") else 100)
+
+
+def _vals(t):
+    return [round(v, 12) for v in t.tolist()]
+
+
+def test_bouncing_tasks_hold_paper_numbers():
+    e = dc.load_system("BP5-e")
+    assert _vals(e.mass) == [0.1] * 5 and e.config.radii == [0.1] * 5
+    assert [list(w) for w in e.config.walls] == BOX
+    assert _vals(e.mu) == [0.0] * 30 and _vals(e.cor) == [1.0] * 30
+    assert float(e.gravity) == 0.0 and e.dt == 0.01 and e.horizon == 1.0
+
+    bp = dc.load_system("BP5")
+    assert _vals(bp.mass) == [0.05, 0.1, 0.3, 0.4, 0.5]
+    assert bp.config.radii == [0.05, 0.1, 0.13, 0.15, 0.18]
+    assert _vals(bp.mu) == [0.5, 0.4, 0.6, 0.8, 0.9, 1.1, 0.7, 0.1, 0.0, 0.3] + [0.1] * 20
+    assert _vals(bp.cor) == [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0] + [0.8] * 20
+    # contact numbering: pairs lexicographic, then body-major walls
+    assert bp.contact_names[1] == "body 0 and body 2 overlap"
+    assert bp.contact_names[10 + 4 * 2 + 3] == "body 2 penetrates wall 3"
+
+    bd = dc.load_system("BD5")
+    assert _vals(bd.mass) == [0.05, 0.1, 0.3, 0.4, 0.5]
+    r = torch.tensor([0.05, 0.1, 0.13, 0.15, 0.18], dtype=torch.float64)
+    torch.testing.assert_close(bd.second_moments, (r**2 / 4)[:, None].expand(5, 2))
+    assert _vals(bd.mu) == [0.3, 0.5, 0.1, 0.4, 1.4, 0.9, 0.8, 0.0, 0.2, 0.6] + [0.1] * 20
+    assert _vals(bd.cor) == [0.2, 0.4, 0.1, 0.9, 0.8, 0.3, 1.0, 0.9, 0.7, 0.0] + [0.8] * 20
+    assert bd.n_points == 15 and bd.dim == 2
+
+
+def test_pendulum_gyro_rope_hold_paper_numbers():
+    cpe, cp = dc.load_system("CP3-e"), dc.load_system("CP3")
+    assert _vals(cpe.mass) == [0.2, 0.13, 0.15] and cpe.config.radii == [0.15, 0.08, 0.1]
+    assert _vals(cp.mass) == [0.1, 0.2, 0.15] and cp.config.radii == [0.05, 0.15, 0.1]
+    for s in (cpe, cp):
+        assert s.config.link_lengths == [0.35, 0.4, 0.35]
+        assert [list(w) for w in s.config.walls] == [[0.0, 1.0, 1.0]]
+        assert float(s.gravity) == 9.81 and s.dt == 0.01 and s.horizon == 1.0
+    assert _vals(cpe.mu) == [0.0] * 3 and _vals(cpe.cor) == [1.0] * 3
+    assert _vals(cp.mu) == [0.5] * 3 and _vals(cp.cor) == [0.0] * 3
+
+    for name, mu, cor in (("Gyro-e", 0.0, 1.0), ("Gyro", 0.1, 0.8)):
+        g = dc.load_system(name)
+        c = g.config
+        assert _vals(g.mass) == [0.1] and list(c.second_moments) == [0.24, 0.24, 0.04]
+        assert c.com_distance == 0.5 and c.rim_radius == 0.3
+        assert list(c.wall) == [0.0, 1.0, 0.0, 0.33]
+        assert _vals(g.mu) == [mu] and _vals(g.cor) == [cor]
+        assert float(g.gravity) == 9.81 and g.dt == 0.02 and g.horizon == 2.0
+        assert g.dim == 3 and g.n_points == 4 and g.d == 3
+
+    for name, n in (("Rope", 10), ("Rope-D100", 50), ("Rope-D200", 100), ("Rope-D400", 200)):
+        rope = dc.load_system(name)
+        c = rope.config
+        assert c.n_points == n and rope.n_points * rope.dim == (20 if n == 10 else 2 * n)
+        assert _vals(rope.mass) == [0.1] * n
+        assert c.rest_length == 0.05 and c.stiffness == 50.0 and c.max_angle == 0.2
+        assert (c.min_ratio, c.max_ratio) == (0.8, 1.2)
+        assert rope.n_contacts == 2 * n - 1 and rope.d == 1
+        assert _vals(rope.mu) == [0.0] * (2 * n - 1) and _vals(rope.cor) == [0.0] * (2 * n - 1)
+        assert float(rope.gravity) == 9.81 and rope.dt == 0.005 and rope.horizon == 0.1
+
+
+def test_unknown_task_lists_known_ones():
+    with pytest.raises(ValueError, match=r"unknown task 'BP6'.*BP5-e.*Rope-D400"):
+        dc.load_system("BP6")
+    with pytest.raises(ValueError, match="does not exist"):
+        dc.load_system("/nonexistent/system.yaml")
+
+
+@pytest.mark.parametrize(
+    ("override", "pattern"),
+    [
+        ({"masses": [0.1, -0.1, 0.3, 0.4, 0.5]}, r"masses\.1: .*greater than 0"),
+        ({"masses": [0.1, 0.0, 0.3, 0.4, 0.5]}, r"masses\.1: .*greater than 0"),
+        ({"radii": [0.1]}, r"radii: expected 5 values"),
+        ({"mu": -0.1}, r"mu: value -0\.1 .* must be >= 0"),
+        ({"cor": 1.5}, r"cor: value 1\.5 .* must lie in \[0, 1\]"),
+        ({"cor": [0.5] * 7}, r"cor: expected one number or 30 values .* got a list of 7"),
+        ({"mu": {"pairs": [0.1] * 3, "walls": 0.1}}, r"mu\.pairs: expected one number or 10"),
+        ({"mu": {"pairs": 0.1}}, r"mu: missing group 'walls'"),
+        ({"mu": {"pairs": 0.1, "walls": 0.1, "stretch": 0}}, r"mu: .*no contact group.*stretch"),
+        ({"foo": 1}, r"foo: unknown key"),
+        ({"initial_conditions": {"velocity_sdt": 1}}, r"initial_conditions\.velocity_sdt: unknown"),
+        ({"type": "bouncing_ballz"}, r"unknown system type 'bouncing_ballz'"),
+        ({"dt": 0.03}, r"horizon / dt must be a whole number"),
+        ({"dt": -0.01}, r"dt: .*greater than 0"),
+        ({"walls": [[0, 0, 1]]}, r"walls\[0\]: the normal part"),
+        ({"walls": [[0, 1]]}, r"walls\.0"),
+        ({"gravity": -9.81}, r"gravity: .*greater than or equal to 0"),
+        ({"penetration_fraction": 2}, r"penetration_fraction"),
+        ({"dynamics": "newtonian"}, r"dynamics"),
+    ],
+)
+def test_validation_errors_name_the_key(override, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        dc.load_system("BP5", **override)
+
+
+def test_validation_errors_other_types():
+    with pytest.raises(ValueError, match=r"link_lengths: expected 3 values"):
+        dc.load_system("CP3", link_lengths=[0.3, 0.4])
+    with pytest.raises(ValueError, match=r"second_moments\.1: .*greater than 0"):
+        dc.load_system("Gyro", second_moments=[0.2, -0.1, 0.04])
+    with pytest.raises(ValueError, match=r"wall: the normal part"):
+        dc.load_system("Gyro", wall=[0, 0, 0, 1])
+    with pytest.raises(ValueError, match=r"mu: .*no contact group.*pairs"):
+        dc.load_system("Rope", mu={"pairs": 0.1, "bending": 0, "stretch": 0})
+    with pytest.raises(ValueError, match=r"mass: expected one number or 10 values"):
+        dc.load_system("Rope", mass=[0.1, 0.2])
+    with pytest.raises(ValueError, match=r"min_ratio < 1 < max_ratio"):
+        dc.load_system("Rope", max_ratio=0.9)
+    with pytest.raises(ValueError, match=r"missing key 'type'"):
+        dc.load_system({"masses": [1.0]})
+    with pytest.raises(ValueError, match=r"second_moments: expected 5 pairs"):
+        dc.load_system("BD5", second_moments=[[0.1, 0.1]])
+    with pytest.raises(ValueError, match="task name, a path or a dict"):
+        dc.load_system(42)
+
+
+def _two_balls():
+    return {
+        "name": "two-balls",
+        "type": "bouncing_masses",
+        "masses": [0.1, 0.3],
+        "radii": [0.1, 0.15],
+        "walls": [[0, 1, 0]],
+        "gravity": 9.81,
+        "mu": {"pairs": 0.2, "walls": [0.5, 0.1]},
+        "cor": 0.9,
+        "dt": 0.01,
+        "horizon": 0.5,
+        "initial_conditions": {"position_low": [0.0, 0.2], "position_high": [1.0, 1.0]},
+    }
+
+
+def test_custom_system_from_dict_yaml_and_json(tmp_path):
+    import yaml
+
+    cfg = _two_balls()
+    a = dc.load_system(cfg)
+    assert a.name == "two-balls" and a.n_contacts == 3
+    assert _vals(a.mu) == [0.2, 0.5, 0.1] and _vals(a.cor) == [0.9] * 3
+    assert a.default_steps == 49
+
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump(cfg))
+    (tmp_path / "two.json").write_text(json.dumps(cfg))
+    for path in (tmp_path / "two.yaml", str(tmp_path / "two.json")):
+        b = dc.load_system(path)
+        assert b.config == a.config
+    z0 = a.sample_initial_conditions(3, seed=1)
+    assert z0.shape == (3, 2, 2, 2)
+    assert bool((z0[:, 0, :, 1] >= 0.2).all())
+    traj = a.simulate(z0, steps=4)
+    assert traj.shape == (3, 5, 2, 2, 2)
+
+    (tmp_path / "bad.yaml").write_text("type: bouncing_masses\nmasses: [1]\nradii: [1]\nwals: []\n")
+    with pytest.raises(ValueError, match=r"(?s)bad\.yaml.*dt: missing key.*wals: unknown key"):
+        dc.load_system(tmp_path / "bad.yaml")
+
+
+def test_overrides_and_config_roundtrip():
+    cfg = load_config("CP3", mu=0.3)
+    assert cfg.mu == 0.3
+    again = dc.load_system(cfg.model_dump())
+    assert again.config == cfg
+    assert math.isclose(float(again.mu[0]), 0.3)
+
+
+def test_bad_parameter_tensors_are_rejected_at_simulate():
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=0)
+    cases = [
+        ("mass", torch.tensor([0.1, -0.1, 0.3, 0.4, 0.5], dtype=torch.float64), "mass must be"),
+        ("mass", torch.ones(3, dtype=torch.float64), r"mass must have shape \(5,\)"),
+        ("mu", torch.full((30,), -0.5, dtype=torch.float64), r"mu must be >= 0"),
+        ("cor", torch.full((30,), 1.2, dtype=torch.float64), r"cor must be in \[0, 1\]"),
+        ("cor", torch.full((7,), 0.5, dtype=torch.float64), r"cor must be one number or .*\(30,\)"),
+    ]
+    for name, value, pattern in cases:
+        fresh = dc.load_system("BP5")
+        setattr(fresh, name, value)
+        with pytest.raises(ValueError, match=pattern):
+            fresh.simulate(z0, steps=1)
+    # a 0-d coefficient broadcasts to every contact
+    system.mu = torch.tensor(0.2, dtype=torch.float64)
+    assert system.simulate(z0, steps=1).shape == (2, 2, 2, 5, 2)
+
+
+def test_bad_initial_states_are_rejected():
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(4, seed=0)
+    with pytest.raises(ValueError, match=r"z0 must have shape \(N, 2, 5, 2\)"):
+        system.simulate(z0[:, :, :4])
+    with pytest.raises(ValueError, match=r"z0 must have shape"):
+        system.simulate(z0[0])
+    bad = z0.clone()
+    bad[2, 1, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"NaN or infinite values \(states \[2\]\)"):
+        system.simulate(bad)
+    overlap = z0.clone()
+    overlap[1, 0, 2] = overlap[1, 0, 0] + 0.05  # body 2 onto body 0
+    with pytest.raises(ValueError, match=r"z0\[1\]: body 0 and body 2 overlap"):
+        system.simulate(overlap)
+    outside = z0.clone()
+    outside[3, 0, 4, 0] = 1.1  # body 4 through wall 2 (x = 1)
+    with pytest.raises(ValueError, match=r"z0\[3\]: body 4 penetrates wall 2"):
+        system.simulate(outside)
+    with pytest.raises(ValueError, match=r"steps must be a non-negative integer"):
+        system.simulate(z0, steps=-1)
+    with pytest.raises(ValueError, match=r"contact_model must be one of"):
+        system.simulate(z0, steps=1, contact_model="LCP")
+    with pytest.raises(ValueError, match=r"dynamics must be one of"):
+        system.simulate(z0, steps=1, dynamics="newton")
+    rope = dc.load_system("Rope")
+    zr = rope.sample_initial_conditions(1, seed=0)
+    zr[0, 0, 5] = zr[0, 0, 4] + 0.3 * (zr[0, 0, 5] - zr[0, 0, 4])  # squash segment 5
+    with pytest.raises(ValueError, match=r"stretch limit of segment 5 exceeded"):
+        rope.simulate(zr)

@@ -1,0 +1,130 @@
+"""Gradients of short rollouts through impacts match central finite differences.
+
+Every rollout below has at least one impact (checked). Penetration
+compensation is off (``penetration_fraction=0``): its target v_C^* carries
+no gradient by design (appendix G), so finite differences would see a
+dependence that autograd deliberately ignores. Checks are directional
+(``diffcontact.testing``), relative tolerance 1e-4 (reached: at most 2e-5, mostly
+~1e-8; the largest are parameters the rollout barely depends on, e.g. the
+single gyroscope's mass, which scales inertia and gravity alike).
+"""
+
+import functools
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.mechanics import chain_points_2d, disk_points_2d
+from diffcontact.testing import assert_gradients_close
+
+F64 = torch.float64
+
+
+def check_rollout(system, names, z0, steps, **kwargs):
+    params = [getattr(system, n).detach().clone() for n in names]
+
+    def rollout(*tensors):
+        *values, z = tensors
+        for name, value in zip(names, values, strict=True):
+            setattr(system, name, value)
+        return system.simulate(z, steps, penetration_fraction=0.0, **kwargs)
+
+    with torch.no_grad():
+        traj = rollout(*params, z0)
+    gaps = system.gaps(traj[:, :, 0])
+    assert bool((gaps < 0).any()), "the rollout must contain an impact"
+    # finite differences need the contact set to stay put under the perturbation
+    assert float(gaps.abs().min()) > 1e-5
+    # coefficients at a bound of their range (mu = 0, e_P = 0 or 1) are left unperturbed
+    keep = {"mu": lambda p: p > 0, "cor": lambda p: (p > 0) & (p < 1)}
+    masks = {i: keep[n](p) for i, (n, p) in enumerate(zip(names, params, strict=True)) if n in keep}
+    directions = {i: functools.partial(torch.mul, other=m) for i, m in masks.items()}
+    results = assert_gradients_close(
+        rollout, [*params, z0], n_directions=2, rtol=1e-4, directions=directions
+    )
+    for r in results:
+        assert float(r.finite_difference.abs().max()) > 0  # every input matters
+    return results
+
+
+def test_gradients_bouncing_masses_with_friction():
+    system = dc.load_system(
+        {
+            "type": "bouncing_masses",
+            "masses": [0.1, 0.3],
+            "radii": [0.1, 0.15],
+            "walls": [[0, 1, 0]],
+            "mu": [0.4, 0.3, 0.2],
+            "cor": [0.7, 0.5, 0.6],
+            "dt": 0.01,
+            "horizon": 1.0,
+        }
+    )
+    # ball 0 hits the ground (step 5), then ball 1 off-centre (step 9)
+    z0 = torch.tensor([[[[0.3, 0.165], [0.55, 0.42]], [[2.0, -1.5], [-2.0, -0.5]]]], dtype=F64)
+    check_rollout(system, ["mu", "cor", "mass"], z0, steps=12)
+
+
+def test_gradients_bouncing_disks_second_moments():
+    system = dc.load_system(
+        {
+            "type": "bouncing_disks",
+            "masses": [0.1, 0.3],
+            "radii": [0.1, 0.15],
+            "walls": [[0, 1, 0]],
+            "mu": [0.4, 0.3, 0.2],
+            "cor": [0.7, 0.5, 0.6],
+            "dt": 0.01,
+            "horizon": 1.0,
+        }
+    )
+    # disk 0 hits the ground (step 5), then disk 1 (step 10)
+    centre = torch.tensor([[0.3, 0.165], [0.55, 0.42]], dtype=F64)
+    vel = torch.tensor([[2.0, -1.5], [-2.0, -0.5]], dtype=F64)
+    angle, spin = torch.tensor([0.3, 1.2], dtype=F64), torch.tensor([4.0, -2.0], dtype=F64)
+    z0 = disk_points_2d(centre, angle, vel, spin).transpose(0, 1).reshape(1, 2, 6, 2)
+    check_rollout(system, ["mu", "cor", "mass", "second_moments"], z0, steps=12)
+
+
+def test_gradients_chain_pendulum_cmr():
+    system = dc.load_system("CP3", cor=0.4)
+    z0 = chain_points_2d(  # joint 2 strikes the ground at step 11, sliding
+        torch.tensor([[0.9, 0.7, 0.8]], dtype=F64),
+        torch.tensor([[-1.5, -1.0, -2.0]], dtype=F64),
+        torch.tensor([0.35, 0.4, 0.35], dtype=F64),
+    )
+    check_rollout(system, ["mu", "cor", "mass", "gravity"], z0, steps=13)
+    check_rollout(system, ["cor"], z0, steps=13, contact_model="CMr")
+
+
+def test_gradients_gyroscope():
+    system = dc.load_system("Gyro")
+    z0 = system.sample_initial_conditions(32, seed=0)[25:26]  # hits the wall at step 3
+    check_rollout(system, ["mu", "cor", "mass", "second_moments", "gravity"], z0, steps=6)
+
+
+def test_gradients_rope():
+    system = dc.load_system("Rope", cor=0.3)
+    z0 = system.sample_initial_conditions(4, seed=0)[1:3]
+    check_rollout(system, ["cor", "mass", "stiffness", "rest_length", "gravity"], z0, steps=12)
+
+
+def test_gradient_flows_with_requires_grad_attributes():
+    """The contract's way: set requires_grad on the System's tensors, backprop a loss."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(4, seed=0).requires_grad_(True)
+    for t in (system.mass, system.mu, system.cor):
+        t.requires_grad_(True)
+    traj = system.simulate(z0, steps=25)
+    traj.square().sum().backward()
+    for t in (system.mass, system.mu, system.cor, z0):
+        assert t.grad is not None and bool(torch.isfinite(t.grad).all())
+    assert float(system.mass.grad.abs().sum()) > 0 and float(system.cor.grad.abs().sum()) > 0
+
+
+@pytest.mark.slow
+def test_gradients_bp5_longer_rollout():
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=0)
+    check_rollout(system, ["mu", "cor", "mass"], z0, steps=40)

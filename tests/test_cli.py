@@ -1,0 +1,227 @@
+"""The ``diffcontact`` command line and the atomic file helpers it uses."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from diffcontact import __version__
+from diffcontact.cli import main
+from diffcontact.io import atomic_path, atomic_save_npz, atomic_write_bytes, check_writable
+
+
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_usage_error(code: int, err: str, *needles: str) -> None:
+    assert code == 2
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("diffcontact")
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+# ----------------------------------------------------------------------- help
+
+
+def test_help_and_version(capsys):
+    code, out, _ = run(capsys, "--help")
+    assert code == 0 and "simulate" in out and "demo" in out
+    code, out, _ = run(capsys, "simulate", "--help")
+    assert code == 0
+    for flag in ("--n", "--steps", "--seed", "--out", "--gif", "--contact-model", "--device"):
+        assert flag in out
+    code, out, _ = run(capsys, "--version")
+    assert code == 0 and out.strip() == f"diffcontact {__version__}"
+    code, out, _ = run(capsys)  # no command: help
+    assert code == 0 and "COMMAND" in out
+
+
+# ------------------------------------------------------------------- simulate
+
+try:
+    import diffcontact.systems  # noqa: F401
+
+    HAVE_SYSTEMS = True
+except ImportError:  # the simulator is not installed in this tree
+    HAVE_SYSTEMS = False
+needs_systems = pytest.mark.skipif(not HAVE_SYSTEMS, reason="diffcontact.systems not available")
+
+
+@needs_systems
+def test_simulate_bp5_writes_npz_and_gif(tmp_path, capsys):
+    out, gif, png = tmp_path / "sim.npz", tmp_path / "sim.gif", tmp_path / "energy.png"
+    code, stdout, _ = run(
+        capsys,
+        "simulate",
+        "BP5",
+        "--n",
+        "2",
+        "--steps",
+        "4",
+        "--seed",
+        "3",
+        "--out",
+        str(out),
+        "--gif",
+        str(gif),
+        "--energy-plot",
+        str(png),
+    )
+    assert code == 0
+    assert "(2, 5, 2, 5, 2)" in stdout and "energy" in stdout
+    with np.load(out) as d:  # no pickle needed
+        assert d["traj"].shape == (2, 5, 2, 5, 2) and d["traj"].dtype == np.float64
+        assert d["energy"].shape == (2, 5)
+        np.testing.assert_allclose(d["t"], np.arange(5) * 0.01)
+        assert str(d["task"]) == "BP5" and int(d["seed"]) == 3 and float(d["dt"]) == 0.01
+        assert str(d["contact_model"]) == "CM"
+        assert str(d["diffcontact_version"]) == __version__
+        config = json.loads(str(d["config"]))
+        assert config["type"] == "bouncing_masses" and config["radii"][0] == 0.05
+        traj = d["traj"]
+    # the same seed gives the same initial states as the library call
+    import diffcontact as dc
+
+    z0 = dc.load_system("BP5").sample_initial_conditions(2, seed=3)
+    np.testing.assert_array_equal(traj[:, 0], z0.numpy())
+    with Image.open(gif) as im:
+        assert im.format == "GIF" and im.n_frames == 5
+    with Image.open(png) as im:
+        assert im.format == "PNG"
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
+@needs_systems
+def test_simulate_from_config_file_is_reproducible(tmp_path, capsys):
+    import yaml
+
+    from diffcontact.systems import load_config
+
+    cfg = load_config("CP3").model_dump(mode="json")
+    path = tmp_path / "my_pendulum.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}.npz"
+        argv = ["simulate", str(path), "--n", "1", "--steps", "2", "--out", str(out), "--quiet"]
+        code, stdout, _ = run(capsys, *argv)
+        assert code == 0 and stdout == ""
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]  # same command, same bytes
+
+
+@needs_systems
+def test_unknown_task(capsys, tmp_path):
+    code, _, err = run(capsys, "simulate", "BP7", "--out", str(tmp_path / "x.npz"))
+    assert_usage_error(code, err, "unknown task", "'BP7'", "BP5", "Rope-D400")
+    assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize(
+    ("flag", "value"), [("--n", "0"), ("--n", "-2"), ("--n", "two"), ("--steps", "0")]
+)
+def test_bad_numbers(capsys, flag, value):
+    code, _, err = run(capsys, "simulate", "BP5", flag, value)
+    assert_usage_error(code, err, f"argument {flag}")
+
+
+@needs_systems
+def test_missing_config_file(capsys, tmp_path):
+    missing = tmp_path / "nope.yaml"
+    code, _, err = run(capsys, "simulate", str(missing), "--out", str(tmp_path / "x.npz"))
+    assert_usage_error(code, err, "does not exist", "nope.yaml")
+
+
+@needs_systems
+def test_invalid_config_file(capsys, tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"type": "rope", "dt": 0.01, "horizon": 1.0, "colour": "red"}))
+    code, _, err = run(capsys, "simulate", str(bad), "--out", str(tmp_path / "x.npz"))
+    assert_usage_error(code, err, "colour")
+
+
+def test_unwritable_output(capsys, tmp_path):
+    code, _, err = run(capsys, "simulate", "BP5", "--out", str(tmp_path / "no" / "x.npz"))
+    assert_usage_error(code, err, "--out", "does not exist")
+    code, _, err = run(capsys, "simulate", "BP5", "--out", str(tmp_path))  # a directory
+    assert_usage_error(code, err, "--out", "directory")
+    code, _, err = run(
+        capsys, "simulate", "BP5", "--out", str(tmp_path / "a.npz"), "--gif", "/no/such/dir/a.gif"
+    )
+    assert_usage_error(code, err, "--gif")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_cuda_not_available(capsys, tmp_path):
+    code, _, err = run(capsys, "simulate", "BP5", "--device", "cuda", "--out", str(tmp_path / "x"))
+    assert_usage_error(code, err, "CUDA is not available")
+
+
+@needs_systems
+def test_console_error_has_no_traceback(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "diffcontact.cli", "simulate", "NoSuchTask"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and "unknown task" in proc.stderr
+
+
+# ------------------------------------------------------------------------ io
+
+
+def test_atomic_save_npz_roundtrip_and_determinism(tmp_path):
+    arrays = {
+        "a": np.arange(6.0).reshape(2, 3),
+        "t": torch.ones(3, dtype=torch.float64),
+        "name": np.str_("BP5"),
+        "seed": np.int64(7),
+    }
+    p1 = atomic_save_npz(tmp_path / "one.npz", **arrays)
+    p2 = atomic_save_npz(tmp_path / "two.npz", **arrays)
+    assert p1.read_bytes() == p2.read_bytes()
+    with np.load(p1, allow_pickle=False) as d:
+        assert d.files == ["a", "t", "name", "seed"]
+        np.testing.assert_array_equal(d["a"], arrays["a"])
+        assert d["t"].tolist() == [1.0, 1.0, 1.0] and str(d["name"]) == "BP5"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.npz", "two.npz"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(p1).st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's private 0o600
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path):
+    path = tmp_path / "data.npz"
+    atomic_write_bytes(path, b"old")
+    with pytest.raises(TypeError, match="object"):
+        atomic_save_npz(path, bad=np.array([{"a": 1}], dtype=object))
+    assert path.read_bytes() == b"old"
+    with pytest.raises(RuntimeError, match="boom"), atomic_path(path) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("boom")
+    assert path.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["data.npz"]
+
+
+def test_check_writable(tmp_path):
+    assert check_writable(tmp_path / "x.npz") == tmp_path / "x.npz"
+    with pytest.raises(IsADirectoryError):
+        check_writable(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        check_writable(tmp_path / "missing" / "x.npz")

@@ -1,0 +1,262 @@
+"""GIF animations, energy plots and scenes (diffcontact.viz)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from diffcontact.viz import (
+    Chain,
+    Circle,
+    Disk3D,
+    Scene,
+    animate,
+    frame_indices,
+    plot_energy,
+    render_frame,
+    scene_from_config,
+    scene_from_system,
+)
+
+BOX = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 1.0), (0.0, -1.0, 1.0))
+
+
+def _with_velocities(x: np.ndarray) -> np.ndarray:
+    """Positions ``(..., T, P, d)`` -> states ``(..., T, 2, P, d)`` (finite-difference v)."""
+    v = np.gradient(x, axis=-3)
+    return np.stack([x, v], axis=-3)
+
+
+def bouncing_points(n_traj: int, T: int, n: int = 3, seed: int = 0) -> np.ndarray:
+    """Points reflected inside [0.2, 0.8]^2 (a triangle wave): ``(N, T, 2, n, 2)``."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.uniform(0.2, 0.8, (n_traj, 1, n, 2))
+    v = rng.normal(0.0, 1.0, (n_traj, 1, n, 2))
+    t = (np.arange(T) * 0.01)[None, :, None, None]
+    x = np.abs(((x0 + v * t - 0.2) % 1.2) - 0.6) + 0.2
+    return _with_velocities(x)
+
+
+def rotating_disks(T: int) -> np.ndarray:
+    """Two 3-point rigid disks spinning in place: ``(T, 2, 6, 2)``."""
+    c = np.array([[0.3, 0.3], [0.7, 0.6]])
+    ang = np.linspace(0.0, 4.0, T)[:, None] * np.array([1.0, -2.0])
+    ex = np.stack([np.cos(ang), np.sin(ang)], -1)
+    ey = np.stack([-np.sin(ang), np.cos(ang)], -1)
+    pts = np.stack([c + 0 * ex, c + ex, c + ey], axis=2).reshape(T, 6, 2)
+    return _with_velocities(pts)
+
+
+def chain(T: int, lengths=(0.35, 0.4, 0.35)) -> np.ndarray:
+    """A swinging chain from the origin: ``(T, 2, len, 2)``."""
+    q = np.stack([np.sin(np.linspace(0, 4, T) * k) for k in (1.0, 1.5, 2.0)], -1)
+    rel = np.stack([np.sin(q), -np.cos(q)], -1) * np.asarray(lengths)[:, None]
+    return _with_velocities(rel.cumsum(-2))
+
+
+def gyroscope(T: int) -> np.ndarray:
+    """A precessing, spinning body on the origin: ``(T, 2, 4, 3)``."""
+    out = []
+    for k in range(T):
+        a, b, c = 0.1 * k, 0.5 + 0.1 * math.sin(0.2 * k), 0.6 * k
+        rz = lambda t: np.array(  # noqa: E731
+            [[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]]
+        )
+        rx = np.array([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]])
+        R = rz(a) @ rx @ rz(c)
+        com = R @ np.array([0.0, 0.0, 0.5])
+        out.append(np.stack([com, com + R[:, 0], com + R[:, 1], com + R[:, 2]]))
+    return _with_velocities(np.asarray(out))
+
+
+def n_frames(path) -> int:
+    with Image.open(path) as im:
+        assert im.format == "GIF"
+        return im.n_frames
+
+
+def no_temp_files(folder) -> bool:
+    return not [p for p in folder.iterdir() if ".tmp-" in p.name]
+
+
+def test_gif_bouncing_points(tmp_path):
+    traj = bouncing_points(1, 30)[0]  # (T, 2, P, 2)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05 + 0.03 * i) for i in range(3)), walls=BOX)
+    out = animate(traj, scene, tmp_path / "bp.gif", dt=0.01, fps=10)
+    assert out == tmp_path / "bp.gif"
+    assert n_frames(out) == 30
+    assert out.stat().st_size > 5_000
+    assert no_temp_files(tmp_path)
+
+
+def test_frames_subsampled_and_grid(tmp_path):
+    traj = torch.from_numpy(bouncing_points(6, 250))  # torch input, N > max_trajectories
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.08) for i in range(3)), walls=BOX)
+    out = animate(traj, scene, tmp_path / "grid.gif", max_frames=40, dpi=50, panel_size=2.0)
+    assert n_frames(out) == 40
+    with Image.open(out) as im:  # 4 trajectories shown as a 2 x 2 grid
+        w, h = im.size
+    assert w == 2 * 2.0 * 50
+    assert h > w
+
+
+def test_frame_indices():
+    assert frame_indices(5, 100).tolist() == [0, 1, 2, 3, 4]
+    idx = frame_indices(1001, 100)
+    assert len(idx) == 100 and idx[0] == 0 and idx[-1] == 1000
+    assert np.all(np.diff(idx) > 0)
+    with pytest.raises(ValueError, match="max_frames"):
+        frame_indices(10, 0)
+
+
+def test_disks_with_overlay(tmp_path):
+    traj = rotating_disks(20)
+    circles = (Circle(0, 0.1, oriented=True), Circle(3, 0.15, oriented=True))
+    scene = Scene(dim=2, circles=circles, walls=BOX)
+    out = animate(
+        traj, scene, tmp_path / "bd.gif", overlay=traj + 0.02, labels=("true", "predicted")
+    )
+    assert n_frames(out) == 20
+    with pytest.raises(ValueError, match="overlay"):
+        animate(traj, scene, tmp_path / "bad.gif", overlay=traj[:5])
+    assert not (tmp_path / "bad.gif").exists()
+    assert no_temp_files(tmp_path)
+
+
+def test_chain_rope_and_frame_png(tmp_path):
+    traj = chain(15)
+    pendulum = Scene(
+        dim=2,
+        circles=(Circle(0, 0.05), Circle(1, 0.15), Circle(2, 0.1)),
+        chains=(Chain((0, 1, 2), anchor=(0.0, 0.0)),),
+        walls=((0.0, 1.0, 1.0),),
+        pivots=((0.0, 0.0),),
+        title="CP3",
+    )
+    assert n_frames(animate(traj, pendulum, tmp_path / "cp.gif")) == 15
+    rope = Scene(dim=2, chains=(Chain((0, 1, 2), anchor=(0.0, 0.0), style="rope"),))
+    assert n_frames(animate(traj, rope, tmp_path / "rope.gif")) == 15
+    png = render_frame(traj, pendulum, tmp_path / "cp.png", frame=7, dt=0.01)
+    with Image.open(png) as im:
+        assert im.format == "PNG"
+
+
+def test_gyroscope_3d(tmp_path):
+    traj = gyroscope(12)
+    scene = Scene(
+        dim=3,
+        disks3d=(Disk3D(0, 0.3, pivot=(0.0, 0.0, 0.0)),),
+        planes=((0.0, 1.0, 0.0, 0.33),),
+        pivots=((0.0, 0.0, 0.0),),
+    )
+    out = animate(np.stack([traj, traj[::-1]]), scene, tmp_path / "gyro.gif", dt=0.02)
+    assert n_frames(out) == 12
+    assert out.stat().st_size > 5_000
+
+
+def test_scene_checks():
+    scene = Scene(dim=2, circles=(Circle(4, 0.1, oriented=True),))
+    with pytest.raises(ValueError, match=r"point indices \[4, 5\]"):
+        scene.check(n_points=4, dim=2)
+    with pytest.raises(ValueError, match="dim=3"):
+        scene.check(n_points=6, dim=3)
+    with pytest.raises(ValueError, match="2D elements"):
+        Scene(dim=3, walls=BOX)
+    with pytest.raises(ValueError, match="wall"):
+        Scene(dim=2, walls=((0.0, 0.0, 1.0),))
+    with pytest.raises(ValueError, match="shape"):
+        animate(np.zeros((3, 5, 2)), Scene.points(5, 2), "unused.gif")
+
+
+def test_plot_energy(tmp_path):
+    E = np.cumsum(np.random.default_rng(0).normal(size=(3, 50)), axis=1)
+    out = plot_energy(torch.from_numpy(E), 0.01, tmp_path / "energy.png", title="test")
+    with Image.open(out) as im:
+        assert im.format == "PNG"
+    plot_energy(E[0], 0.01, tmp_path / "energy1.png")
+    with pytest.raises(ValueError, match="E must have shape"):
+        plot_energy(np.zeros((2, 3, 4)), 0.01, tmp_path / "bad.png")
+    assert no_temp_files(tmp_path)
+
+
+CONFIG_SCENES = [
+    (
+        {"type": "bouncing_masses", "radii": [0.1, 0.2], "walls": [list(w) for w in BOX]},
+        2,
+        lambda s: [c.point for c in s.circles] == [0, 1] and len(s.walls) == 4,
+    ),
+    (
+        {"type": "bouncing_disks", "radii": [0.1, 0.2], "walls": [list(w) for w in BOX]},
+        6,
+        lambda s: [c.point for c in s.circles] == [0, 3] and all(c.oriented for c in s.circles),
+    ),
+    (
+        {"type": "chain_pendulum", "link_lengths": [0.3, 0.4], "radii": [0.1, 0.2]},
+        2,
+        lambda s: s.chains[0].points == (0, 1) and s.chains[0].anchor == (0.0, 0.0),
+    ),
+    (
+        {"type": "rope", "n_points": 5, "anchor": [0.0, 0.5]},
+        5,
+        lambda s: s.chains[0].style == "rope" and s.chains[0].anchor == (0.0, 0.5),
+    ),
+    (
+        {"type": "gyroscope", "rim_radius": 0.3, "wall": [0, 1, 0, 0.33]},
+        4,
+        lambda s: s.disks3d[0].radius == 0.3 and s.planes == ((0.0, 1.0, 0.0, 0.33),),
+    ),
+]
+
+
+@pytest.mark.parametrize(("cfg", "n_points", "ok"), CONFIG_SCENES)
+def test_scene_from_config_dicts(cfg, n_points, ok):
+    scene = scene_from_config(cfg)
+    assert ok(scene)
+    scene.check(n_points, scene.dim)
+
+
+def test_scene_from_config_unknown_type():
+    with pytest.raises(ValueError, match="unknown system type"):
+        scene_from_config({"type": "trebuchet"})
+
+
+def _tasks() -> list[str]:
+    try:
+        from diffcontact.systems import list_tasks
+    except ImportError:
+        return []
+    return list_tasks()
+
+
+@pytest.mark.parametrize("task", _tasks() or ["<no systems>"])
+def test_scene_from_system_builtin(task):
+    systems = pytest.importorskip("diffcontact.systems")
+    system = systems.load_system(task)
+    scene = scene_from_system(system)
+    scene.check(system.n_points, system.dim)  # every index fits the state layout
+    cfg = system.config
+    if cfg.type in ("bouncing_masses", "bouncing_disks"):
+        assert [c.radius for c in scene.circles] == list(cfg.radii)
+        assert len(scene.walls) == len(cfg.walls)
+        assert all(c.oriented == (cfg.type == "bouncing_disks") for c in scene.circles)
+    elif cfg.type == "chain_pendulum":
+        assert [c.radius for c in scene.circles] == list(cfg.radii)
+        assert scene.walls == tuple(tuple(w) for w in cfg.walls)
+        assert scene.chains[0].anchor == tuple(cfg.pivot)
+    elif cfg.type == "rope":
+        assert scene.chains[0].points == tuple(range(cfg.n_points))
+    elif cfg.type == "gyroscope":
+        assert scene.disks3d[0].radius == cfg.rim_radius
+        assert scene.planes == (tuple(cfg.wall),)
+
+
+def test_animate_simulated_bp5(tmp_path):
+    systems = pytest.importorskip("diffcontact.systems")
+    system = systems.load_system("BP5")
+    traj = system.simulate(system.sample_initial_conditions(2, seed=0), steps=4)
+    out = animate(traj, scene_from_system(system), tmp_path / "sim.gif", dt=system.dt)
+    assert n_frames(out) == 5
