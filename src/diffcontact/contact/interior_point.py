@@ -133,7 +133,10 @@ def _soc_max_step(x: Tensor, dx: Tensor) -> Tensor:
     inf = torch.full_like(c, float("inf"))
     r1 = torch.where(r1 > 0, r1, inf)
     r2 = torch.where(r2 > 0, r2, inf)
-    return torch.where(disc < 0, inf, torch.minimum(r1, r2))
+    roots = torch.where(disc < 0, inf, torch.minimum(r1, r2))
+    # the cone lies in x0 >= 0: a line through (or, after rounding, next to) the apex
+    # has a double root that disc < 0 may hide, and must not jump into the -cone
+    return torch.minimum(roots, _orth_max_step(x[..., 0], dx[..., 0]))
 
 
 def _orth_max_step(x: Tensor, dx: Tensor) -> Tensor:

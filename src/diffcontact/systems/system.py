@@ -27,7 +27,7 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,6 +49,7 @@ from diffcontact.mechanics import (
     hamiltonian_flow,
     kron_identity,
     lagrangian_vector_field,
+    potential_gradient,
     rigid_body_constraints,
     rk4_step,
 )
@@ -238,6 +239,9 @@ class System:
         self.mu: Tensor = torch.tensor(cfg.per_contact("mu"), dtype=_F)
         self.cor: Tensor = torch.tensor(cfg.per_contact("cor"), dtype=_F)
         self.gravity: Tensor = torch.tensor(float(cfg.gravity), dtype=_F)
+        # an extra potential V(x): (..., P, dim) -> (...), e.g. a learned network, added
+        # to the built-in terms; the dynamics take its gradient by autograd
+        self.potential_model: Callable[[Tensor], Tensor] | None = None
         self._device_cache: dict[str, tuple[Any, EqualityConstraints | None]] = {}
 
     # ------------------------------------------------------------------ builders
@@ -434,6 +438,8 @@ class System:
             seg = self._segments(x, ctx)
             length = (seg * seg).sum(-1).sqrt()
             V = V + (ctx.stiffness * (length - ctx.rest_length) ** 2).sum(-1)
+        if self.potential_model is not None:
+            V = V + self.potential_model(x)
         return V
 
     def _segments(self, x: Tensor, ctx: _Context) -> Tensor:
@@ -450,6 +456,10 @@ class System:
             g_seg = 2.0 * ctx.stiffness * (length - ctx.rest_length) / length * seg
             nxt = torch.cat([g_seg[..., 1:, :], torch.zeros_like(g_seg[..., :1, :])], dim=-2)
             grad = grad + g_seg - nxt
+        if self.potential_model is not None:
+            grad = grad + potential_gradient(
+                self.potential_model, x, create_graph=torch.is_grad_enabled()
+            )
         return grad
 
     def potential(self, x: Tensor) -> Tensor:
