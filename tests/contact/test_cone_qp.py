@@ -290,6 +290,8 @@ def test_problems_the_polish_cannot_finish_are_solved_again():
         # padded (inactive) contacts sit exactly on the cone's axis: the step length must
         # not let them pass through the apex
         ("bp5_restitution_inactive_tip", 2),
+        # rope limits on which Mehrotra's second-order correction made the iterates cycle
+        ("rope_mehrotra_cycling", 1),
     ],
 )
 def test_recorded_simulator_problems(name, d):

@@ -228,9 +228,10 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     dirn = g / size.clamp_min(1)[:, None]
     curv = (dirn * torch.einsum("bij,bj->bi", A_m / a_s[:, None, None], dirn)).sum(-1)
     descent = (dirn * b_m / b_s[:, None]).sum(-1)
-    runaway = (size > 1e8) & (curv <= 1e-6) & (descent < 0)
+    finished = res <= settings.tol
+    runaway = (size > 1e3) & (curv <= 1e-6) & (descent < 0) & ~finished
     unbounded = unbounded | runaway
-    converged = (res <= settings.tol) & ~unbounded
+    converged = finished & ~unbounded
     status = SolverStatus(
         converged=converged, unbounded=unbounded, iterations=iterations, residual=res
     )

@@ -251,6 +251,7 @@ def interior_point_solve(
 
     Ab, bb = A, b
     stalled = torch.zeros(B, dtype=torch.bool, device=device)
+    plain_only = torch.zeros(B, dtype=torch.bool, device=device)
     for it in range(max_iter):
         gl, gq = cones.G(f)
         rx = (torch.einsum("bij,bj->bi", Ab, f.reshape(-1, C)) + bb).reshape(-1, K, d)
@@ -275,7 +276,7 @@ def interior_point_solve(
             if idx.numel() == 0:
                 break
             f, sl, zl, rx, rzl, gap = f[keep], sl[keep], zl[keep], rx[keep], rzl[keep], gap[keep]
-            stalled = stalled[keep]
+            stalled, plain_only = stalled[keep], plain_only[keep]
             if d > 1:
                 sq, zq, rzq = sq[keep], zq[keep], rzq[keep]
             Ab, bb = Ab[keep], bb[keep]
@@ -342,15 +343,39 @@ def interior_point_solve(
         df, dsl, dsq, dzl, dzq = solve(r3l, r3q)
         alpha = max_step(dsl, dsq, dzl, dzq).clamp(max=1.0)
         sigma = (1 - alpha) ** 3
-        # corrector: r3 = -lam o lam - (W^-1 ds_a) o (W dz_a) + sigma mu e
-        r3l = r3l - dsl * dzl + (sigma * mu_gap)[:, None]
+        # corrector: r3 = -lam o lam + sigma mu e - (W^-1 ds_a) o (W dz_a). Mehrotra's
+        # second-order term can make the iteration cycle (seen on rope limits): a problem
+        # whose gap grows under it drops the term from then on.
+        r3l = r3l + (sigma * mu_gap)[:, None]
+        corr_l = dsl * dzl
         if d > 1:
+            r3q = r3q.clone()
+            r3q[..., 0] = r3q[..., 0] + sigma[:, None] * mu_gap[:, None]
             a_s = (W_inv @ dsq.unsqueeze(-1)).squeeze(-1)
             a_z = (W @ dzq.unsqueeze(-1)).squeeze(-1)
-            r3q = r3q - _soc_prod(a_s, a_z)
-            r3q[..., 0] = r3q[..., 0] + sigma[:, None] * mu_gap[:, None]
-        df, dsl, dsq, dzl, dzq = solve(r3l, r3q)
-        alpha = (0.99 * max_step(dsl, dsq, dzl, dzq)).clamp(max=1.0)
+            corr_q = _soc_prod(a_s, a_z)
+        plain = solve(r3l, r3q)
+        mehrotra = solve(r3l - corr_l, r3q - corr_q if d > 1 else None)
+
+        def gap_after(direction):
+            _, dsl, dsq, dzl, dzq = direction
+            alpha = (0.99 * max_step(dsl, dsq, dzl, dzq)).clamp(max=1.0)
+            a = alpha[:, None]
+            g = ((sl + a * dsl) * (zl + a * dzl)).sum(-1)
+            if d > 1:
+                a = a[..., None]
+                g = g + ((sq + a * dsq) * (zq + a * dzq)).sum((-1, -2))
+            return g, alpha
+
+        gap_m, alpha_m = gap_after(mehrotra)
+        _, alpha_p = gap_after(plain)
+        plain_only |= gap_m > gap
+        use_m = ~plain_only
+        alpha = torch.where(use_m, alpha_m, alpha_p)
+        df, dsl, dsq, dzl, dzq = (
+            None if m is None else torch.where(use_m.view(-1, *([1] * (m.dim() - 1))), m, p)
+            for m, p in zip(mehrotra, plain, strict=True)
+        )
         a1 = alpha[:, None]
         f_new = f + a1[..., None] * df
         sl_new, zl_new = sl + a1 * dsl, zl + a1 * dzl
