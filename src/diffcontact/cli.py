@@ -113,6 +113,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=_cmd_simulate)
+
+    # learning subcommands; each module keeps its heavy imports inside its handler
+    from diffcontact.learning import data as learning_data
+    from diffcontact.learning import evaluate as learning_evaluate
+
+    learning_data.register_cli(sub)
+    learning_evaluate.register_cli(sub)
     return parser
 
 

@@ -1,0 +1,41 @@
+"""Pieces shared by the benchmarks: device sync and the machine description."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+import torch
+
+
+def sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def machine_header(device: str, dtype: torch.dtype) -> list[str]:
+    """Python, library versions, CPU (and GPU) and where/in what dtype ours runs."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    versions = [f"torch {torch.__version__}"]
+    for mod in ("numpy", "cvxpy", "cvxpylayers", "diffcp", "clarabel", "lightning"):
+        try:
+            versions.append(f"{mod} {__import__(mod).__version__}")
+        except Exception:  # a missing package is not an error here
+            versions.append(f"{mod} -")
+    lines = [
+        f"Python {platform.python_version()} ({platform.python_implementation()}), "
+        + ", ".join(versions),
+        f"CPU: {cpu}; {os.cpu_count()} logical cores; torch threads {torch.get_num_threads()}",
+    ]
+    if device == "cuda":
+        lines.append(f"GPU: {torch.cuda.get_device_name()}")
+    lines.append(f"diffcontact on {device} in {str(dtype).replace('torch.', '')}")
+    return lines
