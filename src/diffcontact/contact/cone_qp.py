@@ -56,12 +56,13 @@ class SolverSettings:
 
     Attributes:
         tol: accepted natural-map residual ``||F||_inf / max(1, ||f||_inf)`` after
-            scaling (float64: 1e-12, float32: 1e-5).
+            scaling (float64: 1e-9, float32: 1e-5); the polish itself goes on to
+            ``1e-4 * tol`` (rounding level in float64) while it makes progress.
         gap: interior-point target for the complementarity gap per cone and the
             residuals (scaled), before polishing (float64: 1e-9, float32: 1e-4).
         max_iter: interior-point iteration cap.
         polish_steps: Newton steps on the natural map.
-        retries: re-solves, each with a 1000x tighter interior-point gap, of the
+        retries: re-solves, each with a 100x tighter interior-point gap, of the
             problems the polish could not finish.
         kkt_reg: relative regularisation ``delta`` of ``A`` in the polish and
             backward Jacobian (float64: 1e-12, float32: 1e-7).
@@ -77,7 +78,7 @@ class SolverSettings:
     gap: float | None = None
     max_iter: int = 100
     polish_steps: int = 4
-    retries: int = 2
+    retries: int = 3
     kkt_reg: float | None = None
     check_inputs: bool = True
     compute_dtype: torch.dtype | None = torch.float64
@@ -86,7 +87,7 @@ class SolverSettings:
         dtype = self.compute_dtype or dtype
         double = dtype == torch.float64
         return SolverSettings(
-            tol=self.tol if self.tol is not None else (1e-12 if double else 1e-5),
+            tol=self.tol if self.tol is not None else (1e-9 if double else 1e-5),
             gap=self.gap if self.gap is not None else (1e-9 if double else 1e-4),
             max_iter=self.max_iter,
             polish_steps=self.polish_steps,
@@ -218,7 +219,7 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         retry = (polished[1] > settings.tol) & ~ipm.unbounded
         if not bool(retry.any()):
             break
-        rows, gap = rows[retry], gap * 1e-3
+        rows, gap = rows[retry], gap * 1e-2
 
     f = torch.where(act_c, f, 0)
     # an iterate that ran off along a direction of zero curvature and descent is a
@@ -240,27 +241,36 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
 
 
 def _polish(f: Tensor, data, settings: SolverSettings):
-    """Newton steps on the natural map from ``f`` (B, C); steps that do not lower the
-    residual are rejected. Returns the point, its residual, the projection's derivatives
-    and the LU factorisation of dF/df there (reused by the backward pass)."""
+    """Newton steps on the natural map from ``f`` (B, C), with a backtracking line
+    search on the residual (full, 1/2, 1/4 and 1/8 steps; a problem keeps its point if
+    none lowers the residual: near-degenerate contacts can make full steps switch
+    branches back and forth). Returns the point, its residual, the projection's
+    derivatives and the LU factorisation of dF/df there (reused by the backward pass)."""
     A, b, mu, lower, rho, reg, c = data
     F, P, dmu, dl = _natural_map(A, b, mu, lower, f, rho)
     res = _scaled_residual(F, f, c)
+    target = 1e-4 * settings.tol  # polish to rounding level; ``tol`` is what is accepted
     for step in range(settings.polish_steps + 1):
         LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
-        if step == settings.polish_steps or bool((res <= settings.tol).all()):
+        if step == settings.polish_steps or bool((res <= target).all()):
             break
         delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
-        f_new = f + torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-        F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
-        res_new = _scaled_residual(F_new, f_new, c)
-        better = res_new < res
-        f = torch.where(better[:, None], f_new, f)
-        F = torch.where(better[:, None], F_new, F)
-        P = torch.where(better[:, None, None, None], P_new, P)
-        dmu = torch.where(better[:, None, None], dmu_new, dmu)
-        dl = torch.where(better[:, None, None], dl_new, dl)
-        res = torch.where(better, res_new, res)
+        delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        todo = res > target
+        for alpha in (1.0, 0.5, 0.25, 0.125):
+            f_new = f + alpha * delta
+            F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
+            res_new = _scaled_residual(F_new, f_new, c)
+            better = todo & (res_new < res)
+            f = torch.where(better[:, None], f_new, f)
+            F = torch.where(better[:, None], F_new, F)
+            P = torch.where(better[:, None, None, None], P_new, P)
+            dmu = torch.where(better[:, None, None], dmu_new, dmu)
+            dl = torch.where(better[:, None, None], dl_new, dl)
+            res = torch.where(better, res_new, res)
+            todo = todo & ~better
+            if not bool(todo.any()):
+                break
     return f, res, P, dmu, dl, LU, piv
 
 
