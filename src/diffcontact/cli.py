@@ -117,8 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     # learning subcommands; each module keeps its heavy imports inside its handler
     from diffcontact.learning import data as learning_data
     from diffcontact.learning import evaluate as learning_evaluate
+    from diffcontact.learning import train_cli as learning_train
 
     learning_data.register_cli(sub)
+    learning_train.register_cli(sub)
     learning_evaluate.register_cli(sub)
     return parser
 

@@ -12,6 +12,13 @@ Datasets (:mod:`diffcontact.learning.data`, format in ``docs/data.md``):
   recorded elsewhere;
 - :func:`load_dataset` reads a dataset folder (checksums verified) into a
   :class:`Dataset`.
+
+Models, training and evaluation:
+
+- :class:`LearnedModel` (:mod:`~diffcontact.learning.model`): CM/CMr-CD-CLNN/CHNN, a
+  ``System`` whose inertia, potential, mu and e_P are learned; :func:`load_model`;
+- ``diffcontact.learning.train.train`` (Lightning; ``docs/training.md``);
+- ``diffcontact.learning.evaluate.evaluate`` (``docs/evaluation.md``).
 """
 
 from __future__ import annotations
@@ -27,6 +34,9 @@ _EXPORTS: dict[str, str] = {
     "generate_dataset": "diffcontact.learning.data",
     "load_dataset": "diffcontact.learning.data",
     "select_chunks": "diffcontact.learning.data",
+    "LearnedModel": "diffcontact.learning.model",
+    "load_model": "diffcontact.learning.model",
+    "MODELS": "diffcontact.learning.model",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,0 +1,499 @@
+"""Learned models: the ground-truth :class:`~diffcontact.systems.System` with learnable parameters.
+
+A :class:`LearnedModel` *is* a simulator (DESIGN.md): it wraps the same
+``System`` class that generates the data and, on every call, fills the
+system's parameter tensors from its modules before calling ``System.simulate``.
+Collision detection, the mechanics and the contact solver are the ground
+truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
+
+- inverse inertia in the extended-body form (``docs/conventions.md``): one
+  log-mass per body and, for rigid bodies, one log second moment per body
+  axis (``mass = exp(log_mass)``, ``second_moments = exp(log_second_moments)``),
+  initialised at 1 (not at the truth);
+- potential ``V(x)``: an MLP on the flattened positions ``(..., P*dim)`` with
+  Softplus activations (3 hidden layers of 256 by default), plugged in as
+  ``System.potential_model``; the system's ``gravity`` (and the rope's spring
+  ``stiffness``) are set to 0 so the MLP carries the whole potential;
+- friction ``mu = relu(raw_mu)`` and restitution ``e_P = hardsigmoid(raw_cor)``
+  (``torch.nn.functional.hardsigmoid``: ``clamp(x / 6 + 1/2, 0, 1)``),
+  initialised at 0.5 each; one shared value for homogeneous tasks, one per
+  contact for heterogeneous ones (BP5, BD5);
+- CMr's regulariser ``eps``: a fixed number or ``exp(log_eps)`` (learnable,
+  initialised at 0.01).
+
+Model names (paper-facts.md, "Models compared"): ``CM-CD-CLNN``,
+``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``: contact model CM or CMr,
+true collision detection, constrained Lagrangian (``dynamics="lagrangian"``,
+S.2) or Hamiltonian (``"hamiltonian"``, S.4-S.7) dynamics.
+
+Example::
+
+    model = LearnedModel("BP5", model="CMr-CD-CLNN", eps="learnable")
+    traj = model.simulate(z0, steps=4)          # (N, 5, 2, P, dim), z0's dtype/device
+    model.learned_parameters()                  # plain numbers
+    model.save("run/model.pt"); model = load_model("run")
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from diffcontact.systems import System, load_config
+
+__all__ = [
+    "HETEROGENEOUS_TASKS",
+    "HOMOGENEOUS_TASKS",
+    "MODELS",
+    "LearnedModel",
+    "PotentialMLP",
+    "load_model",
+    "parse_model_name",
+]
+
+MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
+# paper-facts.md, "Homogeneous tasks": one mu/e_P shared by all contacts, or one per contact
+HOMOGENEOUS_TASKS = ("BP5-e", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
+HETEROGENEOUS_TASKS = ("BP5", "BD5")
+FORMAT_VERSION = 1
+_INIT_MU = 0.5
+_INIT_COR = 0.5
+_INIT_EPS = 0.01
+
+
+def parse_model_name(name: str) -> tuple[str, str]:
+    """``"CMr-CD-CHNN"`` -> ``("CMr", "hamiltonian")``; ``ValueError`` for unknown names."""
+    if name not in MODELS:
+        raise ValueError(f"unknown model {name!r}; known models: {', '.join(MODELS)}")
+    contact, _, net = name.split("-")
+    return contact, "lagrangian" if net == "CLNN" else "hamiltonian"
+
+
+def _default_heterogeneous(system: System) -> bool:
+    """One mu/e_P per contact for BP5 and BD5, one shared value otherwise (paper-facts.md)."""
+    return system.name in HETEROGENEOUS_TASKS
+
+
+class PotentialMLP(nn.Module):
+    """``V(x)``: an MLP on flattened positions, ``(..., P, dim) -> (...)``.
+
+    Softplus hidden activations (smooth, so ``grad V`` and its derivative exist
+    for the RK4 dynamics and the training gradient); the output layer has no
+    bias (a constant in ``V`` exerts no force). The weights are cast to
+    ``x``'s dtype and device when they differ, so one model can roll out in
+    float32 and float64 (a no-op when they match).
+
+    Args:
+        n_inputs: ``P * dim``.
+        hidden: widths of the hidden layers.
+    """
+
+    def __init__(self, n_inputs: int, hidden: Sequence[int] = (256, 256, 256)) -> None:
+        super().__init__()
+        widths = [int(n_inputs), *(int(h) for h in hidden), 1]
+        n = len(widths) - 1
+        # no output bias: a constant in V changes no force and would get no gradient
+        self.layers = nn.ModuleList(
+            nn.Linear(widths[i], widths[i + 1], bias=i < n - 1) for i in range(n)
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        h = x.flatten(-2)
+        for i, layer in enumerate(self.layers):
+            w, b = layer.weight, layer.bias
+            if w.dtype != h.dtype or w.device != h.device:
+                w, b = w.to(h), None if b is None else b.to(h)
+            h = F.linear(h, w, b)
+            if i < len(self.layers) - 1:
+                h = F.softplus(h)
+        return h.squeeze(-1)
+
+
+def _cor_raw(cor: Tensor) -> Tensor:
+    """Inverse of ``hardsigmoid`` on [0, 1]: ``6 e - 3``."""
+    return 6.0 * cor - 3.0
+
+
+class LearnedModel(nn.Module):
+    """A CM/CMr-CD-CLNN/CHNN model: a :class:`System` whose parameters are learnable.
+
+    Args:
+        config: the known structure: a built-in task name, a config path, a
+            dict or a validated config (geometry, constraints, contact
+            candidates and ``dt`` are taken from it; its masses, potential,
+            ``mu`` and ``cor`` are *not* used).
+        model: one of :data:`MODELS`.
+        eps: CMr's regulariser: a positive number (0.001, 0.01, 0.1 in the
+            paper's ablation) or ``"learnable"`` (``exp(log_eps)``, initialised
+            at 0.01). Ignored (``None``) for CM models.
+        heterogeneous: one ``mu``/``e_P`` per contact (``True``) or one shared
+            value (``False``); ``None`` picks from the task list of
+            paper-facts.md (BP5, BD5 heterogeneous, everything else shared).
+        hidden: hidden widths of the potential MLP.
+
+    Parameters (``nn.Parameter``): ``log_mass (B,)``, ``log_second_moments
+    (B, dim)`` (rigid bodies only), ``raw_mu (1,)`` or ``(K,)``, ``raw_cor``
+    likewise, ``log_eps ()`` (CMr with learnable eps only) and the MLP's.
+
+    The dtype and device of a rollout follow ``z0`` (the parameters are cast
+    as needed, with gradients); move the model with ``.to(...)`` to keep its
+    parameters where the data is.
+    """
+
+    def __init__(
+        self,
+        config: Any,
+        *,
+        model: str = "CM-CD-CLNN",
+        eps: float | str | None = 0.01,
+        heterogeneous: bool | None = None,
+        hidden: Sequence[int] = (256, 256, 256),
+    ) -> None:
+        super().__init__()
+        self.contact_model, self.dynamics = parse_model_name(model)
+        self.model_name = model
+        cfg = load_config(config)
+        self.system = System(cfg)
+        system = self.system
+        if heterogeneous is None:
+            heterogeneous = _default_heterogeneous(system)
+        if not isinstance(heterogeneous, bool):
+            raise ValueError(f"heterogeneous must be True, False or None, got {heterogeneous!r}")
+        self.heterogeneous = heterogeneous
+        hidden = tuple(int(h) for h in hidden)
+        if any(h < 1 for h in hidden):
+            raise ValueError(f"hidden widths must be positive integers, got {hidden}")
+        self.hidden = hidden
+
+        self.eps_option: float | str | None
+        if self.contact_model == "CM":
+            self.eps_option = None
+        elif eps == "learnable":
+            self.eps_option = "learnable"
+            self.log_eps = nn.Parameter(torch.tensor(math.log(_INIT_EPS)))
+        else:
+            try:
+                value = float(eps)  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"eps must be a positive number or 'learnable', got {eps!r}"
+                ) from None
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"eps must be a positive number or 'learnable', got {eps!r}")
+            self.eps_option = value
+
+        B, K = system.n_bodies, system.n_contacts
+        self.log_mass = nn.Parameter(torch.zeros(B))
+        if system.second_moments is not None:
+            self.log_second_moments = nn.Parameter(torch.zeros(tuple(system.second_moments.shape)))
+        else:
+            self.log_second_moments = None
+        n_coef = K if heterogeneous else 1
+        self.raw_mu = nn.Parameter(torch.full((n_coef,), _INIT_MU))
+        self.raw_cor = nn.Parameter(_cor_raw(torch.full((n_coef,), _INIT_COR)))
+        self.potential: nn.Module | None = PotentialMLP(system.n_points * system.dim, hidden)
+
+    # ------------------------------------------------------------ structure
+    @property
+    def config(self):
+        """The validated config of the known structure."""
+        return self.system.config
+
+    @property
+    def name(self) -> str:
+        return self.system.name
+
+    @property
+    def dt(self) -> float:
+        return self.system.dt
+
+    @property
+    def default_steps(self) -> int:
+        return self.system.default_steps
+
+    @property
+    def state_shape(self) -> tuple[int, int, int]:
+        return self.system.state_shape
+
+    @property
+    def n_contacts(self) -> int:
+        return self.system.n_contacts
+
+    def options(self) -> dict[str, Any]:
+        """The constructor options as plain data (what :meth:`save` stores)."""
+        return {
+            "model": self.model_name,
+            "eps": self.eps_option,
+            "heterogeneous": self.heterogeneous,
+            "hidden": list(self.hidden),
+        }
+
+    def extra_repr(self) -> str:
+        return (
+            f"model={self.model_name!r}, system={self.name!r}, eps={self.eps_option!r}, "
+            f"heterogeneous={self.heterogeneous}"
+        )
+
+    # ---------------------------------------------------------- parameters
+    def mass(self) -> Tensor:
+        """``(B,)`` learned masses."""
+        return self.log_mass.exp()
+
+    def second_moments(self) -> Tensor | None:
+        """``(B, dim)`` learned second moments per unit mass, or ``None`` (point masses)."""
+        return None if self.log_second_moments is None else self.log_second_moments.exp()
+
+    def mu(self) -> Tensor:
+        """``(K,)`` friction coefficients (a shared value is expanded; gradients sum)."""
+        return F.relu(self.raw_mu).expand(self.system.n_contacts)
+
+    def cor(self) -> Tensor:
+        """``(K,)`` Poisson coefficients of restitution in [0, 1]."""
+        return F.hardsigmoid(self.raw_cor).expand(self.system.n_contacts)
+
+    def eps(self) -> Tensor | float | None:
+        """CMr's regulariser (a tensor when learnable), ``None`` for CM."""
+        if self.eps_option == "learnable":
+            return self.log_eps.exp()
+        return self.eps_option
+
+    @torch.no_grad()
+    def set_parameters(
+        self,
+        *,
+        mass: Any = None,
+        second_moments: Any = None,
+        mu: Any = None,
+        cor: Any = None,
+        eps: float | None = None,
+    ) -> LearnedModel:
+        """Set physical parameters (e.g. to known values); ``None`` leaves one as is.
+
+        ``mu``/``cor`` take one number or, for heterogeneous models, one per
+        contact. Values are mapped through the inverse parameterisations
+        (``log``, identity for ``relu``, ``6 e - 3`` for ``hardsigmoid``).
+        """
+
+        def put(param: Tensor, value: Any, fn) -> None:
+            t = torch.as_tensor(value, dtype=torch.float64)
+            param.copy_(fn(t).to(param).expand_as(param))
+
+        if mass is not None:
+            put(self.log_mass, mass, torch.log)
+        if second_moments is not None:
+            if self.log_second_moments is None:
+                raise ValueError(f"{self.name} has point masses only: no second moments")
+            put(self.log_second_moments, second_moments, torch.log)
+        if mu is not None:
+            put(self.raw_mu, mu, lambda t: t)
+        if cor is not None:
+            put(self.raw_cor, cor, _cor_raw)
+        if eps is not None:
+            if self.eps_option == "learnable":
+                put(self.log_eps, eps, torch.log)
+            elif self.eps_option is not None:
+                self.eps_option = float(eps)
+        return self
+
+    def learned_parameters(self) -> dict[str, Any]:
+        """The physical parameters as plain Python numbers.
+
+        Returns:
+            ``mass`` (list, per body), ``mass_ratios`` (to the first body),
+            ``second_moments`` (list of per-axis lists, or ``None``), ``mu`` and
+            ``cor`` (lists in contact numbering, expanded for shared values),
+            ``eps`` (float, or ``None`` for CM models).
+        """
+        with torch.no_grad():
+            mass = self.mass().double().cpu()
+            s = self.second_moments()
+            eps = self.eps()
+            return {
+                "mass": mass.tolist(),
+                "mass_ratios": (mass / mass[0]).tolist(),
+                "second_moments": None if s is None else s.double().cpu().tolist(),
+                "mu": self.mu().double().cpu().tolist(),
+                "cor": self.cor().double().cpu().tolist(),
+                "eps": None if eps is None else float(eps),
+            }
+
+    # ---------------------------------------------------------- simulation
+    def _fill(self, system: System) -> None:
+        """Write the module's parameters (with their graphs) into ``system``."""
+        system.mass = self.mass()
+        if self.log_second_moments is not None:
+            system.second_moments = self.second_moments()
+        system.mu = self.mu()
+        system.cor = self.cor()
+        system.gravity = torch.zeros((), dtype=self.log_mass.dtype, device=self.log_mass.device)
+        if system.stiffness is not None:
+            system.stiffness = torch.zeros_like(system.gravity)
+        system.potential_model = self.potential
+
+    def _release(self, system: System) -> None:
+        """Replace the graph-carrying tensors by detached copies (no graph kept alive)."""
+        for name in ("mass", "second_moments", "mu", "cor"):
+            t = getattr(system, name)
+            if t is not None:
+                setattr(system, name, t.detach())
+
+    def _check_options(self, contact_model: str | None, eps: Any, dynamics: str | None) -> None:
+        if contact_model is not None and contact_model != self.contact_model:
+            raise ValueError(
+                f"{self.model_name} uses contact_model={self.contact_model!r}, "
+                f"got contact_model={contact_model!r}"
+            )
+        if dynamics is not None and dynamics != self.dynamics:
+            raise ValueError(
+                f"{self.model_name} uses dynamics={self.dynamics!r}, got dynamics={dynamics!r}"
+            )
+        if eps is not None and self.contact_model == "CMr":
+            raise ValueError("eps is a parameter of the model; use set_parameters(eps=...)")
+
+    def simulate(
+        self,
+        z0: Tensor,
+        steps: int | None = None,
+        *,
+        contact_model: str | None = None,
+        eps: Any = None,
+        dynamics: str | None = None,
+        progress: bool = False,
+        penetration_fraction: float | None = None,
+        check_overlap: bool = True,
+        solver_settings: Any = None,
+    ) -> Tensor:
+        """Roll out trajectories with the learned parameters: ``System.simulate``'s contract.
+
+        Args:
+            z0: ``(N, 2, P, dim)`` initial states; the rollout runs in its dtype
+                and on its device.
+            steps: number of steps (default: the task's ``horizon / dt - 1``).
+            contact_model, eps, dynamics: accepted for interchangeability with
+                ``System.simulate``; they must match the model (or be ``None``).
+            progress, penetration_fraction, check_overlap, solver_settings: as
+                in :meth:`System.simulate`.
+
+        Returns:
+            ``(N, steps + 1, 2, P, dim)``, differentiable with respect to the
+            model's parameters and ``z0``.
+        """
+        self._check_options(contact_model, eps, dynamics)
+        system = self.system
+        self._fill(system)
+        try:
+            return system.simulate(
+                z0,
+                steps,
+                contact_model=self.contact_model,
+                eps=self.eps() if self.contact_model == "CMr" else 0.01,
+                dynamics=self.dynamics,
+                progress=progress,
+                penetration_fraction=penetration_fraction,
+                check_overlap=check_overlap,
+                solver_settings=solver_settings,
+            )
+        finally:
+            self._release(system)
+
+    def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:
+        """Same as :meth:`simulate`."""
+        return self.simulate(z0, steps, **kwargs)
+
+    def energy(self, z: Tensor) -> Tensor:
+        """Learned energy ``0.5 v^T M v + V(x)``: ``(..., 2, P, dim) -> (...)``."""
+        self._fill(self.system)
+        try:
+            return self.system.energy(z)
+        finally:
+            self._release(self.system)
+
+    def as_system(self) -> System:
+        """A new :class:`System` holding the learned values (detached), potential included."""
+        system = System(self.system.config)
+        with torch.no_grad():
+            self._fill(system)
+        self._release(system)
+        system.gravity = system.gravity.detach()
+        return system
+
+    # ------------------------------------------------------------ saving
+    def checkpoint(self) -> dict[str, Any]:
+        """Everything :meth:`from_checkpoint` needs, as plain data and tensors."""
+        return {
+            "format_version": FORMAT_VERSION,
+            "config": self.system.config.model_dump(mode="json"),
+            "options": self.options(),
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+        }
+
+    @classmethod
+    def from_checkpoint(cls, data: Mapping[str, Any]) -> LearnedModel:
+        """Rebuild a model from :meth:`checkpoint`'s dict (dtype of the stored weights)."""
+        try:
+            options = dict(data["options"])
+            model = cls(data["config"], **options)
+            state = data["state_dict"]
+        except KeyError as err:
+            raise ValueError(f"not a diffcontact model file: missing {err}") from None
+        dtype = next(iter(state.values())).dtype if state else torch.float32
+        model.to(dtype)
+        model.load_state_dict(state)
+        return model
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the model (config, options, state dict) to ``path`` atomically."""
+        from diffcontact.io import atomic_write_bytes
+
+        buf = io.BytesIO()
+        torch.save(self.checkpoint(), buf)
+        return atomic_write_bytes(path, buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], map_location: Any = "cpu") -> LearnedModel:
+        """Read a file written by :meth:`save`."""
+        data = torch.load(path, map_location=map_location, weights_only=True)
+        return cls.from_checkpoint(data)
+
+
+def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> LearnedModel:
+    """The learned model of a training run.
+
+    Args:
+        run_dir: a run directory (``diffcontact train --out``): its ``model.pt``
+            (written at the end of training) or, when that is missing (training
+            still running or interrupted), its ``checkpoints/last.ckpt``; or
+            the path of a ``model.pt``/``.ckpt`` file.
+        map_location: as in ``torch.load``.
+
+    Raises:
+        ValueError: nothing loadable at ``run_dir``.
+    """
+    path = Path(run_dir)
+    if path.is_dir():
+        candidates = [path / "model.pt", path / "checkpoints" / "last.ckpt"]
+        found = [p for p in candidates if p.is_file()]
+        if not found:
+            raise ValueError(f"{path} holds neither model.pt nor checkpoints/last.ckpt")
+        path = found[0]
+    elif not path.is_file():
+        raise ValueError(f"{path} does not exist")
+    if path.suffix == ".ckpt":
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        hp = ckpt.get("hyper_parameters", {})
+        if "config" not in hp or "options" not in hp:
+            raise ValueError(f"{path} is not a diffcontact training checkpoint")
+        prefix = "model."
+        state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
+        return LearnedModel.from_checkpoint(
+            {"config": hp["config"], "options": hp["options"], "state_dict": state}
+        )
+    return LearnedModel.load(path, map_location=map_location)

@@ -1,0 +1,198 @@
+"""LearnedModel: the simulate contract, parameterisations, gradients, saving."""
+
+import functools
+import json
+import math
+
+import pytest
+import torch
+from torch import nn
+
+import diffcontact as dc
+from diffcontact.learning.model import MODELS, LearnedModel, load_model, parse_model_name
+
+F64 = torch.float64
+
+
+class ChainGravity(nn.Module):
+    """The true potential of a chain pendulum with point masses: ``g sum_i m_i y_i``."""
+
+    def __init__(self, masses, g):
+        super().__init__()
+        self.register_buffer("m", torch.as_tensor(masses, dtype=F64))
+        self.g = float(g)
+
+    def forward(self, x):
+        return self.g * (self.m.to(x) * x[..., 1]).sum(-1)
+
+
+def _truth_model(name, model, **kw):
+    """A LearnedModel with its parameters set to the system's true values."""
+    truth = dc.load_system(name)
+    m = LearnedModel(name, model=model, **kw).double()
+    m.set_parameters(
+        mass=truth.mass,
+        second_moments=truth.second_moments,
+        mu=truth.mu if m.heterogeneous else truth.mu[0],
+        cor=truth.cor if m.heterogeneous else truth.cor[0],
+    )
+    return truth, m
+
+
+@functools.lru_cache
+def _states_before_contact(task, n, steps, seed=0, horizon=60):
+    """``n`` states of true trajectories that are in contact one step later."""
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(4 * n, seed=seed)
+    traj = system.simulate(z0, steps=horizon)
+    with torch.no_grad():
+        contact = (system.gaps(traj[..., 0, :, :]) < 0).any(-1)  # (N, T)
+    picks = []
+    for i in range(traj.shape[0]):
+        for s in range(traj.shape[1] - steps):
+            # the contact comes in the first step, so a model's rollout meets it as well
+            if not contact[i, s] and contact[i, s + 1]:
+                picks.append(traj[i, s])
+                break
+        if len(picks) == n:
+            break
+    assert len(picks) == n, "not enough contact chunks in the sample"
+    return torch.stack(picks)
+
+
+def test_model_names_and_options():
+    assert parse_model_name("CMr-CD-CHNN") == ("CMr", "hamiltonian")
+    for name in MODELS:
+        m = LearnedModel("CP3", model=name, hidden=(8,))
+        contact, dynamics = parse_model_name(name)
+        assert (m.contact_model, m.dynamics) == (contact, dynamics)
+        assert m.options()["model"] == name
+    with pytest.raises(ValueError, match="unknown model"):
+        LearnedModel("CP3", model="MLP-CD-CLNN")
+    with pytest.raises(ValueError, match="eps"):
+        LearnedModel("CP3", model="CMr-CD-CLNN", eps=-1.0)
+    assert LearnedModel("BP5", hidden=(8,)).heterogeneous
+    assert not LearnedModel("BP5-e", hidden=(8,)).heterogeneous
+    assert LearnedModel("CP3", hidden=(8,), heterogeneous=True).raw_mu.shape == (3,)
+    m = LearnedModel("CP3", model="CMr-CD-CLNN", eps="learnable", hidden=(8,))
+    assert {n for n, _ in m.named_parameters()} >= {"log_mass", "raw_mu", "raw_cor", "log_eps"}
+    assert m.log_second_moments is None
+    assert LearnedModel("BD5", hidden=(8,)).log_second_moments.shape == (5, 2)
+
+
+def test_initial_values_are_neutral_not_the_truth():
+    p = LearnedModel("BD5", model="CMr-CD-CLNN", eps="learnable", hidden=(8,)).learned_parameters()
+    assert p["mass"] == [1.0] * 5 and p["mass_ratios"] == [1.0] * 5
+    assert p["second_moments"] == [[1.0, 1.0]] * 5
+    assert p["mu"] == [0.5] * 30 and p["cor"] == [0.5] * 30
+    assert p["eps"] == pytest.approx(0.01)
+
+
+def test_simulate_contract_shape_dtype_device():
+    m = LearnedModel("BP5", model="CMr-CD-CHNN", hidden=(16,))
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(3, seed=0)
+    for dtype in (torch.float32, torch.float64):
+        m.to(dtype)
+        traj = m.simulate(z0.to(dtype), 3)
+        assert traj.shape == (3, 4, 2, 5, 2) and traj.dtype == dtype
+        assert torch.equal(traj[:, 0], z0.to(dtype))
+        assert torch.isfinite(traj).all()
+    # parameters in float32, rollout in float64: follows z0 (weights are cast)
+    m.float()
+    assert m(z0, 2).dtype == F64
+    with pytest.raises(ValueError, match="contact_model"):
+        m.simulate(z0, 1, contact_model="CM")
+    with pytest.raises(ValueError, match="shape"):
+        m.simulate(z0[:, 0], 1)
+
+
+@pytest.mark.parametrize(
+    ("task", "model"),
+    [("CP3", "CM-CD-CLNN"), ("CP3", "CMr-CD-CHNN"), ("BD5", "CMr-CD-CLNN")],
+)
+def test_same_as_system_with_true_parameters(task, model):
+    truth, m = _truth_model(task, model)
+    if truth.type == "chain_pendulum":
+        m.potential = ChainGravity(truth.mass, truth.gravity)
+    else:  # no potential in the box tasks
+        m.potential = None
+    steps = 4
+    z0 = _states_before_contact(task, 2, steps)
+    contact, dynamics = parse_model_name(model)
+    ref = truth.simulate(z0, steps, contact_model=contact, eps=0.01, dynamics=dynamics)
+    out = m.simulate(z0, steps)
+    torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-10)
+
+
+def test_learned_parameters_are_plain_numbers():
+    for task, model, het in (("CP3", "CMr-CD-CLNN", None), ("BP5", "CM-CD-CLNN", None)):
+        m = LearnedModel(task, model=model, eps="learnable", hidden=(8,), heterogeneous=het)
+        m.set_parameters(mass=[0.1, 0.2, 0.15][: m.system.n_bodies] if task == "CP3" else None)
+        p = m.learned_parameters()
+        json.dumps(p)  # plain data
+        K, B = m.n_contacts, m.system.n_bodies
+        assert set(p) == {"mass", "mass_ratios", "second_moments", "mu", "cor", "eps"}
+        assert len(p["mass"]) == B and len(p["mass_ratios"]) == B
+        assert len(p["mu"]) == K and len(p["cor"]) == K
+        for v in [*p["mass"], *p["mass_ratios"], *p["mu"], *p["cor"]]:
+            assert type(v) is float
+        assert p["mass_ratios"][0] == 1.0
+        if task == "CP3":
+            assert p["mass_ratios"] == pytest.approx([1.0, 2.0, 1.5])
+            assert type(p["eps"]) is float
+            assert len(set(p["mu"])) == 1  # one shared value, expanded
+        else:
+            assert p["eps"] is None
+
+
+def test_set_parameters_round_trip():
+    m = LearnedModel("BP5", model="CMr-CD-CLNN", eps="learnable", hidden=(8,)).double()
+    mu = torch.linspace(0, 1.2, 30, dtype=F64)
+    cor = torch.linspace(0, 1, 30, dtype=F64)
+    m.set_parameters(mass=[0.05, 0.1, 0.3, 0.4, 0.5], mu=mu, cor=cor, eps=0.1)
+    p = m.learned_parameters()
+    assert p["mass_ratios"] == pytest.approx([1, 2, 6, 8, 10])
+    assert p["mu"] == pytest.approx(mu.tolist()) and p["cor"] == pytest.approx(cor.tolist())
+    assert p["eps"] == pytest.approx(0.1)
+
+
+def test_gradients_reach_every_parameter():
+    system = dc.load_system("BD5")
+    m = LearnedModel("BD5", model="CMr-CD-CHNN", eps="learnable", hidden=(16, 16)).double()
+    steps = 4
+    z0 = _states_before_contact("BD5", 2, steps)
+    ref = system.simulate(z0, steps)
+    loss = (m.simulate(z0, steps) - ref).abs().mean()
+    loss.backward()
+    for name, p in m.named_parameters():
+        assert p.grad is not None, name
+        assert torch.isfinite(p.grad).all(), name
+        assert p.grad.abs().sum() > 0, name
+
+
+def test_save_and_load(tmp_path):
+    m = LearnedModel("CP3", model="CMr-CD-CHNN", eps="learnable", hidden=(8, 8))
+    m.set_parameters(mass=[0.3, 0.2, 0.1], mu=0.3, cor=0.7, eps=0.05)
+    m.save(tmp_path / "model.pt")
+    back = load_model(tmp_path)
+    assert back.options() == m.options()
+    assert back.learned_parameters() == m.learned_parameters()
+    z0 = dc.load_system("CP3").sample_initial_conditions(2, seed=3)
+    torch.testing.assert_close(back.simulate(z0, 3), m.simulate(z0, 3), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_model(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="neither"):
+        load_model(tmp_path / "empty")
+
+
+def test_as_system_and_energy():
+    truth, m = _truth_model("CP3", "CM-CD-CLNN")
+    m.potential = ChainGravity(truth.mass, truth.gravity)
+    z0 = truth.sample_initial_conditions(2, seed=1)
+    torch.testing.assert_close(m.energy(z0), truth.energy(z0), rtol=1e-12, atol=1e-12)
+    s = m.as_system()
+    assert float(s.gravity) == 0.0 and not s.mass.requires_grad
+    torch.testing.assert_close(s.energy(z0), truth.energy(z0), rtol=1e-12, atol=1e-12)
+    assert math.isclose(float(s.mass[1] / s.mass[0]), 2.0)
