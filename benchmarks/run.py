@@ -3,6 +3,7 @@
     python benchmarks/run.py                 # every suite, quick settings
     python benchmarks/run.py solver [...]    # friction-cone QP vs cvxpylayers (solver.py)
     python benchmarks/run.py simulate [...]  # ground-truth simulation (simulate.py)
+    python benchmarks/run.py train [...]     # seconds per training step per task (train.py)
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -15,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SUITES = ("solver", "simulate")
+SUITES = ("solver", "simulate", "train")
 
 
 def main(argv: list[str] | None = None) -> int:

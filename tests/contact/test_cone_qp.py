@@ -263,7 +263,7 @@ def test_bad_calls_name_the_problem(kwargs, message):
 def test_problems_the_polish_cannot_finish_are_solved_again():
     # a loose interior-point gap leaves active sets unidentified; the retries recover
     A, b, mu, lower = random_problems(64, 20, 3, seed=21, lower_frac=0.3)
-    loose = SolverSettings(gap=1e-2, polish_steps=1, retries=0)
+    loose = SolverSettings(gap=1e-2, polish_steps=1, retries=0, tol=1e-10)
     _, status = solve_cone_qp(A, b, mu, 3, lower, settings=loose, return_status=True)
     assert not status.all_converged
     f, status = solve_cone_qp(
@@ -272,7 +272,7 @@ def test_problems_the_polish_cannot_finish_are_solved_again():
         mu,
         3,
         lower,
-        settings=SolverSettings(gap=1e-2, polish_steps=1, retries=4),
+        settings=SolverSettings(gap=1e-2, polish_steps=1, retries=4, tol=1e-10),
         return_status=True,
     )
     assert status.all_converged
@@ -280,21 +280,23 @@ def test_problems_the_polish_cannot_finish_are_solved_again():
 
 
 @pytest.mark.parametrize(
-    ("name", "d"),
+    ("name", "d", "tol"),
     [
         # 7 touching disks, mu = 0, restitution bounds, A of rank 11/14: the redundant
         # constraints at the cone's tip used to stall the interior point
-        ("bd5_restitution_mu0_singular", 2),
-        ("gyro_compression_singular", 3),  # the gyroscope's rim contact, singular A
-        ("rope_d200_restitution", 1),  # many simultaneous rope limits
+        ("bd5_restitution_mu0_singular", 2, 1e-9),
+        ("gyro_compression_singular", 3, 1e-9),  # the gyroscope's rim contact, singular A
+        ("rope_d200_restitution", 1, 1e-9),  # many simultaneous rope limits
         # padded (inactive) contacts sit exactly on the cone's axis: the step length must
         # not let them pass through the apex
-        ("bp5_restitution_inactive_tip", 2),
+        ("bp5_restitution_inactive_tip", 2, 1e-9),
         # rope limits on which Mehrotra's second-order correction made the iterates cycle
-        ("rope_mehrotra_cycling", 1),
+        ("rope_mehrotra_cycling", 1, 1e-9),
+        # 53 rope limits, several weakly active: the polish ends near 6e-8 (accepted)
+        ("rope_d100_degenerate", 1, 1e-6),
     ],
 )
-def test_recorded_simulator_problems(name, d):
+def test_recorded_simulator_problems(name, d, tol):
     from pathlib import Path
 
     data = torch.load(Path(__file__).parent / "data" / f"{name}.pt")
@@ -306,4 +308,4 @@ def test_recorded_simulator_problems(name, d):
     assert (f[~active_c] == 0).all()
     A = torch.where(active_c[..., None] & active_c[..., None, :], data["A"], 0)
     res = natural_residual(A, torch.where(active_c, data["b"], 1.0), data["mu"], lower, f, d)
-    assert res.max() < 1e-9
+    assert res.max() < tol

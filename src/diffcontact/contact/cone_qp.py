@@ -56,8 +56,11 @@ class SolverSettings:
 
     Attributes:
         tol: accepted natural-map residual ``||F||_inf / max(1, ||f||_inf)`` after
-            scaling (float64: 1e-9, float32: 1e-5); the polish itself goes on to
-            ``1e-4 * tol`` (rounding level in float64) while it makes progress.
+            scaling (float64: 1e-7, float32: 1e-4). Problems above it are re-solved and
+            then reported; near-degenerate ones (many weakly active rope limits) can end
+            between 1e-9 and 1e-7.
+        polish_tol: the polish goes on while it makes progress until the residual is
+            below this (float64: 1e-13, i.e. rounding level; float32: 1e-6).
         gap: interior-point target for the complementarity gap per cone and the
             residuals (scaled), before polishing (float64: 1e-9, float32: 1e-4).
         max_iter: interior-point iteration cap.
@@ -75,6 +78,7 @@ class SolverSettings:
     """
 
     tol: float | None = None
+    polish_tol: float | None = None
     gap: float | None = None
     max_iter: int = 100
     polish_steps: int = 4
@@ -87,7 +91,10 @@ class SolverSettings:
         dtype = self.compute_dtype or dtype
         double = dtype == torch.float64
         return SolverSettings(
-            tol=self.tol if self.tol is not None else (1e-9 if double else 1e-5),
+            tol=self.tol if self.tol is not None else (1e-7 if double else 1e-4),
+            polish_tol=self.polish_tol
+            if self.polish_tol is not None
+            else (1e-13 if double else 1e-6),
             gap=self.gap if self.gap is not None else (1e-9 if double else 1e-4),
             max_iter=self.max_iter,
             polish_steps=self.polish_steps,
@@ -249,7 +256,7 @@ def _polish(f: Tensor, data, settings: SolverSettings):
     A, b, mu, lower, rho, reg, c = data
     F, P, dmu, dl = _natural_map(A, b, mu, lower, f, rho)
     res = _scaled_residual(F, f, c)
-    target = 1e-4 * settings.tol  # polish to rounding level; ``tol`` is what is accepted
+    target = min(settings.polish_tol, settings.tol)  # ``tol`` is what is accepted
     for step in range(settings.polish_steps + 1):
         LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
         if step == settings.polish_steps or bool((res <= target).all()):

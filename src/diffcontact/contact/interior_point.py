@@ -252,6 +252,8 @@ def interior_point_solve(
     Ab, bb = A, b
     stalled = torch.zeros(B, dtype=torch.bool, device=device)
     plain_only = torch.zeros(B, dtype=torch.bool, device=device)
+    prev_res = torch.full((B,), float("inf"), dtype=dtype, device=device)
+    prev_size = torch.full((B,), float("inf"), dtype=dtype, device=device)
     for it in range(max_iter):
         gl, gq = cones.G(f)
         rx = (torch.einsum("bij,bj->bi", Ab, f.reshape(-1, C)) + bb).reshape(-1, K, d)
@@ -264,7 +266,14 @@ def interior_point_solve(
             res = torch.maximum(res, rzq.abs().flatten(1).amax(-1))
         solved = (gap <= tol * n_cones) & (res <= tol)
         diverged = f.abs().flatten(1).amax(-1) > blowup
-        done = solved | diverged | stalled
+        # complementarity reached but the residual no longer falls: the scaling has run
+        # away (a weakly active cone, its barrier weights ~1/gap) and the Newton systems
+        # are too ill-conditioned to make progress; the polish takes over from here
+        # (an iterate that keeps growing is heading off to infinity instead: unbounded)
+        size = f.abs().flatten(1).amax(-1)
+        stuck = (gap <= tol * n_cones) & (res > 0.5 * prev_res) & (size <= 1.5 * prev_size)
+        prev_res, prev_size = res, size
+        done = solved | diverged | stalled | stuck
         if bool(done.any()):
             ids = idx[done]
             f_all[ids] = f[done]
@@ -277,6 +286,7 @@ def interior_point_solve(
                 break
             f, sl, zl, rx, rzl, gap = f[keep], sl[keep], zl[keep], rx[keep], rzl[keep], gap[keep]
             stalled, plain_only = stalled[keep], plain_only[keep]
+            prev_res, prev_size = prev_res[keep], prev_size[keep]
             if d > 1:
                 sq, zq, rzq = sq[keep], zq[keep], rzq[keep]
             Ab, bb = Ab[keep], bb[keep]

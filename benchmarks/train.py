@@ -1,0 +1,110 @@
+"""Benchmark: seconds per training step of a learned model, for each task.
+
+    python benchmarks/run.py train [--quick] [--device cpu|cuda] [--dtype float64|float32]
+                                   [--model CM-CD-CLNN] [--batch-size 200]
+
+One training step is what ``diffcontact train`` does per batch: roll the learned model
+(contact model + true collision detection + CLNN/CHNN with the MLP potential) out over a
+chunk of 5 states from its first state, the MAE loss against the chunk, the backward pass
+through the rollout (RK4, the two-phase impulse, the implicit gradients of the cone QP)
+and an AdamW step. The chunks are ground-truth states of the task: half of them start
+right before a contact (as in the training sets, about half the chunks contain one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+import diffcontact as dc
+from common import machine_header, sync
+
+TASKS = ("BP5-e", "BP5", "BD5", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
+CHUNK = 5
+
+
+def make_chunks(task: str, n: int, seed: int = 0) -> torch.Tensor:
+    """(n, 5, 2, P, d) ground-truth chunks; about half contain a contact."""
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(n, seed=seed)
+    traj = system.simulate(z0, steps=system.default_steps)  # (n, T, 2, P, d)
+    contact = (system.gaps(traj[:, :, 0]) < 0).any(-1)  # (n, T)
+    T = traj.shape[1]
+    starts = torch.arange(T - CHUNK + 1)
+    window = torch.stack([contact[:, s + 1 : s + CHUNK].any(-1) for s in starts.tolist()], 1)
+    ok = ~contact[:, : T - CHUNK + 1]  # first state not in contact
+    with_contact = ok & window
+    want = torch.arange(n) % 2 == 0
+    # first valid start with (even rows) or without (odd rows) a contact, else any valid one
+    pick = torch.where(want[:, None], with_contact, ok & ~window)
+    pick = torch.where(pick.any(-1, keepdim=True), pick, ok)
+    start = pick.float().argmax(-1)
+    idx = start[:, None] + torch.arange(CHUNK)
+    return traj[torch.arange(n)[:, None], idx]
+
+
+def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
+    from diffcontact.learning.model import LearnedModel
+    from diffcontact.learning.train import rollout_loss
+
+    chunks = make_chunks(task, args.batch_size).to(args.device, dtype)
+    model = LearnedModel(dc.load_system(task).config, model=args.model).to(args.device, dtype)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+
+    def step() -> float:
+        sync(args.device)
+        t0 = time.perf_counter()
+        opt.zero_grad()
+        loss = rollout_loss(model, chunks)
+        loss.backward()
+        opt.step()
+        sync(args.device)
+        return time.perf_counter() - t0
+
+    step()  # warm-up
+    times = [step() for _ in range(args.reps)]
+    contact = (dc.load_system(task).gaps(chunks[:, 1:, 0].double().cpu()) < 0).any(-1).any(-1)
+    return {
+        "task": task,
+        "s_per_step": statistics.median(times),
+        "chunks_with_contact": float(contact.double().mean()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="3 tasks, 2 timed steps")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    ap.add_argument("--model", default="CM-CD-CLNN")
+    ap.add_argument("--batch-size", type=int, default=200)
+    ap.add_argument("--reps", type=int, default=None, help="timed steps (default 5, quick 2)")
+    ap.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device available")
+    args.reps = args.reps or (2 if args.quick else 5)
+    tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
+    dtype = getattr(torch, args.dtype)
+
+    print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states")
+    for line in machine_header(args.device, dtype):
+        print(line)
+    head = f"{'task':>8} | {'s/step':>8} {'chunks/s':>9} | {'chunks with a contact':>21}"
+    print(head)
+    print("-" * len(head))
+    for task in tasks:
+        r = time_task(task, args, dtype)
+        print(
+            f"{task:>8} | {r['s_per_step']:>8.3f} {args.batch_size / r['s_per_step']:>9.0f} | "
+            f"{r['chunks_with_contact']:>20.0%}",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
