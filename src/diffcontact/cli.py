@@ -20,6 +20,7 @@ import time
 from typing import NoReturn
 
 from diffcontact import __version__
+from diffcontact.cli_args import non_negative_int, positive_int
 
 EXIT_USAGE = 2
 
@@ -33,26 +34,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -84,15 +65,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="built-in task (BP5-e, BP5, BD5, CP3-e, CP3, Gyro-e, Gyro, Rope, Rope-D100, "
         "Rope-D200, Rope-D400) or a path to a .yaml/.json config",
     )
-    sim.add_argument("--n", type=_positive_int, default=4, help="trajectories (default 4)")
+    sim.add_argument("--n", type=positive_int, default=4, help="trajectories (default 4)")
     sim.add_argument(
         "--steps",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         help="time steps per trajectory (default: the task's horizon, horizon/dt - 1)",
     )
     sim.add_argument(
-        "--seed", type=_non_negative_int, default=0, help="initial-condition seed (default 0)"
+        "--seed", type=non_negative_int, default=0, help="initial-condition seed (default 0)"
     )
     sim.add_argument("--out", default="sim.npz", help="output .npz file (default sim.npz)")
     sim.add_argument("--gif", default=None, help="also write an animation to this .gif file")
@@ -109,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--device", choices=("cpu", "cuda"), default="cpu", help="where to simulate (default cpu)"
     )
     sim.add_argument(
-        "--fps", type=_positive_int, default=20, help="GIF frames per second (default 20)"
+        "--fps", type=positive_int, default=20, help="GIF frames per second (default 20)"
     )
     sim.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=_cmd_simulate)

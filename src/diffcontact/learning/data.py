@@ -45,6 +45,7 @@ import torch
 from torch import Tensor
 
 from diffcontact import __version__
+from diffcontact.cli_args import int_at_least
 from diffcontact.io import atomic_save_npz, atomic_write_bytes
 from diffcontact.mechanics.bodies import chain_points_2d
 from diffcontact.systems import System, load_config, load_system
@@ -1005,19 +1006,6 @@ def load_dataset(data_dir: str | Path) -> Dataset:
 # --------------------------------------------------------------------------- CLI
 
 
-def _cli_int(low: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
-        return value
-
-    return parse
-
-
 def _cli_float(low: float, high: float = math.inf):
     def parse(text: str) -> float:
         try:
@@ -1058,10 +1046,12 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "(with --from-arrays: the config of the recorded system, like --config)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="dataset folder")
-    p.add_argument("--n-train", metavar="N", type=_cli_int(1), default=None, help="default 800")
-    p.add_argument("--n-val", metavar="N", type=_cli_int(0), default=None, help="default 100")
-    p.add_argument("--n-test", metavar="N", type=_cli_int(0), default=None, help="default 100")
-    p.add_argument("--seed", metavar="N", type=_cli_int(0), default=0, help="base seed (default 0)")
+    p.add_argument("--n-train", metavar="N", type=int_at_least(1), default=None, help="default 800")
+    p.add_argument("--n-val", metavar="N", type=int_at_least(0), default=None, help="default 100")
+    p.add_argument("--n-test", metavar="N", type=int_at_least(0), default=None, help="default 100")
+    p.add_argument(
+        "--seed", metavar="N", type=int_at_least(0), default=0, help="base seed (default 0)"
+    )
     p.add_argument(
         "--noise-std",
         metavar="STD",
@@ -1073,7 +1063,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--chunk-length",
         metavar="L",
-        type=_cli_int(2),
+        type=int_at_least(2),
         default=5,
         help="states per chunk (default 5)",
     )

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from diffcontact.cli_args import int_at_least
 from diffcontact.io import atomic_path, atomic_save_npz, atomic_write_bytes
 
 __all__ = [
@@ -949,19 +950,6 @@ def evaluate(
 # ---------------------------------------------------------------------------
 
 
-def _int_at_least(low: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
-        return value
-
-    return parse
-
-
 def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``evaluate RUN_DIR [--out DIR --device cpu|cuda --n-gif 4 ...]`` to a CLI.
 
@@ -987,18 +975,18 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--n-gif",
-        type=_int_at_least(0),
+        type=int_at_least(0),
         default=4,
         help="test trajectories in the GIF (default 4; 0: none)",
     )
     p.add_argument(
         "--steps",
-        type=_int_at_least(1),
+        type=int_at_least(1),
         default=None,
         help="rollout steps (default max(horizon/dt, 100) - 1)",
     )
     p.add_argument(
-        "--n-test", type=_int_at_least(1), default=None, help="use the first N test trajectories"
+        "--n-test", type=int_at_least(1), default=None, help="use the first N test trajectories"
     )
     p.add_argument(
         "--data", default=None, metavar="DIR", help="dataset folder (default: run.json's)"

@@ -7,51 +7,21 @@ parser does not import Lightning; the handler imports it when it runs.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 from typing import Any
 
+from diffcontact.cli_args import non_negative_int, positive_float, positive_int
 from diffcontact.learning.model import MODELS
 
 DEFAULT_DTYPE = "float64"
-
-
-def _cli_positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
-def _cli_non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
-def _cli_positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
 
 
 def _cli_eps(text: str) -> float | str:
     if text == "learnable":
         return text
     try:
-        return _cli_positive_float(text)
+        return positive_float(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(
             f"expected a positive number or 'learnable', got {text!r}"
@@ -91,15 +61,15 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "--model", default="CM-CD-CLNN", metavar="NAME",
         help=f"one of {', '.join(MODELS)} (default CM-CD-CLNN)",
     )  # fmt: skip
-    p.add_argument("--epochs", type=_cli_positive_int, default=100, help="epochs (default 100)")
+    p.add_argument("--epochs", type=positive_int, default=100, help="epochs (default 100)")
     p.add_argument(
-        "--batch-size", type=_cli_positive_int, default=200, help="chunks per batch (default 200)"
+        "--batch-size", type=positive_int, default=200, help="chunks per batch (default 200)"
     )
-    p.add_argument("--lr", type=_cli_positive_float, default=1e-3, help="learning rate (1e-3)")
+    p.add_argument("--lr", type=positive_float, default=1e-3, help="learning rate (1e-3)")
     p.add_argument(
         "--weight-decay", type=float, default=1e-4, help="AdamW weight decay (default 1e-4)"
     )
-    p.add_argument("--seed", type=_cli_non_negative_int, default=0, help="seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed (default 0)")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     p.add_argument(
         "--eps", type=_cli_eps, default=0.01,
@@ -112,7 +82,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "--resume", action="store_true", help="continue RUN_DIR from checkpoints/last.ckpt"
     )
     p.add_argument(
-        "--max-time", type=_cli_positive_float, default=None, metavar="MIN",
+        "--max-time", type=positive_float, default=None, metavar="MIN",
         help="stop after the epoch that ends after MIN minutes",
     )  # fmt: skip
     p.add_argument(
@@ -120,11 +90,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         help="hidden widths of the potential MLP (default 256,256,256)",
     )  # fmt: skip
     p.add_argument(
-        "--keep-checkpoints", type=_cli_positive_int, default=None, metavar="K",
+        "--keep-checkpoints", type=positive_int, default=None, metavar="K",
         help="keep only the newest K per-epoch checkpoints (default: all)",
     )  # fmt: skip
     p.add_argument("--devices", default="1", help="devices per node for Lightning (default 1)")
-    p.add_argument("--num-nodes", type=_cli_positive_int, default=1, help="nodes (default 1)")
+    p.add_argument("--num-nodes", type=positive_int, default=1, help="nodes (default 1)")
     p.add_argument("--strategy", default="auto", help="Lightning strategy, e.g. ddp (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train_cli)
