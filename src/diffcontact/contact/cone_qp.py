@@ -15,9 +15,11 @@ problems or contacts):
 1. Inactive contacts are decoupled (identity block, a separating velocity) so
    their impulse is exactly zero and they do not touch the others; ``mu = 0``
    tangential components are decoupled for the interior-point phase.
-2. The problem is scaled (diag(A) ~ 1, |b| ~ 1) and a log-barrier interior-point
-   method (:mod:`diffcontact.contact.interior_point`) approaches the solution
-   to ``gap``; problems leave the batch as they finish.
+2. The problem is scaled (diag(A) ~ 1, |b| ~ 1) and a primal-dual interior-point
+   method (Mehrotra predictor-corrector, Nesterov-Todd scaling;
+   :mod:`diffcontact.contact.interior_point`) approaches the solution to ``gap``;
+   problems leave the batch as they finish. Problems the polish cannot finish are
+   solved again with a tighter gap (``retries``).
 3. A Newton polish on the natural map ``F(f) = f - Pi_C(f - rho (A f + b)) = 0``
    (:mod:`diffcontact.contact.cone`), whose zeros are exactly the minimisers,
    identifies the active constraints and drives ``F`` to rounding level
@@ -72,9 +74,9 @@ class SolverSettings:
         check_inputs: validate shapes, signs, finiteness and symmetry.
         compute_dtype: precision of the internal solve (float64 by default; the
             result and gradients come back in the input dtype). ``None`` solves in
-            the input dtype: faster, but in float32 about 1% of random 5-30 contact
-            problems end with residuals ~1e-2 (``benchmarks/run.py --dtype float32``
-            with ``compute_dtype=None`` shows it).
+            the input dtype: faster, but a float32 interior point cannot reach the gap
+            that identifies the active set of every problem, and some problems then
+            end unconverged (``test_leading_batch_dims_and_float32`` runs this mode).
     """
 
     tol: float | None = None
