@@ -1,6 +1,7 @@
 """Benchmark: seconds per training step of a learned model, for each task.
 
     python benchmarks/run.py train [--quick] [--device cpu|cuda] [--dtype float64|float32]
+    python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
                                    [--model CM-CD-CLNN] [--batch-size 200]
 
 One training step is what ``diffcontact train`` does per batch: roll the learned model
@@ -74,6 +75,27 @@ def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
     }
 
 
+def compare_dtypes(task: str, args: argparse.Namespace) -> dict:
+    """Loss and gradient of one training batch in float32 against float64 (same weights)."""
+    import copy
+
+    from diffcontact.learning.model import LearnedModel
+    from diffcontact.learning.train import rollout_loss
+
+    chunks = make_chunks(task, args.batch_size)
+    m64 = LearnedModel(dc.load_system(task).config, model=args.model).double()
+    m32 = copy.deepcopy(m64).float()
+    out = {}
+    for name, model, data in (("float64", m64, chunks), ("float32", m32, chunks.float())):
+        loss = rollout_loss(model, data)
+        grads = torch.autograd.grad(loss, [p for p in model.parameters() if p.requires_grad])
+        out[name] = (loss.detach().double(), torch.cat([g.double().flatten() for g in grads]))
+    loss_rel = float((out["float32"][0] - out["float64"][0]).abs() / out["float64"][0].abs())
+    g32, g64 = out["float32"][1], out["float64"][1]
+    grad_rel = float((g32 - g64).norm() / g64.norm())
+    return {"task": task, "loss_rel": loss_rel, "grad_rel": grad_rel}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 tasks, 2 timed steps")
@@ -83,12 +105,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch-size", type=int, default=200)
     ap.add_argument("--reps", type=int, default=None, help="timed steps (default 5, quick 2)")
     ap.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
+    ap.add_argument(
+        "--compare-dtypes",
+        action="store_true",
+        help="instead of timing: relative difference of the loss and the gradient of one "
+        "batch in float32 against float64 (same weights, CPU)",
+    )
     args = ap.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
     args.reps = args.reps or (2 if args.quick else 5)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
+    if args.compare_dtypes:
+        print(f"float32 vs float64, one batch of {args.batch_size} chunks, {args.model}")
+        print(f"{'task':>8} | {'loss rel. diff':>14} | {'gradient rel. diff':>18}")
+        for task in tasks:
+            r = compare_dtypes(task, args)
+            print(f"{task:>8} | {r['loss_rel']:>14.1e} | {r['grad_rel']:>18.1e}", flush=True)
+        return 0
 
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states")
     for line in machine_header(args.device, dtype):
