@@ -1,8 +1,8 @@
 """Benchmark: seconds per training step of a learned model, for each task.
 
     python benchmarks/run.py train [--quick] [--device cpu|cuda] [--dtype float64|float32]
-    python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
                                    [--model CM-CD-CLNN] [--batch-size 200]
+    python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
 
 One training step is what ``diffcontact train`` does per batch: roll the learned model
 (contact model + true collision detection + CLNN/CHNN with the MLP potential) out over a
