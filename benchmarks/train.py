@@ -28,22 +28,15 @@ CHUNK = 5
 
 
 def make_chunks(task: str, n: int, seed: int = 0) -> torch.Tensor:
-    """(n, 5, 2, P, d) ground-truth chunks; about half contain a contact."""
+    """(n, 5, 2, P, d) ground-truth chunks chosen as the datasets choose them (about half
+    contain a contact; diffcontact.learning.data.select_chunks)."""
+    from diffcontact.learning.data import contact_states, select_chunks
+
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(n, seed=seed)
     traj = system.simulate(z0, steps=system.default_steps)  # (n, T, 2, P, d)
-    contact = (system.gaps(traj[:, :, 0]) < 0).any(-1)  # (n, T)
-    T = traj.shape[1]
-    starts = torch.arange(T - CHUNK + 1)
-    window = torch.stack([contact[:, s + 1 : s + CHUNK].any(-1) for s in starts.tolist()], 1)
-    ok = ~contact[:, : T - CHUNK + 1]  # first state not in contact
-    with_contact = ok & window
-    want = torch.arange(n) % 2 == 0
-    # first valid start with (even rows) or without (odd rows) a contact, else any valid one
-    pick = torch.where(want[:, None], with_contact, ok & ~window)
-    pick = torch.where(pick.any(-1, keepdim=True), pick, ok)
-    start = pick.float().argmax(-1)
-    idx = start[:, None] + torch.arange(CHUNK)
+    start, _ = select_chunks(contact_states(system, traj), CHUNK, 0.5, seed)
+    idx = torch.as_tensor(start)[:, None] + torch.arange(CHUNK)
     return traj[torch.arange(n)[:, None], idx]
 
 

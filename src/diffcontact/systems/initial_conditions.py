@@ -81,10 +81,7 @@ def draw_bouncing_disks(cfg: BouncingDisksConfig, n: int, gen: torch.Generator) 
     """As point masses plus angle ``U[0, 2 pi)`` and ``N(0, std^2)`` spin: ``(n, 2, 3B, 2)``."""
     ic = cfg.initial_conditions
     B = cfg.n_bodies
-    low = torch.tensor(ic.position_low, dtype=_F)
-    high = torch.tensor(ic.position_high, dtype=_F)
-    centre = low + (high - low) * torch.rand((n, B, 2), generator=gen, dtype=_F)
-    velocity = _normal((n, B, 2), ic.velocity_std, gen)
+    centre, velocity = draw_bouncing_masses(cfg, n, gen).unbind(1)  # same draws, same order
     angle = _uniform((n, B), 0.0, 2 * math.pi, gen)
     omega = _normal((n, B), ic.angular_velocity_std, gen)
     z = disk_points_2d(centre, angle, velocity, omega)  # (n, B, 2, 3, 2)
