@@ -10,7 +10,7 @@ CONSTRAINTS ?= constraints.txt
 PIP_C := $(if $(CONSTRAINTS),-c $(CONSTRAINTS),)
 PY := $(VENV)/bin/python
 
-.PHONY: demo test test-slow lint bench clean
+.PHONY: demo test test-slow lint bench reproduce clean
 
 $(VENV)/.base: pyproject.toml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,11 +32,15 @@ test-slow: $(VENV)/.dev
 	$(PY) -m pytest -q -m slow
 
 lint: $(VENV)/.dev
-	$(VENV)/bin/ruff check src tests benchmarks
-	$(VENV)/bin/ruff format --check src tests benchmarks
+	$(VENV)/bin/ruff check src tests benchmarks experiments
+	$(VENV)/bin/ruff format --check src tests benchmarks experiments
 
 bench: $(VENV)/.dev
 	$(PY) benchmarks/run.py
+
+# the paper's learning tables (docs/results.md): about an hour on 2 CPU cores
+reproduce: $(VENV)/.base
+	$(PY) experiments/reproduce.py --out runs/repro --doc docs/results.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .ruff_cache

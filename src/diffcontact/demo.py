@@ -1,4 +1,10 @@
-"""``make demo``: the contact solver on a ball hitting a wall, then a simulated task.
+"""``make demo``: the main job end to end, on a small budget.
+
+1. the contact solver on a ball hitting a wall (impulses, checks, gradients);
+2. a simulated task (BP5) with its animation;
+3. learning: simulate a small CP3 dataset, train CM-CD-CLNN on it for a few
+   minutes on the CPU, print the learned mass ratios, mu and e_P next to the
+   truth, and write the evaluation (metrics, plots, GIF).
 
 Everything is written under ``demo_out/`` (or the folder given to :func:`run_demo`).
 """
@@ -88,9 +94,77 @@ def simulation_demo(out: Path, task: str = "BP5", n: int = 4) -> bool:
     return all(checks.values())
 
 
-def run_demo(out: str | Path = "demo_out") -> int:
+# the learning demo's budget: 200 training chunks in batches of 50, 40 epochs
+# (160 steps, 1-3 minutes on a 2-core CPU)
+LEARNING_DEMO = {"task": "CP3", "n_train": 200, "n_val": 40, "n_test": 20, "epochs": 40,
+                 "batch_size": 50}  # fmt: skip
+
+
+def learning_demo(out: Path, epochs: int | None = None) -> bool:
+    """Generate a small CP3 dataset, train CM-CD-CLNN, compare with the truth, evaluate.
+
+    Returns True when the learned mass ratios are within 2 % and mu, e_P within
+    0.05 of the truth (looser than docs/results.md's full-size runs: 4x less
+    data and a few minutes of training).
+    """
+    import shutil
+
+    from diffcontact.learning.data import generate_dataset
+    from diffcontact.learning.evaluate import evaluate, true_parameters
+    from diffcontact.learning.train import train
+
+    cfg = LEARNING_DEMO
+    task = cfg["task"]
+    epochs = cfg["epochs"] if epochs is None else epochs
+    print(f"\nlearning {task} from simulated trajectories (CM-CD-CLNN, {epochs} epochs)")
+    t0 = time.perf_counter()
+    data = generate_dataset(
+        task, out / "data" / task, n_train=cfg["n_train"], n_val=cfg["n_val"],
+        n_test=cfg["n_test"], seed=0, progress=True,
+    )  # fmt: skip
+    print(f"  dataset: {data} ({time.perf_counter() - t0:.0f} s)")
+    run = out / "runs" / f"{task}-CM-CD-CLNN"
+    if run.exists():  # the demo's own previous run: start again
+        shutil.rmtree(run)
+    t0 = time.perf_counter()
+    model = train(
+        data, run, model="CM-CD-CLNN", epochs=epochs, batch_size=cfg["batch_size"], seed=0,
+        progress=True,
+    )  # fmt: skip
+    train_s = time.perf_counter() - t0
+    learned, truth = model.learned_parameters(), true_parameters(task)
+    ratios = learned["mass_ratios"][1:]
+    print(f"\ntrained in {train_s:.0f} s; run directory {run}")
+    print("  parameter      learned    true")
+    for i, (a, b) in enumerate(zip(ratios, truth["mass_ratios"], strict=True), start=2):
+        print(f"  m{i}/m1       {a:9.4f} {b:7.4f}")
+    print(f"  mu           {learned['mu'][0]:9.4f} {truth['mu'][0]:7.4f}")
+    print(f"  e_P          {learned['cor'][0]:9.4f} {truth['cor'][0]:7.4f}")
+    metrics = evaluate(run, n_gif=2)
+    print(
+        f"  test rollouts ({metrics['n_test']} x {metrics['steps']} steps): relative error "
+        f"{metrics['rel_err_mean']:.2e} +- {metrics['rel_err_ci95']:.1e}"
+    )
+    print(f"  evaluation: {run / 'evaluation'} (" + ", ".join(sorted(metrics["files"])) + ")")
+    checks = {
+        "mass ratios within 2 % of the truth": all(
+            abs(a / b - 1) <= 0.02 for a, b in zip(ratios, truth["mass_ratios"], strict=True)
+        ),
+        "mu within 0.05 of the truth": abs(learned["mu"][0] - truth["mu"][0]) <= 0.05,
+        "e_P within 0.05 of the truth": abs(learned["cor"][0] - truth["cor"][0]) <= 0.05,
+    }
+    for name, ok in checks.items():
+        print(f"  [{'ok' if ok else 'FAILED'}] {name}")
+    return all(checks.values())
+
+
+def run_demo(out: str | Path = "demo_out", learning: bool = True, epochs: int | None = None) -> int:
+    """Run the demo; 0 when every check passed, else 1."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ok = solver_demo()
     ok = simulation_demo(out) and ok
+    if learning:
+        ok = learning_demo(out, epochs=epochs) and ok
+    print("\ndemo " + ("finished: all checks passed" if ok else "FAILED: see the checks above"))
     return 0 if ok else 1

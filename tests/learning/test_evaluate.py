@@ -16,6 +16,7 @@ import diffcontact as dc
 from diffcontact.learning.evaluate import (
     EvaluationInputError,
     energy_rel_drift,
+    energy_scale,
     evaluate,
     find_training_log,
     mean_ci95,
@@ -133,6 +134,27 @@ def test_energy_drift_zero_for_the_true_system_and_known_for_scaled_velocities()
     drift = energy_rel_drift(system, pred, true)
     assert drift["pred"] == pytest.approx(1.0, rel=1e-12)
     assert drift["true"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_energy_drift_does_not_depend_on_the_potentials_zero():
+    """The unit is the mean kinetic energy, not |E(0)| (which a datum shift changes)."""
+    system, true = _free_flight()
+    pred = true.clone()
+    pred[:, :, 1] *= 1.1
+    base = energy_rel_drift(system, pred, true)
+
+    class Shifted:  # the same system with its potential's zero moved by 100 J
+        def energy(self, z):
+            return system.energy(z) + 100.0
+
+        def kinetic_energy(self, z):
+            return system.kinetic_energy(z)
+
+    shifted = energy_rel_drift(Shifted(), pred, true)
+    assert shifted["pred"] == pytest.approx(base["pred"], rel=1e-9)
+    assert base["pred"] == pytest.approx(0.21, rel=1e-9)  # no potential: (1.1^2 - 1) T / mean T
+    T = system.kinetic_energy(true).mean()
+    assert energy_scale(system, true) == pytest.approx(float(T), rel=1e-12)
 
 
 def test_true_parameters_follow_the_papers_tables():

@@ -4,6 +4,7 @@ import functools
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -83,7 +84,10 @@ def test_model_names_and_options():
 def test_initial_values_are_neutral_not_the_truth():
     p = LearnedModel("BD5", model="CMr-CD-CLNN", eps="learnable", hidden=(8,)).learned_parameters()
     assert p["mass"] == [1.0] * 5 and p["mass_ratios"] == [1.0] * 5
-    assert p["second_moments"] == [[1.0, 1.0]] * 5
+    radii = [0.05, 0.1, 0.13, 0.15, 0.18]  # the known geometry: size squared, not r^2 / 4
+    np.testing.assert_allclose(p["second_moments"], [[r * r, r * r] for r in radii], rtol=1e-6)
+    gyro = LearnedModel("Gyro", hidden=(8,)).learned_parameters()
+    np.testing.assert_allclose(gyro["second_moments"], [[0.09, 0.09, 0.09]], rtol=1e-6)
     assert p["mu"] == [0.5] * 30 and p["cor"] == [0.5] * 30
     assert p["eps"] == pytest.approx(0.01)
 
@@ -160,6 +164,7 @@ def test_set_parameters_round_trip():
 def test_gradients_reach_every_parameter():
     system = dc.load_system("BD5")
     m = LearnedModel("BD5", model="CMr-CD-CHNN", eps="learnable", hidden=(16, 16)).double()
+    m.set_parameters(mu=0.02)  # small enough that every contact slides: d/dmu is not 0
     steps = 4
     z0 = _states_before_contact("BD5", 2, steps)
     ref = system.simulate(z0, steps)
@@ -169,6 +174,14 @@ def test_gradients_reach_every_parameter():
         assert p.grad is not None, name
         assert torch.isfinite(p.grad).all(), name
         assert p.grad.abs().sum() > 0, name
+
+
+def test_files_of_the_old_e_p_parameterisation_are_refused(tmp_path):
+    m = LearnedModel("CP3", hidden=(4,))
+    data = m.checkpoint()
+    data["format_version"] = 1  # e_P = hardsigmoid(raw): the same weights mean another e_P
+    with pytest.raises(ValueError, match=r"format 1 .*retrain"):
+        LearnedModel.from_checkpoint(data)
 
 
 def test_save_and_load(tmp_path):

@@ -191,11 +191,37 @@ def test_nonfinite_and_failed_steps_are_skipped_and_reported(tmp_path, caplog, m
         "nonfinite_loss": 1,
         "nonfinite_grad": 1,
         "solver_failure": 1,
+        "gradient_spike": 0,
     }
     assert learned["global_step"] == 3  # 6 batches, 3 skipped
     assert all(torch.isfinite(p).all() for p in model.parameters())
     messages = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert len(messages) == 1 and "skipped 3 step(s)" in messages[0]
+
+
+def test_gradient_spikes_are_skipped_and_resume_keeps_the_history(bp5_data, tmp_path, monkeypatch):
+    """A batch whose gradient is 1e6 times the usual is skipped, not fed to Adam."""
+    calls = {"n": 0}
+    real_loss = train_mod.rollout_loss
+
+    def spiky_loss(model, chunk):
+        calls["n"] += 1
+        loss = real_loss(model, chunk)
+        return loss * 1e6 if calls["n"] == 3 else loss  # the third training step
+
+    monkeypatch.setattr(train_mod, "rollout_loss", spiky_loss)
+    model = train(bp5_data, tmp_path / "run", epochs=2, batch_size=2, **SMALL)
+    learned = json.loads((tmp_path / "run" / "learned.json").read_text())
+    assert learned["skipped_steps_total"]["gradient_spike"] == 1
+    assert sum(learned["skipped_steps_total"].values()) == 1
+    assert learned["global_step"] == 7  # 8 batches, 1 skipped
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)
+    history = ckpt["diffcontact"]["grad_norm_history"]
+    assert len(history) == 2 and len(history[0]) == len(history[1]) == 7
+    # the spike's norm was not recorded: every kept norm is within the factor of the median
+    for h in history:
+        assert max(h) <= train_mod.SPIKE_FACTOR * np.median(h)
 
 
 def _run_cli(argv, capsys):
@@ -295,3 +321,57 @@ def test_learning_recovers_mu_and_cor_of_a_bouncing_ball():
     assert p["mu"][0] == pytest.approx(0.3, abs=0.03), p
     assert p["cor"][0] == pytest.approx(0.6, abs=0.03), p
     assert module.last_epoch_summary["val_loss"] < 5e-3
+
+
+def test_physical_parameters_get_their_own_learning_rate_and_no_weight_decay():
+    model = LearnedModel("BD5", model="CMr-CD-CLNN", eps="learnable", hidden=(8,))
+    physical = model.physical_parameters()
+    names = {n for n, p in model.named_parameters() if any(p is q for q in physical)}
+    assert names == {"log_mass", "log_second_moments", "raw_mu", "raw_cor", "log_eps"}
+    assert len(model.network_parameters()) + len(physical) == len(list(model.parameters()))
+    module = RolloutModule(model=model, lr=1e-3, weight_decay=1e-4, physics_lr=0.05)
+    opt = module.configure_optimizers()
+    opt = opt["optimizer"] if isinstance(opt, dict) else opt
+    net, phys = opt.param_groups
+    assert (net["lr"], net["weight_decay"]) == (1e-3, 1e-4)
+    assert (phys["lr"], phys["weight_decay"]) == (0.05, 0.0)
+    assert {id(p) for p in phys["params"]} == {id(p) for p in physical}
+    # frozen parameters are left out; physics_lr defaults to lr
+    model.log_mass.requires_grad_(False)
+    opt = RolloutModule(model=model, lr=2e-3).configure_optimizers()
+    assert all(g["lr"] == 2e-3 for g in opt.param_groups)
+    assert not any(p is model.log_mass for g in opt.param_groups for p in g["params"])
+    with pytest.raises(ValueError, match="schedule"):
+        RolloutModule(model=model, schedule="linear")
+
+
+def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
+    """Learning rates per step, logged by a callback, follow the documented cosine."""
+    seen = []
+
+    class Record(pl.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            seen.append([g["lr"] for g in trainer.optimizers[0].param_groups])
+
+    train(bp5_data, tmp_path / "run", epochs=3, batch_size=4, lr=1e-3, physics_lr=0.02,
+          callbacks=[Record()], **SMALL)  # fmt: skip
+    steps = len(seen)
+    assert steps == 6  # 8 chunks, batch 4, 3 epochs
+    floor = train_mod.COSINE_FLOOR
+    for k, (lr_net, lr_phys) in enumerate(seen):
+        # after step k (0-based) the scheduler has advanced k + 1 times
+        x = min((k + 1) / (steps - 1), 1.0)
+        factor = floor + (1 - floor) * 0.5 * (1 + np.cos(np.pi * x))
+        assert lr_net == pytest.approx(1e-3 * factor, rel=1e-12)
+        assert lr_phys == pytest.approx(0.02 * factor, rel=1e-12)
+    assert seen[-1][1] == pytest.approx(0.02 * floor)
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert (run["schedule"], run["physics_lr"]) == ("cosine", 0.02)
+    # a different schedule or physics_lr is a different run: resume refuses it
+    with pytest.raises(TrainingInputError, match="physics_lr"):
+        train(bp5_data, tmp_path / "run", epochs=4, batch_size=4, lr=1e-3, physics_lr=0.03,
+              resume=True, **SMALL)  # fmt: skip
+    with pytest.raises(TrainingInputError, match="schedule must be"):
+        train(bp5_data, tmp_path / "other", schedule="step", **SMALL)
+    with pytest.raises(TrainingInputError, match="physics_lr must be > 0"):
+        train(bp5_data, tmp_path / "other", physics_lr=-1.0, **SMALL)

@@ -191,14 +191,32 @@ def true_energy(system: Any, traj: Any) -> np.ndarray:
         return system.energy(z).detach().cpu().numpy().astype(np.float64)
 
 
-def _drift(E: np.ndarray, E0: np.ndarray) -> np.ndarray:
-    """``|E[n, t] - E0[n]| / |E0[n]|``; rows with ``|E0|`` ~ 0 become NaN."""
-    scale = np.abs(E0)
-    tiny = 1e-12 * max(float(np.max(scale, initial=0.0)), 1e-300)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.abs(E - E0[:, None]) / scale[:, None]
-    d[scale <= tiny] = np.nan
-    return d
+def energy_scale(system: Any, true: Any) -> float:
+    """The energy unit of the drift metrics: the mean kinetic energy of the true motion.
+
+    ``mean over n and t of T(true[n, t])``. Unlike ``E(0)`` it does not depend
+    on the potential's arbitrary zero (the pendulum's pivot height), it is
+    positive whenever anything moves, and unlike the *initial* kinetic energy
+    it includes what a fall converts from potential energy (a pendulum
+    released nearly at rest).
+
+    Args:
+        system: the ground-truth ``System`` (its ``kinetic_energy``).
+        true: ``(N, T, 2, P, dim)`` true trajectories.
+    """
+    import torch
+
+    z = torch.as_tensor(_np(true), dtype=torch.float64)
+    with torch.no_grad():
+        T = system.kinetic_energy(z).detach().cpu().numpy().astype(np.float64)
+    return float(np.mean(T)) if T.size else math.nan
+
+
+def _drift(E: np.ndarray, E0: np.ndarray, scale: float) -> np.ndarray:
+    """``|E[n, t] - E0[n]| / scale``; all NaN when ``scale`` is not positive."""
+    if not (scale > 0 and math.isfinite(scale)):
+        return np.full(E.shape, np.nan)
+    return np.abs(E - E0[:, None]) / scale
 
 
 def _finite_mean(curves: np.ndarray) -> float:
@@ -210,13 +228,14 @@ def _finite_mean(curves: np.ndarray) -> float:
 def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, float]:
     """Relative drift of the true energy along predicted and true trajectories.
 
-    With ``E`` the true system's energy and ``E0[n] = E(true[n, 0])``::
+    With ``E`` the true system's energy, ``E0[n] = E(true[n, 0])`` and
+    ``scale`` the mean kinetic energy along the true trajectories (:func:`energy_scale`)::
 
-        drift_X[n, t] = |E(X[n, t]) - E0[n]| / |E0[n]|,   X in {pred, true}
+        drift_X[n, t] = |E(X[n, t]) - E0[n]| / scale,   X in {pred, true}
         result[X]     = mean over n of (mean over t = 0..T-1 of drift_X[n, t])
 
-    Trajectories with a non-finite value (a diverged prediction) or with
-    ``|E0[n]| <= 1e-12 max_n |E0|`` are left out of the mean. For an
+    Trajectories with a non-finite value (a diverged prediction) are left out
+    of the mean. For an
     energy-conserving task both numbers should be ~0 (``true`` measures the
     simulator's own drift); for a dissipative task ``true`` is the real energy
     loss and ``pred`` should match it.
@@ -232,10 +251,10 @@ def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, float]:
     if p.shape != t.shape or p.ndim != 5:
         raise ValueError(f"pred and true must both be (N, T, 2, P, dim), got {p.shape}, {t.shape}")
     E_pred, E_true = true_energy(system, p), true_energy(system, t)
-    E0 = E_true[:, 0]
+    E0, scale = E_true[:, 0], energy_scale(system, t)
     return {
-        "pred": _finite_mean(_drift(E_pred, E0)),
-        "true": _finite_mean(_drift(E_true, E0)),
+        "pred": _finite_mean(_drift(E_pred, E0, scale)),
+        "true": _finite_mean(_drift(E_true, E0, scale)),
     }
 
 
@@ -562,7 +581,9 @@ def _plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str) -> Path:
     return _save(fig, path)
 
 
-def _plot_energy(E_pred: np.ndarray, E_true: np.ndarray, dt: float, path: Path, title: str) -> Path:
+def _plot_energy(
+    E_pred: np.ndarray, E_true: np.ndarray, scale: float, dt: float, path: Path, title: str
+) -> Path:
     """Left: true energy along a few true (solid) and predicted (dashed) rollouts.
     Right: mean relative drift from the initial energy, with 95% bands."""
     from matplotlib.lines import Line2D
@@ -586,7 +607,7 @@ def _plot_energy(E_pred: np.ndarray, E_true: np.ndarray, dt: float, path: Path, 
         (E_true, "ground truth", "#444444", "-"),
         (E_pred, "model", "#d62728", "--"),
     ):
-        d = _drift(E, E0)
+        d = _drift(E, E0, scale)
         d = d[np.isfinite(d).all(-1)]
         if len(d) == 0:
             continue
@@ -594,7 +615,7 @@ def _plot_energy(E_pred: np.ndarray, E_true: np.ndarray, dt: float, path: Path, 
         mean, half = np.atleast_1d(mean), np.nan_to_num(np.atleast_1d(half))
         ax2.fill_between(t, np.maximum(mean - half, 0.0), mean + half, color=color, alpha=0.2, lw=0)
         ax2.plot(t, mean, color=color, lw=1.8, ls=ls, label=label)
-    ax2.set_ylabel(r"$|E(t) - E_{true}(0)| \,/\, |E_{true}(0)|$")
+    ax2.set_ylabel(r"$|E(t) - E_{true}(0)| \,/\, \overline{T_{true}}$")
     ax2.set_title("relative energy drift (mean, 95% CI)", fontsize=10)
     ax2.legend(fontsize=8)
     for ax in (ax1, ax2):
@@ -861,11 +882,9 @@ def evaluate(
         rel_mean = rel_ci = math.nan
         curve_mean = curve_ci = np.full(err.shape[1], np.nan)
     E_pred, E_true = true_energy(system, pred), true_energy(system, true)
-    E0 = E_true[:, 0]
-    drift_pred, drift_true = _drift(E_pred, E0), _drift(E_true, E0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gap = np.abs(E_pred - E_true) / np.abs(E0)[:, None]
-    gap[~np.isfinite(drift_true).all(-1)] = np.nan
+    E0, scale = E_true[:, 0], energy_scale(system, true)
+    drift_pred, drift_true = _drift(E_pred, E0, scale), _drift(E_true, E0, scale)
+    gap = np.abs(E_pred - E_true) / scale if scale > 0 else np.full(E_pred.shape, np.nan)
 
     truth = true_parameters(system)
     learned = _learned(model.learned_parameters(), system.n_bodies)
@@ -916,7 +935,7 @@ def evaluate(
     title = f"{task}: {label}"
     _plot_rel_error(err_ok if len(err_ok) else err, dt, out / "rel_error.png", title)
     files.append("rel_error.png")
-    _plot_energy(E_pred, E_true, dt, out / "energy.png", title)
+    _plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)
     files.append("energy.png")
     log_path = None if run_path is None else find_training_log(run_path)
     if log_path is not None:
@@ -1061,7 +1080,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     drift = m["energy_rel_drift"]
     print(
         f"  energy drift     model {_fmt(drift['pred'])}, ground truth {_fmt(drift['true'])} "
-        "(true energy, relative to E(0))"
+        "(true energy, per mean kinetic energy)"
     )
     print(f"  {'parameter':<16} {'learned':>10} {'true':>10}")
     n_ratios = len(m["mass_ratios"]["true"])

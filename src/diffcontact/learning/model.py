@@ -9,15 +9,20 @@ truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
 - inverse inertia in the extended-body form (``docs/conventions.md``): one
   log-mass per body and, for rigid bodies, one log second moment per body
   axis (``mass = exp(log_mass)``, ``second_moments = exp(log_second_moments)``),
-  initialised at 1 (not at the truth);
+  initialised at mass 1 and second moments equal to each body's known size
+  squared (radius, or the gyroscope's rim radius; not the truth);
 - potential ``V(x)``: an MLP on the flattened positions ``(..., P*dim)`` with
   Softplus activations (3 hidden layers of 256 by default), plugged in as
   ``System.potential_model``; the system's ``gravity`` (and the rope's spring
   ``stiffness``) are set to 0 so the MLP carries the whole potential;
-- friction ``mu = relu(raw_mu)`` and restitution ``e_P = hardsigmoid(raw_cor)``
-  (``torch.nn.functional.hardsigmoid``: ``clamp(x / 6 + 1/2, 0, 1)``),
-  initialised at 0.5 each; one shared value for homogeneous tasks, one per
-  contact for heterogeneous ones (BP5, BD5);
+- friction ``mu = relu(raw_mu)`` and restitution
+  ``e_P = hardsigmoid(6 raw_cor - 3)`` (``torch.nn.functional.hardsigmoid``:
+  ``clamp(x / 6 + 1/2, 0, 1)``, so ``e_P = clamp(raw_cor, 0, 1)``: the
+  argument is scaled so that ``raw_cor`` moves in units of ``e_P``, like
+  ``raw_mu`` in units of ``mu``; with the plain hard sigmoid's slope of 1/6,
+  ``e_P`` learned six times slower than ``mu``), initialised at 0.5 each; one
+  shared value for homogeneous tasks, one per contact for heterogeneous ones
+  (BP5, BD5);
 - CMr's regulariser ``eps``: a fixed number or ``exp(log_eps)`` (learnable,
   initialised at 0.01).
 
@@ -63,7 +68,8 @@ MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
 # paper-facts.md, "Homogeneous tasks": one mu/e_P shared by all contacts, or one per contact
 HOMOGENEOUS_TASKS = ("BP5-e", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
 HETEROGENEOUS_TASKS = ("BP5", "BD5")
-FORMAT_VERSION = 1
+# 2: e_P = hardsigmoid(6 raw_cor - 3) (format 1 had hardsigmoid(raw_cor))
+FORMAT_VERSION = 2
 _INIT_MU = 0.5
 _INIT_COR = 0.5
 _INIT_EPS = 0.01
@@ -117,9 +123,33 @@ class PotentialMLP(nn.Module):
         return h.squeeze(-1)
 
 
+def _initial_second_moments(cfg: Any, shape: tuple[int, int]) -> Tensor:
+    """``(B, k)`` initial second moments: each body's known size squared.
+
+    Second moments are lengths squared, and the bodies' sizes are part of the
+    known geometry (the collision detection needs them): a disk's radius
+    (BD5), the gyroscope's rim radius. Starting from ``size**2`` (a thin
+    ring's moment about a diameter is ``size**2 / 2``, a uniform disk's
+    ``size**2 / 4``: the truth is *not* assumed) puts every body within a
+    factor of a few of any plausible mass distribution; starting from 1 m^2,
+    BD5's smallest disk (0.05 m radius, second moment 6e-4 m^2) was a factor
+    of 1600 away, which the optimiser did not cover in hundreds of steps.
+    """
+    radii = getattr(cfg, "radii", None)
+    if radii is None:
+        radii = [getattr(cfg, "rim_radius", 1.0)] * shape[0]
+    size = torch.tensor(radii, dtype=torch.float32)
+    return (size**2)[:, None].expand(shape).clone()
+
+
+def _cor_from_raw(raw: Tensor) -> Tensor:
+    """``e_P = hardsigmoid(6 raw - 3) = clamp(raw, 0, 1)``."""
+    return F.hardsigmoid(6.0 * raw - 3.0)
+
+
 def _cor_raw(cor: Tensor) -> Tensor:
-    """Inverse of ``hardsigmoid`` on [0, 1]: ``6 e - 3``."""
-    return 6.0 * cor - 3.0
+    """Inverse of :func:`_cor_from_raw` on [0, 1]: the identity."""
+    return cor.clone()
 
 
 class LearnedModel(nn.Module):
@@ -193,7 +223,8 @@ class LearnedModel(nn.Module):
         B, K = system.n_bodies, system.n_contacts
         self.log_mass = nn.Parameter(torch.zeros(B))
         if system.second_moments is not None:
-            self.log_second_moments = nn.Parameter(torch.zeros(tuple(system.second_moments.shape)))
+            init = _initial_second_moments(cfg, tuple(system.second_moments.shape))
+            self.log_second_moments = nn.Parameter(init.log())
         else:
             self.log_second_moments = None
         n_coef = K if heterogeneous else 1
@@ -257,7 +288,7 @@ class LearnedModel(nn.Module):
 
     def cor(self) -> Tensor:
         """``(K,)`` Poisson coefficients of restitution in [0, 1]."""
-        return F.hardsigmoid(self.raw_cor).expand(self.system.n_contacts)
+        return _cor_from_raw(self.raw_cor).expand(self.system.n_contacts)
 
     def eps(self) -> Tensor | float | None:
         """CMr's regulariser (a tensor when learnable), ``None`` for CM."""
@@ -279,7 +310,7 @@ class LearnedModel(nn.Module):
 
         ``mu``/``cor`` take one number or, for heterogeneous models, one per
         contact. Values are mapped through the inverse parameterisations
-        (``log``, identity for ``relu``, ``6 e - 3`` for ``hardsigmoid``).
+        (``log``, the identity for ``relu`` and for the scaled hard sigmoid).
         """
 
         def put(param: Tensor, value: Any, fn) -> None:
@@ -324,6 +355,16 @@ class LearnedModel(nn.Module):
                 "cor": self.cor().double().cpu().tolist(),
                 "eps": None if eps is None else float(eps),
             }
+
+    def physical_parameters(self) -> list[nn.Parameter]:
+        """The physical parameters: ``log_mass``, ``log_second_moments``, ``raw_mu``,
+        ``raw_cor`` and ``log_eps`` (those that exist), i.e. everything but the potential."""
+        names = ("log_mass", "log_second_moments", "raw_mu", "raw_cor", "log_eps")
+        return [p for n in names if isinstance(p := getattr(self, n, None), nn.Parameter)]
+
+    def network_parameters(self) -> list[nn.Parameter]:
+        """The potential MLP's parameters (empty when there is no potential network)."""
+        return [] if self.potential is None else list(self.potential.parameters())
 
     # ---------------------------------------------------------- simulation
     def _fill(self, system: System) -> None:
@@ -438,6 +479,12 @@ class LearnedModel(nn.Module):
     @classmethod
     def from_checkpoint(cls, data: Mapping[str, Any]) -> LearnedModel:
         """Rebuild a model from :meth:`checkpoint`'s dict (dtype of the stored weights)."""
+        version = data.get("format_version") if isinstance(data, Mapping) else None
+        if version != FORMAT_VERSION:
+            raise ValueError(
+                f"model file format {version!r} is not supported (this diffcontact reads "
+                f"format {FORMAT_VERSION}; format 1 parameterised e_P differently): retrain"
+            )
         try:
             options = dict(data["options"])
             model = cls(data["config"], **options)
@@ -493,7 +540,13 @@ def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> Le
             raise ValueError(f"{path} is not a diffcontact training checkpoint")
         prefix = "model."
         state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
+        version = ckpt.get("diffcontact", {}).get("model_format")
         return LearnedModel.from_checkpoint(
-            {"config": hp["config"], "options": hp["options"], "state_dict": state}
+            {
+                "format_version": version,
+                "config": hp["config"],
+                "options": hp["options"],
+                "state_dict": state,
+            }
         )
     return LearnedModel.load(path, map_location=map_location)

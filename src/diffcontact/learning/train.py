@@ -58,13 +58,21 @@ from torch.utils.data import DataLoader, Sampler, TensorDataset
 from diffcontact import __version__
 from diffcontact.contact import ConeQPError, SolverSettings
 from diffcontact.io import atomic_write_bytes
+from diffcontact.learning.model import FORMAT_VERSION as MODEL_FORMAT_VERSION
 from diffcontact.learning.model import LearnedModel, parse_model_name
 
 # the CLI lives in train_cli.py so that building the parser does not import Lightning
-from diffcontact.learning.train_cli import DEFAULT_DTYPE, register_cli
+from diffcontact.learning.train_cli import (
+    DEFAULT_DTYPE,
+    DEFAULT_PHYSICS_LR,
+    DEFAULT_SCHEDULE,
+    register_cli,
+)
 
 __all__ = [
     "DEFAULT_DTYPE",
+    "DEFAULT_PHYSICS_LR",
+    "DEFAULT_SCHEDULE",
     "ChunkDataModule",
     "EpochShuffleSampler",
     "RolloutModule",
@@ -81,12 +89,25 @@ log = logging.getLogger(__name__)
 # step but its gradients through CM's singular contact problems need a larger KKT
 # regularisation (below); float64 gradients match without it
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-SKIP_REASONS = ("nonfinite_loss", "nonfinite_grad", "solver_failure")
+SKIP_REASONS = ("nonfinite_loss", "nonfinite_grad", "solver_failure", "gradient_spike")
+# a step whose gradient norm (per group: network, physical) exceeds SPIKE_FACTOR times the
+# median over the last SPIKE_WINDOW accepted steps (once SPIKE_MIN_HISTORY are known) is
+# skipped: a near-grazing contact can give one batch a gradient 1e4 times the usual, which
+# then dominates Adam's second-moment estimate and freezes the parameter (docs/training.md)
+SPIKE_FACTOR = 100.0
+SPIKE_WINDOW = 50
+SPIKE_MIN_HISTORY = 2
+SCHEDULES = ("cosine", "constant")
+COSINE_FLOOR = 0.01  # the cosine schedule ends at 1% of each learning rate
+# Adam's betas for the physical parameters: beta2 = 0.99 (not 0.999) so that their step
+# size follows the gradient scale within ~100 steps: their gradients shrink by orders of
+# magnitude once mu and e_P settle, and a run has only a few hundred steps
+PHYSICS_BETAS = (0.9, 0.99)
 RUN_FILE = "run.json"
 # run.json keys that must match to resume a run
 _RUN_IDENTITY = (
     "model", "eps", "heterogeneous", "hidden", "data_dir", "seed", "batch_size", "lr",
-    "weight_decay", "dtype",
+    "weight_decay", "physics_lr", "schedule", "dtype",
 )  # fmt: skip
 
 
@@ -142,8 +163,15 @@ class RolloutModule(pl.LightningModule):
     Args:
         config: the system config (dict) the model is built from.
         options: :meth:`LearnedModel.options` (model name, eps, heterogeneous, hidden).
-        lr: AdamW learning rate.
-        weight_decay: AdamW weight decay.
+        lr: AdamW learning rate of the potential network.
+        weight_decay: AdamW weight decay of the potential network.
+        physics_lr: AdamW learning rate of the physical parameters (masses,
+            second moments, mu, e_P, eps; no weight decay, which would pull them
+            towards the parameterisation's zero); ``None``: ``lr``.
+        schedule: ``"cosine"``: both learning rates follow a cosine from their
+            value down to :data:`COSINE_FLOOR` times it at the last step of
+            ``trainer.max_epochs`` (stepped per batch, skipped ones included);
+            ``"constant"``: no schedule (the paper's set-up).
         dtype: ``"float32"`` or ``"float64"``: the parameters' and the batches' dtype.
         model: optionally an existing model (e.g. with some parameters frozen by
             ``requires_grad_(False)``); ``config``/``options`` are then taken from it.
@@ -159,6 +187,8 @@ class RolloutModule(pl.LightningModule):
         weight_decay: float = 1e-4,
         dtype: str = DEFAULT_DTYPE,
         model: LearnedModel | None = None,
+        physics_lr: float | None = None,
+        schedule: str = "constant",
     ) -> None:
         super().__init__()
         if model is None:
@@ -167,12 +197,16 @@ class RolloutModule(pl.LightningModule):
             model = LearnedModel(config, **(options or {}))
         if dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {tuple(DTYPES)}, got {dtype!r}")
+        if schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.save_hyperparameters(
             {
                 "config": model.config.model_dump(mode="json"),
                 "options": model.options(),
                 "lr": float(lr),
                 "weight_decay": float(weight_decay),
+                "physics_lr": float(lr if physics_lr is None else physics_lr),
+                "schedule": schedule,
                 "dtype": dtype,
             }
         )
@@ -180,6 +214,8 @@ class RolloutModule(pl.LightningModule):
         self.automatic_optimization = False
         self.run_dir: Path | None = None  # set by train(): learned.json is written there
         self.skipped_total = dict.fromkeys(SKIP_REASONS, 0)
+        # gradient norms of the last accepted steps, per parameter group (spike detection)
+        self.grad_norm_history: list[list[float]] = [[], []]
         self._reset_epoch()
         self.last_epoch_summary: dict[str, Any] = {}
 
@@ -199,10 +235,38 @@ class RolloutModule(pl.LightningModule):
 
     # --------------------------------------------------------------- optimisation
     def configure_optimizers(self):
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        return torch.optim.AdamW(
-            params, lr=self.hparams["lr"], weight_decay=self.hparams["weight_decay"]
-        )
+        hp = self.hparams
+        physical = [p for p in self.model.physical_parameters() if p.requires_grad]
+        chosen = {id(p) for p in physical}
+        network = [p for p in self.model.parameters() if p.requires_grad and id(p) not in chosen]
+        groups = [
+            {"params": network, "lr": hp["lr"], "weight_decay": hp["weight_decay"]},
+            {
+                "params": physical,
+                "lr": hp.get("physics_lr", hp["lr"]),
+                "weight_decay": 0.0,
+                "betas": PHYSICS_BETAS,
+            },
+        ]
+        optimizer = torch.optim.AdamW([g for g in groups if g["params"]])
+        if hp.get("schedule", "constant") == "constant":
+            return optimizer
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, self._cosine_factor)
+        schedule = {"scheduler": scheduler, "interval": "step"}
+        return {"optimizer": optimizer, "lr_scheduler": schedule}
+
+    def _cosine_factor(self, step: int) -> float:
+        """Learning-rate factor at ``step``: cosine from 1 to COSINE_FLOOR over the run.
+
+        The run's length is read from the trainer on every call, so a run resumed
+        with more epochs stretches the rest of its schedule to the new end.
+        """
+        trainer = self._trainer
+        total = trainer.estimated_stepping_batches if trainer is not None else math.inf
+        if not math.isfinite(total) or total <= 1:
+            return 1.0
+        x = min(step / (total - 1), 1.0)
+        return COSINE_FLOOR + (1.0 - COSINE_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * x))
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:
         return self.model.simulate(z0, steps, **kwargs)
@@ -220,11 +284,49 @@ class RolloutModule(pl.LightningModule):
         flags = [p.grad.isfinite().all() for p in self.model.parameters() if p.grad is not None]
         return bool(torch.stack(flags).all()) if flags else True
 
+    def _group_grad_norms(self) -> list[float]:
+        """Gradient norms of the network and the physical parameters (0 when absent)."""
+        physical = {id(p) for p in self.model.physical_parameters()}
+        sums = [torch.zeros((), dtype=torch.float64, device=self.device) for _ in range(2)]
+        for p in self.model.parameters():
+            if p.grad is not None:
+                k = 1 if id(p) in physical else 0
+                sums[k] = sums[k] + p.grad.detach().double().pow(2).sum()
+        return [float(x.sqrt()) for x in sums]
+
+    def _spike(self, norms: list[float]) -> str | None:
+        """A message when a group's gradient norm is a spike against its recent history."""
+        for name, norm, history in zip(
+            ("network", "physical"), norms, self.grad_norm_history, strict=True
+        ):
+            if len(history) < SPIKE_MIN_HISTORY:
+                continue
+            typical = float(np.median(history))
+            if typical > 0 and norm > SPIKE_FACTOR * typical:
+                return f"{name} gradient norm {norm:.3g} > {SPIKE_FACTOR:g} x median {typical:.3g}"
+        return None
+
+    def _record_norms(self, norms: list[float]) -> None:
+        for norm, history in zip(norms, self.grad_norm_history, strict=True):
+            if norm > 0:
+                history.append(norm)
+                del history[:-SPIKE_WINDOW]
+
+    def _step_schedule(self) -> None:
+        """Advance the learning-rate schedule by one batch (skipped batches count too)."""
+        scheduler = self.lr_schedulers()
+        if scheduler is None:
+            return
+        with warnings.catch_warnings():  # a skipped first batch steps before the optimizer
+            warnings.filterwarnings("ignore", message=".*lr_scheduler.step.*before.*optimizer")
+            scheduler.step()
+
     def training_step(self, batch: Any, batch_idx: int) -> None:
         chunk = self._chunk(batch)
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
         reason, message, loss = None, None, None
+        norms: list[float] = []
         try:
             loss = rollout_loss(self.model, chunk)
             if not bool(torch.isfinite(loss.detach())):
@@ -240,6 +342,11 @@ class RolloutModule(pl.LightningModule):
             self.manual_backward(loss)
             if not self._grads_finite():
                 reason, message = "nonfinite_grad", "non-finite gradient"
+            else:  # gradients are all-reduced by now: every rank sees the same norms
+                norms = self._group_grad_norms()
+                message = self._spike(norms)
+                if message is not None:
+                    reason = "gradient_spike"
         elif distributed:  # every rank must take part in the gradient all-reduce
             self.manual_backward(self._zero_loss())
         if distributed:  # skip on every rank when any failed (the replicas stay identical)
@@ -251,13 +358,16 @@ class RolloutModule(pl.LightningModule):
             if failed and reason is None:
                 reason, message = failed[0], "on another rank"
         if reason is not None:
+            self._step_schedule()
             opt.zero_grad(set_to_none=True)
             self._epoch_skipped[reason] += 1
             self.skipped_total[reason] += 1
             if self._epoch_first_error is None:
                 self._epoch_first_error = f"{reason}: {message}"
             return None
+        self._record_norms(norms)
         opt.step()
+        self._step_schedule()
         value = loss.detach()
         n = chunk.shape[0]
         self._train_sum += float(value) * n
@@ -354,12 +464,16 @@ class RolloutModule(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["diffcontact"] = {
             "skipped_total": dict(self.skipped_total),
+            "grad_norm_history": [list(h) for h in self.grad_norm_history],
+            "model_format": MODEL_FORMAT_VERSION,
             "version": __version__,
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         extra = checkpoint.get("diffcontact", {})
         self.skipped_total.update(extra.get("skipped_total", {}))
+        if "grad_norm_history" in extra:
+            self.grad_norm_history = [list(h) for h in extra["grad_norm_history"]]
 
 
 @rank_zero_only
@@ -556,8 +670,11 @@ def _loggers(out: Path) -> list[Any]:
 
 
 class _DropTips(logging.Filter):
+    """Drop Lightning's advertising tips and its note on estimating the schedule's length."""
+
     def filter(self, record: logging.LogRecord) -> bool:
-        return "Tip:" not in record.getMessage()
+        message = record.getMessage()
+        return "Tip:" not in message and "to estimate number of stepping batches" not in message
 
 
 @contextlib.contextmanager
@@ -608,6 +725,7 @@ def _check_options(
     eps: Any,
     dtype: str,
     max_time: Any,
+    lr_name: str = "lr",
 ) -> float | str | None:
     try:
         contact, _ = parse_model_name(model)
@@ -622,7 +740,7 @@ def _check_options(
     positive_int("batch_size", batch_size)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise TrainingInputError(f"seed must be a non-negative integer, got {seed!r}")
-    for name, value, low_ok in (("lr", lr, False), ("weight_decay", weight_decay, True)):
+    for name, value, low_ok in ((lr_name, lr, False), ("weight_decay", weight_decay, True)):
         try:
             v = float(value)
         except (TypeError, ValueError):
@@ -717,6 +835,8 @@ def train(
     batch_size: int = 200,
     lr: float = 1e-3,
     weight_decay: float = 1e-4,
+    physics_lr: float | None = DEFAULT_PHYSICS_LR,
+    schedule: str = DEFAULT_SCHEDULE,
     seed: int = 0,
     device: str = "cpu",
     eps: float | str = 0.01,
@@ -739,7 +859,11 @@ def train(
         out_dir: the run directory (created).
         model: one of ``CM-CD-CLNN``, ``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``.
         epochs: total number of epochs (a resumed run continues up to it).
-        batch_size, lr, weight_decay: AdamW and batching.
+        batch_size, lr, weight_decay: batching, and AdamW for the potential network.
+        physics_lr: AdamW learning rate of the physical parameters (masses,
+            second moments, mu, e_P, eps; no weight decay); ``None``: ``lr``.
+        schedule: ``"cosine"`` (both learning rates decay to 1% over ``epochs``)
+            or ``"constant"``.
         seed: seeds the model initialisation and the per-epoch shuffling.
         device: ``"cpu"`` or ``"cuda"``.
         eps: CMr's regulariser (a positive number or ``"learnable"``).
@@ -769,6 +893,10 @@ def train(
     eps_value = _check_options(
         model, epochs, batch_size, lr, weight_decay, seed, device, eps, dtype, max_time
     )
+    physics_lr = lr if physics_lr is None else physics_lr
+    _check_options(model, 1, 1, physics_lr, 0.0, 0, device, eps, dtype, None, lr_name="physics_lr")
+    if schedule not in SCHEDULES:
+        raise TrainingInputError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if keep_checkpoints is not None and (
         isinstance(keep_checkpoints, bool)
         or not isinstance(keep_checkpoints, int)
@@ -806,6 +934,8 @@ def train(
         "batch_size": int(batch_size),
         "lr": float(lr),
         "weight_decay": float(weight_decay),
+        "physics_lr": float(physics_lr),
+        "schedule": schedule,
         "dtype": dtype,
         "device": device,
         "loss": "mean absolute error of the rolled-out chunk (states 1..L-1)",
@@ -829,7 +959,14 @@ def train(
     learned = LearnedModel(
         meta["config"], model=model, eps=eps_value, heterogeneous=heterogeneous, hidden=hidden
     )
-    module = RolloutModule(model=learned, lr=lr, weight_decay=weight_decay, dtype=dtype)
+    module = RolloutModule(
+        model=learned,
+        lr=lr,
+        weight_decay=weight_decay,
+        dtype=dtype,
+        physics_lr=physics_lr,
+        schedule=schedule,
+    )
     module.run_dir = out
     datamodule = ChunkDataModule(
         train_chunks, val_chunks, batch_size=batch_size, seed=seed, dtype=dtype

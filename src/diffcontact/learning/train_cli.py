@@ -15,6 +15,10 @@ from diffcontact.cli_args import non_negative_int, positive_float, positive_int
 from diffcontact.learning.model import MODELS
 
 DEFAULT_DTYPE = "float64"
+# the physical parameters (a handful of numbers) take larger steps than the potential
+# network; measured in docs/training.md ("Learning rates")
+DEFAULT_PHYSICS_LR = 3e-2
+DEFAULT_SCHEDULE = "cosine"
 
 
 def _cli_eps(text: str) -> float | str:
@@ -65,7 +69,19 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--batch-size", type=positive_int, default=200, help="chunks per batch (default 200)"
     )
-    p.add_argument("--lr", type=positive_float, default=1e-3, help="learning rate (1e-3)")
+    p.add_argument(
+        "--lr", type=positive_float, default=1e-3,
+        help="learning rate of the potential network (default 1e-3)",
+    )  # fmt: skip
+    p.add_argument(
+        "--physics-lr", type=positive_float, default=DEFAULT_PHYSICS_LR, metavar="LR",
+        help=f"learning rate of masses, inertias, mu, e_P (default {DEFAULT_PHYSICS_LR:g})",
+    )  # fmt: skip
+    p.add_argument(
+        "--schedule", choices=("cosine", "constant"), default=DEFAULT_SCHEDULE,
+        help=f"learning-rate schedule: cosine decay to 1%% over the epochs, or constant "
+        f"(default {DEFAULT_SCHEDULE})",
+    )  # fmt: skip
     p.add_argument(
         "--weight-decay", type=float, default=1e-4, help="AdamW weight decay (default 1e-4)"
     )
@@ -122,6 +138,8 @@ def run_train_cli(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             lr=args.lr,
             weight_decay=args.weight_decay,
+            physics_lr=args.physics_lr,
+            schedule=args.schedule,
             seed=args.seed,
             device=args.device,
             eps=args.eps,

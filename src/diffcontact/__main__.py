@@ -1,0 +1,7 @@
+"""``python -m diffcontact``: the same as the ``diffcontact`` command."""
+
+import sys
+
+from diffcontact.cli import main
+
+sys.exit(main())
