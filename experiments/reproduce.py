@@ -292,7 +292,8 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
         "defaults (AdamW, batch 200, potential-network lr 1e-3 with weight decay 1e-4, "
         "physical-parameter lr 3e-2, cosine decay to 1 %, float64) for the epochs listed, "
         "`diffcontact evaluate` on the 100 test trajectories (rollouts of max(horizon, 100 dt))."
-        " Training times are on this machine's CPU, one torch thread per run."
+        " Training times are on this machine's CPU, one torch thread per run, two runs at a "
+        "time; other work shared the CPU at times, so they are upper bounds."
     )
     add("")
     total_train = sum(r["train_seconds"] for r in results.values())
