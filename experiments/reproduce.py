@@ -28,7 +28,6 @@ the sums of the per-epoch wall times in each run's ``logs/metrics.csv``.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -182,15 +181,12 @@ def _finished(learned_file: Path, epochs: int) -> bool:
 
 def _training_seconds(run: Path) -> float:
     """Sum of the per-epoch wall times logged in ``logs/metrics.csv``."""
-    path = run / "logs" / "metrics.csv"
-    total, seen = 0.0, set()
-    with path.open(newline="") as fh:
-        for row in csv.DictReader(fh):
-            value, epoch = row.get("time/epoch_s"), row.get("epoch")
-            if value and epoch not in seen:
-                seen.add(epoch)
-                total += float(value)
-    return total
+    import numpy as np
+
+    from diffcontact.learning.evaluate import read_training_log
+
+    seconds = read_training_log(run / "logs" / "metrics.csv").get("time/epoch_s")
+    return 0.0 if seconds is None else float(np.nansum(seconds))
 
 
 def contact_counts(data_dir: str | Path) -> list[int]:
@@ -490,12 +486,19 @@ def _report_only(out: Path, doc: str | None) -> int:
     if "meta" not in data:
         print(f"reproduce.py: error: {results_file} is from an unfinished run", file=sys.stderr)
         return 2
-    report = render(data["runs"], data["meta"])
-    _atomic_write(out / "results.md", report + "\n")
-    if doc:
-        _atomic_write(Path(doc), report + "\n")
-    print(f"wrote {out / 'results.md'}" + (f" and {doc}" if doc else ""))
+    _write_report(out, doc, data["runs"], data["meta"])
     return 0
+
+
+def _write_report(
+    out: Path, doc: str | None, results: dict[str, Any], meta: dict[str, Any]
+) -> None:
+    """Render the report to ``out/results.md`` and, if given, ``doc``."""
+    report = render(results, meta) + "\n"
+    _atomic_write(out / "results.md", report)
+    if doc:
+        _atomic_write(Path(doc), report)
+    print(f"wrote {out / 'results.md'}" + (f" and {doc}" if doc else ""))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -598,19 +601,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     wall = time.perf_counter() - t0
     import torch
 
-    previous: list[dict[str, Any]] = []
-    if old_meta:
-        previous = old_meta.get("invocations") or (
-            [
-                {
-                    "wall_seconds": old_meta["wall_seconds"],
-                    "trained": len(runs),
-                    "evaluated": len(runs),
-                }
-            ]
-            if "wall_seconds" in old_meta
-            else []
-        )
+    previous: list[dict[str, Any]] = old_meta.get("invocations", [])
     this_call = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "wall_seconds": wall,
@@ -638,11 +629,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "python": platform.python_version(),
     }
     _atomic_write(results_file, json.dumps({"runs": results, "meta": meta}, indent=1))
-    report = render(results, meta)
-    _atomic_write(out / "results.md", report + "\n")
-    if args.doc:
-        _atomic_write(Path(args.doc), report + "\n")
-    print(f"wrote {out / 'results.md'}" + (f" and {args.doc}" if args.doc else ""))
+    _write_report(out, args.doc, results, meta)
     print(f"wall time {wall / 60:.1f} min")
     for line in failed:
         print(f"FAILED {line}", file=sys.stderr)
