@@ -109,13 +109,21 @@ PAPER_REL_ERR = {
 
 # explanations that hold whatever the numbers (the method's known behaviour)
 NOTES = (
-    "CMr adds `eps I` (eps = 0.01) to the contact matrix `A` while the data come from CM: "
-    "its restitution impulses are slightly too small, so it learns e_P biased low and, "
-    "with e_P pinned at 1 (BP5-e), cannot compensate; the paper's Table S.7 shows the same "
-    "bias. Its mass ratios are unaffected.",
-    "Only ratios of masses are identifiable where no potential fixes the scale (the box "
-    "tasks), and a single body's mass and inertia only up to a common factor against the "
-    "learned potential (the gyroscope): the tables therefore report ratios.",
+    "Only mass ratios are identifiable: one common factor on all masses and on the learned "
+    "potential leaves the motion unchanged (without a potential, on the masses alone). The "
+    "tables therefore report ratios, and the gyroscope's single mass and inertia are known "
+    "only up to that factor. The `m1` column shows where training left the scale.",
+    "CMr adds `eps I` (eps = 0.01) to the contact matrix `A = J_C M^-1 J_C^T`, which is in "
+    "units of inverse mass, while the data come from CM: a body of mass `m` bouncing off a "
+    "wall gets `1 / (1 + eps m)` of CM's impulse. With e_P pinned at 1 (BP5-e) nothing else "
+    "absorbs that, and at a fixed mass scale the ratios bend to share the error, more so the "
+    "heavier the masses (`python experiments/cmr_mass_scale.py runs/repro/data/BP5-e`; "
+    "docs/training.md). CMr's loss therefore keeps falling as all masses shrink, and the "
+    "model's separate mass-scale parameter lets training follow: `m1` ends well below CM's "
+    "on BP5-e and BP5. With a potential (CP3-e, CP3) the potential has to rescale along with "
+    "the masses, and other errors (e_P, the potential) weigh in, so the scale settles "
+    "elsewhere. Before the scale had its own parameter (model format 2), it barely moved "
+    "and BP5-e's CMr ratios were 0.57 % off.",
     "A step whose gradient norm is more than 100 times the recent median is skipped "
     "(`skipped steps`; docs/training.md): near-grazing contacts produce such spikes, and one "
     "of them fed to Adam froze the gyroscope's inertia before this check existed.",
@@ -208,8 +216,11 @@ def contact_counts(data_dir: str | Path) -> list[int]:
 
 def summarise(task: str, model: str, data_dir: str | Path, run: Path) -> dict[str, Any]:
     """The numbers the report needs from one finished run."""
+    from diffcontact.systems import System, load_config
+
     metrics = json.loads((run / "evaluation" / "metrics.json").read_text())
     learned = json.loads((run / "learned.json").read_text())
+    config = json.loads((Path(data_dir) / "metadata.json").read_text())["config"]
     eval_s = run / "evaluation" / "seconds.txt"
     out = {
         "task": task,
@@ -224,6 +235,11 @@ def summarise(task: str, model: str, data_dir: str | Path, run: Path) -> dict[st
         "n_nonfinite": metrics.get("n_nonfinite", 0),
         "energy_rel_drift": metrics["energy_rel_drift"],
         "mass_ratios": metrics["mass_ratios"],
+        # the absolute scale, which the data do not fix (docs/training.md)
+        "mass_first": {
+            "learned": learned["learned"]["mass"][0],
+            "true": float(System(load_config(config)).mass[0]),
+        },
         "mu": metrics["mu"],
         "cor": metrics["cor"],
     }
@@ -323,17 +339,22 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
         add(
             "Ratios `m_i / m_1`; the target is the truth within 0.5 %. Table S.3's columns "
             "are swapped against the released configurations (paper-facts.md): the paper's "
-            "CP3 numbers are listed under CP3-e here and vice versa."
+            "CP3 numbers are listed under CP3-e here and vice versa. `m1` is the first "
+            "body's learned mass: the data fix only ratios (a common factor on all masses "
+            "and the potential leaves the motion unchanged), so it is wherever training "
+            'left it; CMr\'s runs shrink it (docs/training.md, "CMr and the mass scale").'
         )
         add("")
         for task in mass_tasks:
-            true = next(by[(task, m)] for m in MODELS if (task, m) in by)["mass_ratios"]["true"]
+            first = next(by[(task, m)] for m in MODELS if (task, m) in by)
+            true = first["mass_ratios"]["true"]
             head = " | ".join(f"m{i + 2}/m1" for i in range(len(true)))
             add(f"### {task}")
             add("")
-            add(f"| model | {head} | max rel. error | within 0.5 % | paper | train time |")
-            add("|---|" + "---|" * (len(true) + 4))
-            add(f"| truth | {' | '.join(_f(x) for x in true)} | | | | |")
+            add(f"| model | {head} | max rel. error | within 0.5 % | paper | m1 | train time |")
+            add("|---|" + "---|" * (len(true) + 5))
+            m1 = first.get("mass_first", {}).get("true")  # absent in older results.json
+            add(f"| truth | {' | '.join(_f(x) for x in true)} | | | | {_f(m1)} | |")
             for m in MODELS:
                 r = by.get((task, m))
                 if r is None:
@@ -341,9 +362,11 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
                 mr = r["mass_ratios"]
                 err = mr["max_rel_error"]
                 paper = ", ".join(_f(x) for x in PAPER_MASS[task][m])
+                m1 = r.get("mass_first", {}).get("learned")
                 add(
                     f"| {m} | {' | '.join(_f(x) for x in mr['learned'])} | {_f(100 * err, 3)} % "
-                    f"| {_ok(err <= TOL_MASS_REL)} | {paper} | {_minutes(r['train_seconds'])} |"
+                    f"| {_ok(err <= TOL_MASS_REL)} | {paper} | {_f(m1)} "
+                    f"| {_minutes(r['train_seconds'])} |"
                 )
             add("")
 

@@ -10,15 +10,19 @@ import diffcontact as dc
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*LeafSpec")
 
-SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "reproduce.py"
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="module")
 def repro():
-    spec = importlib.util.spec_from_file_location("reproduce", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _load("reproduce")
 
 
 def test_contact_names_follow_the_contact_numbering(repro):
@@ -55,6 +59,7 @@ def test_one_tiny_run_end_to_end(repro, tmp_path, capsys):
     assert run["epochs"] == 1 and run["train_seconds"] > 0
     assert len(run["contact_counts"]) == 30 and sum(run["contact_counts"]) > 0
     assert run["mass_ratios"]["true"] == pytest.approx([2.0, 6.0, 8.0, 10.0])
+    assert run["mass_first"]["true"] == pytest.approx(0.05) and run["mass_first"]["learned"] > 0
     report = (out / "results.md").read_text()
     assert report == (tmp_path / "r.md").read_text()
     assert "| truth | 2.0000 | 6.0000 | 8.0000 | 10.0000 |" in report
@@ -82,3 +87,25 @@ def test_bad_arguments(repro, tmp_path, capsys):
     with pytest.raises(SystemExit):
         repro.main(["--only", "BP5:XX", "--out", str(tmp_path)])
     assert repro.main(["--report-only", "--out", str(tmp_path / "none")]) == 2
+
+
+def test_cmr_mass_scale_script(tmp_path, capsys):
+    from diffcontact.learning.data import generate_dataset
+
+    script = _load("cmr_mass_scale")
+    data = tmp_path / "BP5-e"
+    generate_dataset("BP5-e", data, n_train=8, n_val=2, n_test=2, progress=False)
+    assert script.main([str(data), "--scales", "0.5", "2", "--chunks", "4", "--iters", "2"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| 0.5 |") or
+            line.startswith("| 2 |")]  # fmt: skip
+    assert len(rows) == 2 and all(" % | " in r for r in rows), out
+    # m1 is the scale times the true mass (0.1)
+    assert rows[0].split("|")[2].strip() == "0.05" and rows[1].split("|")[2].strip() == "0.2"
+    cp3 = tmp_path / "CP3"
+    generate_dataset("CP3", cp3, n_train=2, n_val=1, n_test=1, progress=False)
+    with pytest.raises(SystemExit) as exc:
+        script.main([str(cp3)])
+    assert exc.value.code == 2 and "has a true potential" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main([str(data), "--scales", "0"])

@@ -76,7 +76,9 @@ def test_model_names_and_options():
     assert not LearnedModel("BP5-e", hidden=(8,)).heterogeneous
     assert LearnedModel("CP3", hidden=(8,), heterogeneous=True).raw_mu.shape == (3,)
     m = LearnedModel("CP3", model="CMr-CD-CLNN", eps="learnable", hidden=(8,))
-    assert {n for n, _ in m.named_parameters()} >= {"log_mass", "raw_mu", "raw_cor", "log_eps"}
+    assert {n for n, _ in m.named_parameters()} >= {
+        "log_mass_scale", "log_mass_rel", "raw_mu", "raw_cor", "log_eps"
+    }  # fmt: skip
     assert m.log_second_moments is None
     assert LearnedModel("BD5", hidden=(8,)).log_second_moments.shape == (5, 2)
 
@@ -182,6 +184,69 @@ def test_files_of_the_old_e_p_parameterisation_are_refused(tmp_path):
     data["format_version"] = 1  # e_P = hardsigmoid(raw): the same weights mean another e_P
     with pytest.raises(ValueError, match=r"format 1 .*retrain"):
         LearnedModel.from_checkpoint(data)
+
+
+def test_format_2_files_load_with_the_same_masses():
+    m = LearnedModel("CP3", hidden=(4,))
+    m.set_parameters(mass=[0.3, 0.2, 0.1])
+    data = m.checkpoint()
+    state = dict(data["state_dict"])
+    state["log_mass"] = (state.pop("log_mass_scale") + state.pop("log_mass_rel")).clone()
+    old = {**data, "format_version": 2, "state_dict": state}
+    back = LearnedModel.from_checkpoint(old)
+    assert back.mass().tolist() == pytest.approx([0.3, 0.2, 0.1], rel=1e-6)
+    assert back.log_mass_scale.item() == 0.0
+
+
+def test_masses_split_into_a_common_scale_and_relative_logs():
+    m = LearnedModel("BP5", hidden=(4,)).double()
+    m.set_parameters(mass=[0.05, 0.1, 0.3, 0.4, 0.5])
+    torch.testing.assert_close(m.mass(), torch.tensor([0.05, 0.1, 0.3, 0.4, 0.5]).double())
+    assert m.log_mass_rel.sum().item() == pytest.approx(0.0, abs=1e-12)
+    m.set_parameters(mass=0.2)  # one number for all bodies
+    torch.testing.assert_close(m.mass(), torch.full((5,), 0.2).double())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"mass": [0.1, -0.2, 0.1, 0.1, 0.1]}, "mass must be positive"),
+        ({"mass": [0.1, 0.2]}, r"mass must be one number or of shape \(5,\)"),
+        ({"mu": -0.1}, "mu must be >= 0"),
+        ({"cor": 1.2}, r"cor \(e_P\) must be in \[0, 1\]"),
+        ({"eps": 0.0}, "eps must be a positive number"),
+        ({"second_moments": 1.0}, "point masses only"),
+        ({"mass": 0.2, "cor": -0.5}, r"cor \(e_P\)"),  # nothing is written, not even mass
+    ],
+)
+def test_set_parameters_rejects_bad_values(kwargs, message):
+    m = LearnedModel("BP5-e", model="CMr-CD-CLNN", hidden=(4,))
+    before = {k: v.clone() for k, v in m.state_dict().items()}
+    with pytest.raises(ValueError, match=message):
+        m.set_parameters(**kwargs)
+    for k, v in m.state_dict().items():
+        assert torch.equal(v, before[k]), k
+
+
+def test_only_cmr_depends_on_the_common_mass_scale():
+    """Without a potential the data fix mass ratios only: CM's loss is flat along the
+    common scale, CMr's (``eps I`` is in units of inverse mass) falls as masses shrink."""
+    system = dc.load_system("BP5-e")
+    steps = 3
+    z0 = _states_before_contact("BP5-e", 3, steps)
+    ref = system.simulate(z0, steps)
+    slopes = {}
+    for name in ("CM-CD-CLNN", "CMr-CD-CLNN"):
+        _, m = _truth_model("BP5-e", name, hidden=(4,))
+        m.potential = None
+        m.set_parameters(cor=0.9)  # off the truth, so that CM's loss is not 0 either
+        loss = (m.simulate(z0, steps) - ref).abs().mean()
+        (slope,) = torch.autograd.grad(loss, m.log_mass_scale)
+        slopes[name] = (loss.item(), slope.item())
+    cm_loss, cm_slope = slopes["CM-CD-CLNN"]
+    cmr_loss, cmr_slope = slopes["CMr-CD-CLNN"]
+    assert cm_loss > 1e-4 and abs(cm_slope) < 1e-9 * cm_loss, slopes
+    assert cmr_slope > 1e-3 * cmr_loss, slopes  # smaller masses, smaller loss
 
 
 def test_save_and_load(tmp_path):

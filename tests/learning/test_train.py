@@ -179,7 +179,7 @@ def test_nonfinite_and_failed_steps_are_skipped_and_reported(tmp_path, caplog, m
             raise ConeQPError("1 of 1 problems did not converge (simulated)")
         loss = real_loss(model, chunk)
         if calls["n"] == 3:  # finite value, non-finite gradient
-            s = model.log_mass.sum()
+            s = model.log_mass_rel.sum()
             loss = loss + 0.0 * torch.sqrt(s - s.detach())
         return loss
 
@@ -302,7 +302,8 @@ def test_learning_recovers_mu_and_cor_of_a_bouncing_ball():
     pl.seed_everything(0, verbose=False)
     model = LearnedModel(BALL, hidden=(4,))
     model.potential = None
-    model.log_mass.requires_grad_(False)
+    model.log_mass_scale.requires_grad_(False)
+    model.log_mass_rel.requires_grad_(False)
     module = RolloutModule(model=model, lr=0.04, weight_decay=0.0, dtype="float64")
     data = ChunkDataModule(train_chunks, val_chunks, batch_size=len(train_chunks), dtype="float64")
     trainer = pl.Trainer(
@@ -327,7 +328,9 @@ def test_physical_parameters_get_their_own_learning_rate_and_no_weight_decay():
     model = LearnedModel("BD5", model="CMr-CD-CLNN", eps="learnable", hidden=(8,))
     physical = model.physical_parameters()
     names = {n for n, p in model.named_parameters() if any(p is q for q in physical)}
-    assert names == {"log_mass", "log_second_moments", "raw_mu", "raw_cor", "log_eps"}
+    assert names == {
+        "log_mass_scale", "log_mass_rel", "log_second_moments", "raw_mu", "raw_cor", "log_eps"
+    }  # fmt: skip
     assert len(model.network_parameters()) + len(physical) == len(list(model.parameters()))
     module = RolloutModule(model=model, lr=1e-3, weight_decay=1e-4, physics_lr=0.05)
     opt = module.configure_optimizers()
@@ -337,10 +340,10 @@ def test_physical_parameters_get_their_own_learning_rate_and_no_weight_decay():
     assert (phys["lr"], phys["weight_decay"]) == (0.05, 0.0)
     assert {id(p) for p in phys["params"]} == {id(p) for p in physical}
     # frozen parameters are left out; physics_lr defaults to lr
-    model.log_mass.requires_grad_(False)
+    model.log_mass_rel.requires_grad_(False)
     opt = RolloutModule(model=model, lr=2e-3).configure_optimizers()
     assert all(g["lr"] == 2e-3 for g in opt.param_groups)
-    assert not any(p is model.log_mass for g in opt.param_groups for p in g["params"])
+    assert not any(p is model.log_mass_rel for g in opt.param_groups for p in g["params"])
     with pytest.raises(ValueError, match="schedule"):
         RolloutModule(model=model, schedule="linear")
 
@@ -370,6 +373,12 @@ def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
     # a different schedule or physics_lr is a different run: resume refuses it
     with pytest.raises(TrainingInputError, match="physics_lr"):
         train(bp5_data, tmp_path / "run", epochs=4, batch_size=4, lr=1e-3, physics_lr=0.03,
+              resume=True, **SMALL)  # fmt: skip
+    # so is a run of an older model format (different parameters)
+    old = {**run, "model_format": 2}
+    (tmp_path / "run" / "run.json").write_text(json.dumps(old))
+    with pytest.raises(TrainingInputError, match="model_format: 2 -> 3"):
+        train(bp5_data, tmp_path / "run", epochs=4, batch_size=4, lr=1e-3, physics_lr=0.02,
               resume=True, **SMALL)  # fmt: skip
     with pytest.raises(TrainingInputError, match="schedule must be"):
         train(bp5_data, tmp_path / "other", schedule="step", **SMALL)

@@ -6,11 +6,21 @@ system's parameter tensors from its modules before calling ``System.simulate``.
 Collision detection, the mechanics and the contact solver are the ground
 truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
 
-- inverse inertia in the extended-body form (``docs/conventions.md``): one
-  log-mass per body and, for rigid bodies, one log second moment per body
-  axis (``mass = exp(log_mass)``, ``second_moments = exp(log_second_moments)``),
-  initialised at mass 1 and second moments equal to each body's known size
-  squared (radius, or the gyroscope's rim radius; not the truth);
+- inverse inertia in the extended-body form (``docs/conventions.md``): a
+  common log mass scale and one relative log mass per body
+  (``mass = exp(log_mass_scale + log_mass_rel)``) and, for rigid bodies, one
+  log second moment per body axis
+  (``second_moments = exp(log_second_moments)``), initialised at mass 1 and
+  second moments equal to each body's known size squared (radius, or the
+  gyroscope's rim radius; not the truth). The common scale is its own
+  parameter because the data never fix it: scaling every mass and the
+  potential by one factor leaves the motion unchanged, so only mass *ratios*
+  are learned from data. CM's loss is flat along that direction; CMr's is
+  not (its ``eps I`` is in units of inverse mass, so ``eps * mass`` is what
+  regularises) and falls as the masses shrink, towards CM. With one parameter
+  for the direction, Adam follows that slope at its full step size instead of
+  a small fraction of it hidden in per-body gradient noise
+  (``docs/training.md``, "CMr and the mass scale");
 - potential ``V(x)``: an MLP on the flattened positions ``(..., P*dim)`` with
   Softplus activations (3 hidden layers of 256 by default), plugged in as
   ``System.potential_model``; the system's ``gravity`` (and the rope's spring
@@ -69,7 +79,8 @@ MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
 HOMOGENEOUS_TASKS = ("BP5-e", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
 HETEROGENEOUS_TASKS = ("BP5", "BD5")
 # 2: e_P = hardsigmoid(6 raw_cor - 3) (format 1 had hardsigmoid(raw_cor))
-FORMAT_VERSION = 2
+# 3: mass = exp(log_mass_scale + log_mass_rel) (format 2 had exp(log_mass); read and converted)
+FORMAT_VERSION = 3
 _INIT_MU = 0.5
 _INIT_COR = 0.5
 _INIT_EPS = 0.01
@@ -169,9 +180,10 @@ class LearnedModel(nn.Module):
             paper-facts.md (BP5, BD5 heterogeneous, everything else shared).
         hidden: hidden widths of the potential MLP.
 
-    Parameters (``nn.Parameter``): ``log_mass (B,)``, ``log_second_moments
-    (B, dim)`` (rigid bodies only), ``raw_mu (1,)`` or ``(K,)``, ``raw_cor``
-    likewise, ``log_eps ()`` (CMr with learnable eps only) and the MLP's.
+    Parameters (``nn.Parameter``): ``log_mass_scale ()``, ``log_mass_rel (B,)``,
+    ``log_second_moments (B, dim)`` (rigid bodies only), ``raw_mu (1,)`` or
+    ``(K,)``, ``raw_cor`` likewise, ``log_eps ()`` (CMr with learnable eps only)
+    and the MLP's.
 
     The dtype and device of a rollout follow ``z0`` (the parameters are cast
     as needed, with gradients); move the model with ``.to(...)`` to keep its
@@ -221,7 +233,8 @@ class LearnedModel(nn.Module):
             self.eps_option = value
 
         B, K = system.n_bodies, system.n_contacts
-        self.log_mass = nn.Parameter(torch.zeros(B))
+        self.log_mass_scale = nn.Parameter(torch.zeros(()))
+        self.log_mass_rel = nn.Parameter(torch.zeros(B))
         if system.second_moments is not None:
             init = _initial_second_moments(cfg, tuple(system.second_moments.shape))
             self.log_second_moments = nn.Parameter(init.log())
@@ -276,7 +289,7 @@ class LearnedModel(nn.Module):
     # ---------------------------------------------------------- parameters
     def mass(self) -> Tensor:
         """``(B,)`` learned masses."""
-        return self.log_mass.exp()
+        return (self.log_mass_scale + self.log_mass_rel).exp()
 
     def second_moments(self) -> Tensor | None:
         """``(B, dim)`` learned second moments per unit mass, or ``None`` (point masses)."""
@@ -313,25 +326,58 @@ class LearnedModel(nn.Module):
         (``log``, the identity for ``relu`` and for the scaled hard sigmoid).
         """
 
-        def put(param: Tensor, value: Any, fn) -> None:
-            t = torch.as_tensor(value, dtype=torch.float64)
-            param.copy_(fn(t).to(param).expand_as(param))
+        def shaped(name: str, value: Any, shape: torch.Size) -> Tensor:
+            t = torch.as_tensor(value, dtype=torch.float64).detach().cpu()
+            try:
+                return t.expand(shape)
+            except RuntimeError:
+                raise ValueError(
+                    f"{name} must be one number or of shape {tuple(shape)}, got shape "
+                    f"{tuple(t.shape)}"
+                ) from None
 
+        def check(name: str, t: Tensor, ok: Tensor, what: str) -> Tensor:
+            if not (torch.isfinite(t).all() and ok.all()):
+                raise ValueError(f"{name} must be {what}, got {t.tolist()}")
+            return t
+
+        # validate everything first, so that a bad value changes nothing
+        writes: list[tuple[Tensor, Tensor]] = []
         if mass is not None:
-            put(self.log_mass, mass, torch.log)
+            t = shaped("mass", mass, self.log_mass_rel.shape)
+            log_mass = check("mass", t, t > 0, "positive and finite").log()
+            writes += [
+                (self.log_mass_scale, log_mass.mean()),
+                (self.log_mass_rel, log_mass - log_mass.mean()),
+            ]
         if second_moments is not None:
             if self.log_second_moments is None:
                 raise ValueError(f"{self.name} has point masses only: no second moments")
-            put(self.log_second_moments, second_moments, torch.log)
+            t = shaped("second_moments", second_moments, self.log_second_moments.shape)
+            t = check("second_moments", t, t > 0, "positive and finite")
+            writes.append((self.log_second_moments, t.log()))
         if mu is not None:
-            put(self.raw_mu, mu, lambda t: t)
+            t = shaped("mu", mu, self.raw_mu.shape)
+            writes.append((self.raw_mu, check("mu", t, t >= 0, ">= 0 and finite")))
         if cor is not None:
-            put(self.raw_cor, cor, _cor_raw)
+            t = shaped("cor", cor, self.raw_cor.shape)
+            t = check("cor (e_P)", t, (t >= 0) & (t <= 1), "in [0, 1]")
+            writes.append((self.raw_cor, _cor_raw(t)))
+        eps_value = None
         if eps is not None:
+            try:
+                eps_value = float(eps)
+            except (TypeError, ValueError):
+                eps_value = math.nan
+            if not (math.isfinite(eps_value) and eps_value > 0):
+                raise ValueError(f"eps must be a positive number, got {eps!r}")
+        for param, value in writes:
+            param.copy_(value.to(param))
+        if eps_value is not None:
             if self.eps_option == "learnable":
-                put(self.log_eps, eps, torch.log)
+                self.log_eps.fill_(math.log(eps_value))
             elif self.eps_option is not None:
-                self.eps_option = float(eps)
+                self.eps_option = eps_value
         return self
 
     def learned_parameters(self) -> dict[str, Any]:
@@ -357,9 +403,12 @@ class LearnedModel(nn.Module):
             }
 
     def physical_parameters(self) -> list[nn.Parameter]:
-        """The physical parameters: ``log_mass``, ``log_second_moments``, ``raw_mu``,
-        ``raw_cor`` and ``log_eps`` (those that exist), i.e. everything but the potential."""
-        names = ("log_mass", "log_second_moments", "raw_mu", "raw_cor", "log_eps")
+        """The physical parameters: ``log_mass_scale``, ``log_mass_rel``,
+        ``log_second_moments``, ``raw_mu``, ``raw_cor`` and ``log_eps`` (those that
+        exist), i.e. everything but the potential."""
+        names = (
+            "log_mass_scale", "log_mass_rel", "log_second_moments", "raw_mu", "raw_cor", "log_eps"
+        )  # fmt: skip
         return [p for n in names if isinstance(p := getattr(self, n, None), nn.Parameter)]
 
     def network_parameters(self) -> list[nn.Parameter]:
@@ -374,7 +423,8 @@ class LearnedModel(nn.Module):
             system.second_moments = self.second_moments()
         system.mu = self.mu()
         system.cor = self.cor()
-        system.gravity = torch.zeros((), dtype=self.log_mass.dtype, device=self.log_mass.device)
+        ref = self.log_mass_rel
+        system.gravity = torch.zeros((), dtype=ref.dtype, device=ref.device)
         if system.stiffness is not None:
             system.stiffness = torch.zeros_like(system.gravity)
         system.potential_model = self.potential
@@ -480,15 +530,18 @@ class LearnedModel(nn.Module):
     def from_checkpoint(cls, data: Mapping[str, Any]) -> LearnedModel:
         """Rebuild a model from :meth:`checkpoint`'s dict (dtype of the stored weights)."""
         version = data.get("format_version") if isinstance(data, Mapping) else None
-        if version != FORMAT_VERSION:
+        if version not in (2, FORMAT_VERSION):
             raise ValueError(
                 f"model file format {version!r} is not supported (this diffcontact reads "
-                f"format {FORMAT_VERSION}; format 1 parameterised e_P differently): retrain"
+                f"formats 2 and {FORMAT_VERSION}; format 1 parameterised e_P differently): retrain"
             )
         try:
             options = dict(data["options"])
             model = cls(data["config"], **options)
-            state = data["state_dict"]
+            state = dict(data["state_dict"])
+            if version == 2:  # one log mass per body: the same masses with a zero common scale
+                state["log_mass_rel"] = state.pop("log_mass")
+                state["log_mass_scale"] = torch.zeros((), dtype=state["log_mass_rel"].dtype)
         except KeyError as err:
             raise ValueError(f"not a diffcontact model file: missing {err}") from None
         dtype = next(iter(state.values())).dtype if state else torch.float32

@@ -106,8 +106,8 @@ PHYSICS_BETAS = (0.9, 0.99)
 RUN_FILE = "run.json"
 # run.json keys that must match to resume a run
 _RUN_IDENTITY = (
-    "model", "eps", "heterogeneous", "hidden", "data_dir", "seed", "batch_size", "lr",
-    "weight_decay", "physics_lr", "schedule", "dtype",
+    "model_format", "model", "eps", "heterogeneous", "hidden", "data_dir", "seed",
+    "batch_size", "lr", "weight_decay", "physics_lr", "schedule", "dtype",
 )  # fmt: skip
 
 
@@ -446,7 +446,7 @@ class RolloutModule(pl.LightningModule):
             _write_learned(self.run_dir, self.last_epoch_summary)
 
     def _param_metrics(self, params: dict[str, Any]) -> dict[str, float]:
-        out: dict[str, float] = {}
+        out: dict[str, float] = {"param/mass_0": params["mass"][0]}  # the (free) mass scale
         for i, r in enumerate(params["mass_ratios"][1:], start=1):
             out[f"param/mass_ratio_{i}"] = r
         for key in ("mu", "cor"):
@@ -922,6 +922,7 @@ def train(
 
     run_info = {
         "format_version": 1,
+        "model_format": MODEL_FORMAT_VERSION,
         "model": model,
         "eps": eps_value,
         "heterogeneous": learned.heterogeneous,
