@@ -355,16 +355,17 @@ def interior_point_solve(
         sigma = (1 - alpha) ** 3
         # corrector: r3 = -lam o lam + sigma mu e - (W^-1 ds_a) o (W dz_a). Mehrotra's
         # second-order term can make the iteration cycle (seen on rope limits): a problem
-        # whose gap grows under it drops the term from then on.
+        # whose gap grows under it drops the term from then on (``plain_only``). The plain
+        # direction is solved for only in an iteration where some problem newly drops it;
+        # for those that already have, the term is zeroed, which gives the plain direction.
         r3l = r3l + (sigma * mu_gap)[:, None]
-        corr_l = dsl * dzl
+        corr_l = torch.where(plain_only[:, None], 0.0, dsl * dzl)
         if d > 1:
             r3q = r3q.clone()
             r3q[..., 0] = r3q[..., 0] + sigma[:, None] * mu_gap[:, None]
             a_s = (W_inv @ dsq.unsqueeze(-1)).squeeze(-1)
             a_z = (W @ dzq.unsqueeze(-1)).squeeze(-1)
-            corr_q = _soc_prod(a_s, a_z)
-        plain = solve(r3l, r3q)
+            corr_q = torch.where(plain_only[:, None, None], 0.0, _soc_prod(a_s, a_z))
         mehrotra = solve(r3l - corr_l, r3q - corr_q if d > 1 else None)
 
         def gap_after(direction):
@@ -377,15 +378,18 @@ def interior_point_solve(
                 g = g + ((sq + a * dsq) * (zq + a * dzq)).sum((-1, -2))
             return g, alpha
 
-        gap_m, alpha_m = gap_after(mehrotra)
-        _, alpha_p = gap_after(plain)
-        plain_only |= gap_m > gap
-        use_m = ~plain_only
-        alpha = torch.where(use_m, alpha_m, alpha_p)
-        df, dsl, dsq, dzl, dzq = (
-            None if m is None else torch.where(use_m.view(-1, *([1] * (m.dim() - 1))), m, p)
-            for m, p in zip(mehrotra, plain, strict=True)
-        )
+        gap_m, alpha = gap_after(mehrotra)
+        newly = (gap_m > gap) & ~plain_only
+        df, dsl, dsq, dzl, dzq = mehrotra
+        if bool(newly.any()):
+            plain = solve(r3l, r3q)
+            _, alpha_p = gap_after(plain)
+            plain_only |= newly
+            alpha = torch.where(newly, alpha_p, alpha)
+            df, dsl, dsq, dzl, dzq = (
+                None if m is None else torch.where(newly.view(-1, *([1] * (m.dim() - 1))), p, m)
+                for m, p in zip(mehrotra, plain, strict=True)
+            )
         a1 = alpha[:, None]
         f_new = f + a1[..., None] * df
         sl_new, zl_new = sl + a1 * dsl, zl + a1 * dzl
