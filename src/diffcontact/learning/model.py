@@ -323,7 +323,14 @@ class LearnedModel(nn.Module):
 
         ``mu``/``cor`` take one number or, for heterogeneous models, one per
         contact. Values are mapped through the inverse parameterisations
-        (``log``, the identity for ``relu`` and for the scaled hard sigmoid).
+        (``log``, the identity for ``relu`` and for the scaled hard sigmoid);
+        masses are split into the common scale (the mean log mass) and the
+        per-body logs relative to it.
+
+        Raises:
+            ValueError: a value of the wrong shape, a non-positive mass or second
+                moment, ``mu < 0``, ``cor`` outside [0, 1], a non-positive ``eps``
+                or anything non-finite; nothing is changed then.
         """
 
         def shaped(name: str, value: Any, shape: torch.Size) -> Tensor:
