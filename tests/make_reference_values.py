@@ -1,0 +1,77 @@
+"""Regenerate ``tests/data/reference_values.pt``: rollouts and training-step gradients.
+
+The file pins the numbers of the simulator and of one training step so that a
+refactoring that must not change results (issue 10: contact models and learned
+models as pluggable components) is checked against the code before it::
+
+    python tests/make_reference_values.py        # only when a change of results is intended
+
+``tests/test_reference_values.py`` compares against it.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+OUT = Path(__file__).parent / "data" / "reference_values.pt"
+# (task, number of states, steps): every built-in task, long enough for contacts
+ROLLOUTS = {
+    "BP5": (3, 60), "BP5-e": (3, 60), "BD5": (3, 60), "CP3": (3, 60), "CP3-e": (3, 60),
+    "Gyro": (2, 60), "Gyro-e": (2, 60), "Rope": (2, 40), "Rope-D100": (1, 20),
+    "Rope-D200": (1, 10), "Rope-D400": (1, 5),
+}  # fmt: skip
+MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
+STEP_TASKS = ("BP5", "CP3")  # a heterogeneous and a homogeneous task with a potential
+
+
+def reference_rollouts() -> dict[str, torch.Tensor]:
+    from diffcontact import load_system
+
+    out = {}
+    for task, (n, steps) in ROLLOUTS.items():
+        system = load_system(task)
+        z0 = system.sample_initial_conditions(n, seed=1)
+        out[task] = system.simulate(z0, steps)
+    return out
+
+
+def reference_training_step(task: str, model_name: str) -> dict[str, torch.Tensor]:
+    """Loss and gradients of one training step from fixed weights and a fixed chunk."""
+    from diffcontact import load_system
+    from diffcontact.learning.model import LearnedModel
+
+    system = load_system(task)
+    z0 = system.sample_initial_conditions(6, seed=2)
+    chunk = system.simulate(z0, 30)[:, 25:30]  # (6, 5, 2, P, dim), contacts included
+    torch.manual_seed(0)
+    kwargs = {"eps": "learnable"} if model_name.startswith("CMr") else {}
+    model = LearnedModel(task, model=model_name, hidden=(32, 32), **kwargs).double()
+    with torch.no_grad():
+        model.log_mass_rel.add_(torch.linspace(-0.2, 0.2, model.log_mass_rel.numel()).double())
+        model.raw_mu.add_(0.1)
+    pred = model.simulate(chunk[:, 0], chunk.shape[1] - 1, check_overlap=False)
+    loss = (pred[:, 1:] - chunk[:, 1:]).abs().mean()
+    names, params = zip(*model.named_parameters(), strict=True)
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    out = {"loss": loss.detach()}
+    for name, g in zip(names, grads, strict=True):
+        out[f"grad/{name}"] = torch.zeros(()) if g is None else g
+    return out
+
+
+def main() -> int:
+    data = {"rollouts": reference_rollouts(), "steps": {}}
+    for task in STEP_TASKS:
+        for model_name in MODELS:
+            data["steps"][f"{task}/{model_name}"] = reference_training_step(task, model_name)
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(data, OUT)
+    print(f"wrote {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
