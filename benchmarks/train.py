@@ -30,7 +30,7 @@ CHUNK = 5
 def make_chunks(task: str, n: int, seed: int = 0) -> torch.Tensor:
     """(n, 5, 2, P, d) ground-truth chunks chosen as the datasets choose them (about half
     contain a contact; diffcontact.learning.data.select_chunks)."""
-    from diffcontact.learning.data import contact_states, select_chunks
+    from diffcontact.learning.data.chunks import contact_states, select_chunks
 
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(n, seed=seed)
@@ -41,8 +41,8 @@ def make_chunks(task: str, n: int, seed: int = 0) -> torch.Tensor:
 
 
 def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
-    from diffcontact.learning.model import LearnedModel
-    from diffcontact.learning.train import rollout_loss
+    from diffcontact.learning.models.physical import LearnedModel
+    from diffcontact.learning.training.module import rollout_loss
 
     chunks = make_chunks(task, args.batch_size).to(args.device, dtype)
     model = LearnedModel(dc.load_system(task).config, model=args.model).to(args.device, dtype)
@@ -72,8 +72,8 @@ def compare_dtypes(task: str, args: argparse.Namespace) -> dict:
     """Loss and gradient of one training batch in float32 against float64 (same weights)."""
     import copy
 
-    from diffcontact.learning.model import LearnedModel
-    from diffcontact.learning.train import rollout_loss
+    from diffcontact.learning.models.physical import LearnedModel
+    from diffcontact.learning.training.module import rollout_loss
 
     chunks = make_chunks(task, args.batch_size)
     m64 = LearnedModel(dc.load_system(task).config, model=args.model).double()

@@ -24,8 +24,9 @@ import time
 
 import torch
 
-from diffcontact.learning.model import LearnedModel
-from diffcontact.learning.train import read_training_data, rollout_loss
+from diffcontact.learning.models.physical import LearnedModel
+from diffcontact.learning.training.module import rollout_loss
+from diffcontact.learning.training.run import read_training_data
 from diffcontact.systems import System, load_config
 
 

@@ -144,7 +144,7 @@ def _set_threads(threads: int) -> None:
 def make_dataset(task: str, out: str, threads: int, n_train: int, n_val: int, n_test: int) -> str:
     """``diffcontact generate TASK`` into ``out`` (reused when it exists)."""
     _set_threads(threads)
-    from diffcontact.learning.data import generate_dataset
+    from diffcontact.learning.data.generate import generate_dataset
 
     generate_dataset(task, out, n_train=n_train, n_val=n_val, n_test=n_test, progress=False)
     return task
@@ -155,8 +155,8 @@ def train_and_evaluate(
 ) -> dict[str, Any]:
     """Train (or resume, or reuse) one run, evaluate it and return its summary."""
     _set_threads(threads)
-    from diffcontact.learning.evaluate import evaluate
-    from diffcontact.learning.train import train
+    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.learning.training.run import train
 
     run = Path(run_dir)
     learned_file = run / "learned.json"
@@ -191,7 +191,7 @@ def _training_seconds(run: Path) -> float:
     """Sum of the per-epoch wall times logged in ``logs/metrics.csv``."""
     import numpy as np
 
-    from diffcontact.learning.evaluate import read_training_log
+    from diffcontact.learning.evaluation.log import read_training_log
 
     seconds = read_training_log(run / "logs" / "metrics.csv").get("time/epoch_s")
     return 0.0 if seconds is None else float(np.nansum(seconds))
@@ -205,7 +205,7 @@ def contact_counts(data_dir: str | Path) -> list[int]:
     """
     import torch
 
-    from diffcontact.learning.data import load_dataset
+    from diffcontact.learning.data.format import load_dataset
 
     ds = load_dataset(data_dir)
     chunks = ds.split("train").chunks

@@ -41,7 +41,7 @@ def reference_rollouts() -> dict[str, torch.Tensor]:
 def reference_training_step(task: str, model_name: str) -> dict[str, torch.Tensor]:
     """Loss and gradients of one training step from fixed weights and a fixed chunk."""
     from diffcontact import load_system
-    from diffcontact.learning.model import LearnedModel
+    from diffcontact.learning.models.physical import LearnedModel
 
     system = load_system(task)
     z0 = system.sample_initial_conditions(6, seed=2)

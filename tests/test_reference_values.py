@@ -16,7 +16,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-import make_reference_values as ref  # noqa: E402
+import make_reference_values as ref
 
 REFERENCE = torch.load(ref.OUT, weights_only=True)
 
@@ -24,7 +24,11 @@ REFERENCE = torch.load(ref.OUT, weights_only=True)
 def _close(actual: torch.Tensor, expected: torch.Tensor, what: str) -> None:
     scale = float(expected.abs().max()) if expected.numel() else 1.0
     torch.testing.assert_close(
-        actual.detach(), expected, rtol=0, atol=1e-12 * max(scale, 1e-300), msg=lambda m: f"{what}: {m}"
+        actual.detach(),
+        expected,
+        rtol=0,
+        atol=1e-12 * max(scale, 1e-300),
+        msg=lambda m: f"{what}: {m}",
     )
 
 

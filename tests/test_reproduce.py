@@ -90,7 +90,7 @@ def test_bad_arguments(repro, tmp_path, capsys):
 
 
 def test_cmr_mass_scale_script(tmp_path, capsys):
-    from diffcontact.learning.data import generate_dataset
+    from diffcontact.learning.data.generate import generate_dataset
 
     script = _load("cmr_mass_scale")
     data = tmp_path / "BP5-e"

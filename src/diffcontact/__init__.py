@@ -13,13 +13,19 @@ try:
 except PackageNotFoundError:  # running from a source tree without installation
     __version__ = "0.0.0+unknown"
 
-__all__ = ["System", "__version__", "load_system"]
+__all__ = ["PhysicalParams", "System", "__version__", "contact", "learning", "load_system"]
+
+_SUBPACKAGES = ("contact", "geometry", "learning", "mechanics", "systems", "viz")
 
 
 def __getattr__(name: str):
     # lazy: importing diffcontact stays cheap; torch loads with the first use
-    if name in ("System", "load_system"):
+    if name in ("PhysicalParams", "System", "load_system", "load_config", "list_tasks"):
         from diffcontact import systems
 
         return getattr(systems, name)
+    if name in _SUBPACKAGES:
+        import importlib
+
+        return importlib.import_module(f"diffcontact.{name}")
     raise AttributeError(f"module 'diffcontact' has no attribute {name!r}")

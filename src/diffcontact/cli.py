@@ -20,7 +20,8 @@ import time
 from typing import NoReturn
 
 from diffcontact import __version__
-from diffcontact.cli_args import non_negative_int, positive_int
+from diffcontact.cli_args import non_negative_int, one_line, positive_int
+from diffcontact.contact.registry import contact_models
 
 EXIT_USAGE = 2
 
@@ -97,9 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument(
         "--contact-model",
-        choices=("CM", "CMr"),
+        choices=contact_models(),
         default="CM",
-        help="contact model: CM (default) or CMr (regularised)",
+        help="contact model from the registry: CM (default), CMr (regularised) or one "
+        "registered with diffcontact.contact.register_contact_model",
     )
     sim.add_argument(
         "--device", choices=("cpu", "cuda"), default="cpu", help="where to simulate (default cpu)"
@@ -111,9 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.set_defaults(func=_cmd_simulate)
 
     # learning subcommands; each module keeps its heavy imports inside its handler
-    from diffcontact.learning import data as learning_data
-    from diffcontact.learning import evaluate as learning_evaluate
-    from diffcontact.learning import train_cli as learning_train
+    from diffcontact.learning.data import cli as learning_data
+    from diffcontact.learning.evaluation import cli as learning_evaluate
+    from diffcontact.learning.training import cli as learning_train
 
     learning_data.register_cli(sub)
     learning_train.register_cli(sub)
@@ -125,16 +127,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from diffcontact.demo import run_demo
 
     return run_demo(args.out, learning=not args.no_learning, epochs=args.epochs)
-
-
-def _one_line(err: BaseException) -> str:
-    """An exception message on one line (multi-line validation messages joined by '; ')."""
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-    if not lines:
-        return type(err).__name__
-    if len(lines) == 1:
-        return lines[0]
-    return f"{lines[0].rstrip(':')}: " + "; ".join(lines[1:])
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -172,7 +164,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     try:
         system = load_system(args.task)
     except (ValueError, OSError) as err:
-        raise UsageError(_one_line(err)) from None
+        raise UsageError(one_line(err)) from None
     steps = args.steps if args.steps is not None else system.default_steps
     if steps <= 0:  # a task whose horizon holds a single state
         raise UsageError(f"--steps: the task's default is {steps}; give --steps explicitly")
@@ -184,11 +176,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             z0, steps=steps, contact_model=args.contact_model, progress=not args.quiet
         )
     except ValueError as err:
-        raise UsageError(_one_line(err)) from None
+        raise UsageError(one_line(err)) from None
     except RuntimeError as err:  # e.g. the contact solver did not converge
         print(
             f"diffcontact simulate: error: simulation failed: {type(err).__name__}: "
-            f"{_one_line(err)}",
+            f"{one_line(err)}",
             file=sys.stderr,
         )
         return 1

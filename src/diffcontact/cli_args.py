@@ -1,9 +1,13 @@
-"""Argument types shared by the ``diffcontact`` subcommands (argparse ``type=``)."""
+"""Helpers shared by the ``diffcontact`` subcommands: argument types (argparse
+``type=``), :func:`one_line` (the one-line form of an error message) and
+:func:`report_errors` (errors as one line on stderr and an exit status). No
+heavy imports."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 
 
@@ -35,3 +39,56 @@ def positive_float(text: str) -> float:
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
     return value
+
+
+def float_in(low: float, high: float = math.inf) -> Callable[[str], float]:
+    """An argparse type accepting numbers in ``[low, high]`` with a message naming the range."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {value:g}")
+        return value
+
+    return parse
+
+
+def one_line(err: BaseException) -> str:
+    """An exception message on one line (multi-line validation messages joined by '; ').
+
+    ``"bad config:\\n  a: x\\n  b: y"`` becomes ``"bad config: a: x; b: y"``; an
+    empty message gives the exception's type name.
+    """
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    if not lines:
+        return type(err).__name__
+    if len(lines) == 1:
+        return lines[0]
+    return f"{lines[0].rstrip(':')}: " + "; ".join(lines[1:])
+
+
+def report_errors(
+    prog: str,
+    run: Callable[[], int],
+    *,
+    bad_input: type[Exception] | tuple[type[Exception], ...],
+    failures: tuple[type[Exception], ...] = (RuntimeError, OSError),
+    failed: str = "",
+) -> int:
+    """The exit status of a subcommand's work ``run()``, its errors reported on one line.
+
+    Returns what ``run`` returns; 2 after ``PROG: error: MESSAGE`` on stderr
+    for a ``bad_input`` error; 1 after ``PROG: error: FAILED TYPE: MESSAGE``
+    for one of ``failures``. Other exceptions propagate.
+    """
+    try:
+        return run()
+    except bad_input as err:
+        print(f"{prog}: error: {one_line(err)}", file=sys.stderr)
+        return 2
+    except failures as err:
+        print(f"{prog}: error: {failed}{type(err).__name__}: {one_line(err)}", file=sys.stderr)
+        return 1

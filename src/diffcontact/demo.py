@@ -109,9 +109,10 @@ def learning_demo(out: Path, epochs: int | None = None) -> bool:
     """
     import shutil
 
-    from diffcontact.learning.data import generate_dataset
-    from diffcontact.learning.evaluate import evaluate, true_parameters
-    from diffcontact.learning.train import train
+    from diffcontact.learning.data.generate import generate_dataset
+    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.learning.evaluation.metrics import true_parameters
+    from diffcontact.learning.training.run import train
 
     cfg = LEARNING_DEMO
     task = cfg["task"]

@@ -1,23 +1,41 @@
-"""Atomic file writing: a reader never sees a half-written file.
+"""Files and values at the boundary: atomic writes, JSON, device names.
 
-Every helper writes to a temporary file in the destination's folder, flushes
+Every writer writes to a temporary file in the destination's folder, flushes
 and fsyncs it, then renames it over the destination with :func:`os.replace`
 (atomic on POSIX and Windows when both are on the same file system). On any
 error the temporary file is removed and the destination is left untouched.
+
+:func:`jsonable` turns results (numpy and torch values, paths, non-finite
+floats) into plain JSON data; :func:`read_json_object` reads a JSON file with
+one-line errors; :func:`parse_device` checks a device name. torch is imported
+only inside the functions that take tensors or devices.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_save_npz", "atomic_write_bytes", "check_writable"]
+__all__ = [
+    "atomic_path",
+    "atomic_save_npz",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "check_writable",
+    "json_bytes",
+    "jsonable",
+    "parse_device",
+    "read_json_object",
+]
 
 # Fixed zip entry timestamp so the same arrays always give the same bytes.
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -127,3 +145,89 @@ def atomic_save_npz(
             with zf.open(info, mode="w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, arr, allow_pickle=False)
     return Path(path)
+
+
+def jsonable(value: Any) -> Any:
+    """``value`` as plain JSON data, for writing and for comparing with what was read back.
+
+    Mappings become dicts with ``str`` keys; lists, tuples, numpy arrays and
+    torch tensors become lists; numpy scalars become Python numbers and bools;
+    paths become strings; non-finite floats (NaN, inf) become ``None``, since
+    JSON has no such numbers. Anything else is returned unchanged.
+    """
+    if isinstance(value, Mapping):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if hasattr(value, "detach"):  # torch tensor, without importing torch
+        value = value.detach().cpu().numpy()
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        number = float(value)
+        return number if math.isfinite(number) else None
+    return value
+
+
+def json_bytes(data: Any) -> bytes:
+    """``jsonable(data)`` as indented JSON text with a final newline, UTF-8 encoded."""
+    return (json.dumps(jsonable(data), indent=2, allow_nan=False) + "\n").encode()
+
+
+def atomic_write_json(path: str | os.PathLike[str], data: Any) -> Path:
+    """Write ``data`` (through :func:`jsonable`) as indented JSON atomically; return the path."""
+    return atomic_write_bytes(path, json_bytes(data))
+
+
+def read_json_object(
+    path: str | os.PathLike[str], what: str, error: type[Exception] = ValueError
+) -> dict[str, Any]:
+    """The JSON object stored in ``path``.
+
+    Raises:
+        error: (a one-line message naming ``what`` and the path) the file
+            cannot be read, is not JSON or holds something other than an object.
+    """
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as err:
+        raise error(f"cannot read {what} {path}: {err.strerror or err}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise error(f"{what} {path} is not valid JSON: {err}") from None
+    if not isinstance(data, dict):
+        raise error(f"{what} {path} does not hold a JSON object")
+    return data
+
+
+def parse_device(device: Any, *, allow_index: bool = True) -> Any:
+    """``device`` (``"cpu"``, ``"cuda"``, ``"cuda:N"`` or a ``torch.device``) as a ``torch.device``.
+
+    Args:
+        device: the device asked for.
+        allow_index: whether ``"cuda:N"`` is accepted (a Lightning run picks
+            its GPUs with ``devices`` instead).
+
+    Raises:
+        ValueError: not a CPU or CUDA device, or CUDA asked for but not available.
+    """
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        dev = None
+    if (
+        dev is None
+        or dev.type not in ("cpu", "cuda")
+        or (dev.index is not None and not allow_index)
+    ):
+        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but CUDA is not available (use 'cpu')")
+    return dev

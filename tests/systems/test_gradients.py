@@ -22,13 +22,13 @@ F64 = torch.float64
 
 
 def check_rollout(system, names, z0, steps, **kwargs):
-    params = [getattr(system, n).detach().clone() for n in names]
+    base = system.parameters()
+    params = [getattr(base, n).detach().clone() for n in names]
 
     def rollout(*tensors):
         *values, z = tensors
-        for name, value in zip(names, values, strict=True):
-            setattr(system, name, value)
-        return system.simulate(z, steps, penetration_fraction=0.0, **kwargs)
+        p = base.replace(**dict(zip(names, values, strict=True)))
+        return system.simulate(z, steps, params=p, penetration_fraction=0.0, **kwargs)
 
     with torch.no_grad():
         traj = rollout(*params, z0)

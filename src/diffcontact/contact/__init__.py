@@ -1,20 +1,69 @@
-"""Contact layer: the batched friction-cone QP and the two-phase impulse."""
+"""Contact layer: the batched friction-cone QP, the two-phase impulse, contact models.
 
-from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus, solve_cone_qp
-from diffcontact.contact.impulse import (
-    CONTACT_MODELS,
-    ImpulseResult,
-    penetration_target,
-    two_phase_impulse,
+- :func:`solve_cone_qp`: the batched, differentiable friction-cone QP;
+- :func:`two_phase_impulse`: the paper's compression / restitution impulse;
+- contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase`)
+  and their registry (:func:`register_contact_model`, :func:`contact_models`).
+
+Names are imported lazily: ``import diffcontact.contact`` and the registry
+load no torch, so the CLI can list contact models cheaply.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from diffcontact.contact.registry import (
+    contact_models,
+    create_contact_model,
+    register_contact_model,
+    unregister_contact_model,
 )
 
+_EXPORTS: dict[str, str] = {
+    "ConeQPError": "diffcontact.contact.cone_qp",
+    "SolverSettings": "diffcontact.contact.cone_qp",
+    "SolverStatus": "diffcontact.contact.cone_qp",
+    "solve_cone_qp": "diffcontact.contact.cone_qp",
+    "ImpulseResult": "diffcontact.contact.impulse",
+    "penetration_target": "diffcontact.contact.impulse",
+    "two_phase_impulse": "diffcontact.contact.impulse",
+    "CM": "diffcontact.contact.models",
+    "CMr": "diffcontact.contact.models",
+    "ContactModel": "diffcontact.contact.models",
+    "ContactParams": "diffcontact.contact.models",
+    "PoissonTwoPhase": "diffcontact.contact.models",
+}
+
 __all__ = [
-    "CONTACT_MODELS",
+    "CM",
+    "CMr",
     "ConeQPError",
+    "ContactModel",
+    "ContactParams",
     "ImpulseResult",
+    "PoissonTwoPhase",
     "SolverSettings",
     "SolverStatus",
+    "contact_models",
+    "create_contact_model",
     "penetration_target",
+    "register_contact_model",
     "solve_cone_qp",
     "two_phase_impulse",
+    "unregister_contact_model",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'diffcontact.contact' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -12,7 +12,8 @@ pre-impact velocity:
 4. ``v+ = v + Mhat^-1 J_C^T (f_c + f_r)`` (S.11).
 
 CM solves with ``A = J_C Mhat^-1 J_C^T`` (PSD, singular with equality
-constraints); CMr with ``A + eps I`` (eps = 0.01 by default).
+constraints); CMr with ``A + eps I`` (pass ``eps``). The contact-model objects
+of :mod:`diffcontact.contact.models` wrap this function.
 """
 
 from __future__ import annotations
@@ -23,8 +24,6 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-
-CONTACT_MODELS = ("CM", "CMr")
 
 
 @dataclass
@@ -95,8 +94,7 @@ def two_phase_impulse(
     d: int,
     *,
     v_C_star: Tensor | None = None,
-    contact_model: str = "CM",
-    eps: float | Tensor = 0.01,
+    eps: float | Tensor | None = None,
     settings: SolverSettings | None = None,
 ) -> ImpulseResult:
     """Resolve all active contacts of a batch of states at once.
@@ -110,20 +108,18 @@ def two_phase_impulse(
         active: (..., K) bool; inactive (padding) contacts receive no impulse.
         d: contact-space dimension.
         v_C_star: (..., K*d) penetration-compensation target, or None for zero.
-        contact_model: "CM" or "CMr".
-        eps: CMr's regulariser (number or tensor, learnable if you like).
+        eps: CMr's regulariser ``()`` or ``(...)`` (number or tensor, learnable
+            if you like); ``None`` solves CM's unregularised problem.
         settings: solver settings.
 
     Returns:
         An :class:`ImpulseResult`.
     """
-    if contact_model not in CONTACT_MODELS:
-        raise ValueError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
     JM = J_C @ Mhat_inv
     A = JM @ J_C.transpose(-1, -2)
     A = 0.5 * (A + A.transpose(-1, -2))
     A_qp = A
-    if contact_model == "CMr":
+    if eps is not None:
         eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
         A_qp = A + torch.as_tensor(eps, dtype=A.dtype, device=A.device)[..., None, None] * eye
     v_C = (J_C @ v.unsqueeze(-1)).squeeze(-1)

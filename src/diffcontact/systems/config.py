@@ -148,6 +148,9 @@ class _SystemBase(_Strict):
     cor: PerContact = 1.0
     penetration_fraction: Annotated[float, Field(ge=0, le=1)] = 0.125
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
+    # how a learned model parameterises mu and e_P: one value shared by all contacts,
+    # or one per candidate contact (paper-facts.md, "Homogeneous tasks")
+    contact_parameters: Literal["shared", "per_contact"] = "shared"
 
     # subclasses describe their contacts ------------------------------------
     def contact_groups(self) -> list[tuple[str, int]]:

@@ -26,21 +26,23 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from diffcontact.contact import SolverSettings, penetration_target, two_phase_impulse
-from diffcontact.contact.impulse import CONTACT_MODELS
+from diffcontact.contact.cone_qp import SolverSettings
+from diffcontact.contact.impulse import penetration_target
+from diffcontact.contact.models import ContactModel, ContactParams
+from diffcontact.contact.registry import create_contact_model
 from diffcontact.geometry import RimPlane, circles_2d, rope_limits
 from diffcontact.mechanics import (
     EqualityConstraints,
     Mhat_inv,
+    assemble_mass_matrix,
     ball_joint,
     body_inverse_mass_matrix,
     body_mass_matrix,
@@ -62,6 +64,8 @@ from diffcontact.systems.config import (
     RopeConfig,
     parse_config,
 )
+from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
+from diffcontact.systems.params import PhysicalParams
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
 
@@ -177,21 +181,45 @@ class ContactResult:
 
 @dataclass
 class _Context:
-    """Parameters and static structure resolved for one dtype and device."""
+    """Parameters and static structure resolved for one dtype and device.
+
+    Parameter fields have their unbatched shapes, or one leading dimension N
+    more when the :class:`PhysicalParams` carry one set per trajectory.
+    """
 
     dtype: torch.dtype
     device: torch.device
+    batched: bool
     geometry: Any
     constraints: EqualityConstraints | None
-    M: Tensor  # (P, P)
-    M_inv: Tensor  # (P, P)
-    weights: Tensor  # (P,) gravity weights (masses at centres of mass)
-    g_vec: Tensor  # (dim,)
-    mu: Tensor  # (K,)
-    cor: Tensor  # (K,)
-    stiffness: Tensor | None
-    rest_length: Tensor | None
+    M: Tensor  # (P, P) or (N, P, P)
+    M_inv: Tensor  # (P, P) or (N, P, P)
+    weights: Tensor  # (P,) or (N, P): gravity weights (masses at centres of mass)
+    g_vec: Tensor  # (dim,) or (N, dim)
+    mu: Tensor  # (K,) or (N, K)
+    cor: Tensor  # (K,) or (N, K)
+    eps: Tensor  # () or (N,)
+    stiffness: Tensor | None  # () or (N,)
+    rest_length: Tensor | None  # () or (N,)
     anchor: Tensor | None
+    potential: Callable[[Tensor], Tensor] | None
+
+    @staticmethod
+    def per_state(t: Tensor, x: Tensor, base: int, extra: int) -> Tensor:
+        """Align a parameter with states ``x: (N, ..., P, dim)``.
+
+        An unbatched ``t`` (``base`` dims) is returned as it is; a batched one,
+        ``(N, *rest)``, becomes ``(N, 1, ..., 1, *rest, 1 * extra)`` with a
+        singleton for each batch dim of ``x`` after the first.
+        """
+        if t.dim() == base:
+            return t
+        inner = x.dim() - 3
+        return t.reshape(t.shape[0], *([1] * inner), *t.shape[1:], *([1] * extra))
+
+    def select(self, t: Tensor, base: int, rows: Tensor) -> Tensor:
+        """``t`` for the states ``rows`` (a batched ``t``), or ``t`` itself (unbatched)."""
+        return t if t.dim() == base else t[rows]
 
 
 class System:
@@ -239,6 +267,7 @@ class System:
         self.mu: Tensor = torch.tensor(cfg.per_contact("mu"), dtype=_F)
         self.cor: Tensor = torch.tensor(cfg.per_contact("cor"), dtype=_F)
         self.gravity: Tensor = torch.tensor(float(cfg.gravity), dtype=_F)
+        self.eps: float | Tensor = 0.01  # CMr's regulariser (contact models that use one)
         # an extra potential V(x): (..., P, dim) -> (...), e.g. a learned network, added
         # to the built-in terms; the dynamics take its gradient by autograd
         self.potential_model: Callable[[Tensor], Tensor] | None = None
@@ -264,6 +293,16 @@ class System:
         names = [f"body {i} and body {j} overlap" for i in range(B) for j in range(i + 1, B)]
         names += [f"body {i} penetrates wall {j}" for i in range(B) for j in range(W)]
         self.contact_names = names
+        self._bodies = [
+            Body(b, "disk" if disks else "point", tuple(range(k * b, k * b + k)), cfg.radii[b])
+            for b in range(B)
+        ]
+        pairs = [(i, j) for i in range(B) for j in range(i + 1, B)]
+        pairs += [(i, ENVIRONMENT) for i in range(B) for _ in range(W)]
+        self._edges = [
+            Edge("contact", pair, self._bodies[pair[0]].points + self._points_of(pair[1]), c)
+            for c, pair in enumerate(pairs)
+        ]
 
     def _build_chain(self, cfg: ChainPendulumConfig) -> None:
         L = len(cfg.masses)
@@ -274,6 +313,12 @@ class System:
         self.constraints = chain_constraints(cfg.link_lengths, 2, pivot=cfg.pivot)
         W = len(cfg.walls)
         self.contact_names = [f"joint {i} penetrates wall {j}" for i in range(L) for j in range(W)]
+        self._bodies = [Body(i, "point", (i,), cfg.radii[i]) for i in range(L)]
+        self._edges = [Edge("pin", (0, ENVIRONMENT), (0,), name="pivot")]
+        self._edges += [Edge("link", (i - 1, i), (i - 1, i), name=f"link {i}") for i in range(1, L)]
+        self._edges += [
+            Edge("contact", (i, ENVIRONMENT), (i,), i * W + j) for i in range(L) for j in range(W)
+        ]
 
     def _build_gyroscope(self, cfg: GyroscopeConfig) -> None:
         self.dim, self.n_bodies, self.n_points = 3, 1, 4
@@ -287,6 +332,11 @@ class System:
             ball_joint(0, [0.0, 0.0, -cfg.com_distance], [0.0, 0.0, 0.0]),
         )
         self.contact_names = ["the rim penetrates the wall"]
+        self._bodies = [Body(0, "rigid3d", (0, 1, 2, 3), cfg.rim_radius)]
+        self._edges = [
+            Edge("pin", (0, ENVIRONMENT), (0, 1, 2, 3), name="pivot"),
+            Edge("contact", (0, ENVIRONMENT), (0, 1, 2, 3), 0),
+        ]
 
     def _build_rope(self, cfg: RopeConfig) -> None:
         P = cfg.n_points
@@ -308,6 +358,27 @@ class System:
         self.contact_names = [f"bending limit at joint {k} exceeded" for k in range(P - 1)] + [
             f"stretch limit of segment {k} exceeded" for k in range(P)
         ]
+        self._bodies = [Body(i, "point", (i,)) for i in range(P)]
+
+        def segment(k: int) -> tuple[int, int]:  # segment k: point k - 1 (or the anchor) to k
+            return (k, k - 1) if k > 0 else (0, ENVIRONMENT)
+
+        self._edges = [
+            Edge(
+                "spring",
+                segment(k),
+                tuple(sorted(p for p in segment(k) if p >= 0)),
+                name=f"segment {k}",
+            )
+            for k in range(P)
+        ]
+        self._edges += [  # bending at joint k: segment k + 1 against segment k
+            Edge("contact", (k, k + 1), tuple(range(max(k - 1, 0), k + 2)), k) for k in range(P - 1)
+        ]
+        self._edges += [
+            Edge("contact", segment(k), tuple(sorted(p for p in segment(k) if p >= 0)), P - 1 + k)
+            for k in range(P)
+        ]
 
     # ------------------------------------------------------------------ basics
     @property
@@ -320,10 +391,45 @@ class System:
         """``(2, P, dim)``."""
         return (2, self.n_points, self.dim)
 
-    def parameters(self) -> dict[str, Tensor]:
-        """The physical parameter tensors by attribute name (``None`` ones left out)."""
-        names = ("mass", "second_moments", "mu", "cor", "gravity", "stiffness", "rest_length")
-        return {n: getattr(self, n) for n in names if getattr(self, n) is not None}
+    def parameters(self) -> PhysicalParams:
+        """The system's own physical parameters as an immutable :class:`PhysicalParams`.
+
+        Built from the attributes ``mass``, ``second_moments``, ``mu``, ``cor``,
+        ``gravity``, ``stiffness``, ``rest_length``, ``eps`` and
+        ``potential_model``; what :meth:`simulate` uses when no ``params`` are
+        passed. Change a copy with :meth:`PhysicalParams.replace`.
+        """
+        return PhysicalParams(
+            mass=self.mass,
+            second_moments=self.second_moments,
+            mu=self.mu,
+            cor=self.cor,
+            gravity=self.gravity,
+            stiffness=self.stiffness,
+            rest_length=self.rest_length,
+            eps=self.eps,
+            potential=self.potential_model,
+        )
+
+    def _points_of(self, body: int) -> tuple[int, ...]:
+        return () if body == ENVIRONMENT else self._bodies[body].points
+
+    def bodies(self) -> tuple[Body, ...]:
+        """The bodies, in body order (see :mod:`diffcontact.systems.graph`)."""
+        return tuple(self._bodies)
+
+    def body_graph(self) -> BodyGraph:
+        """Bodies as nodes; links, springs, pins and candidate contacts as edges.
+
+        For graph models (interaction networks); see :class:`~diffcontact.systems.graph.BodyGraph`.
+        Contact edges come in the system's contact order, so edge ``c`` of
+        ``body_graph().edges_of("contact")`` is candidate ``c``.
+        """
+        edges = tuple(
+            replace(e, name=self.contact_names[e.contact]) if e.kind == "contact" else e
+            for e in self._edges
+        )
+        return BodyGraph(tuple(self._bodies), edges, self.n_points)
 
     def __repr__(self) -> str:
         return (
@@ -331,46 +437,23 @@ class System:
             f"dim={self.dim}, contacts={self.n_contacts}, dt={self.dt}, horizon={self.horizon})"
         )
 
-    def _check_parameters(self) -> None:
-        B, K = self.n_bodies, self.n_contacts
-
-        def tensor(name: str) -> Tensor:
-            t = getattr(self, name)
-            if not isinstance(t, Tensor) or not t.is_floating_point():
-                raise ValueError(f"{name} must be a floating-point tensor, got {type(t).__name__}")
-            if not bool(torch.isfinite(t.detach()).all()):
-                raise ValueError(f"{name} contains NaN or infinite values: {t.detach().tolist()}")
-            return t.detach()
-
-        m = tensor("mass")
-        if m.shape != (B,):
-            raise ValueError(f"mass must have shape ({B},) (one per body), got {tuple(m.shape)}")
-        if bool((m <= 0).any()):
-            raise ValueError(f"mass must be positive, got {m.tolist()}")
-        if self.second_moments is not None:
-            s = tensor("second_moments")
-            k = self.dim
-            if s.shape != (B, k):
-                raise ValueError(f"second_moments must have shape ({B}, {k}), got {tuple(s.shape)}")
-            if bool((s <= 0).any()):
-                raise ValueError(f"second_moments must be positive, got {s.tolist()}")
-        for name, low, high in (("mu", 0.0, math.inf), ("cor", 0.0, 1.0)):
-            t = tensor(name)
-            if t.shape not in ((), (K,)):
-                raise ValueError(
-                    f"{name} must be one number or have shape ({K},) (one per contact), "
-                    f"got shape {tuple(t.shape)}"
-                )
-            if bool(((t < low) | (t > high)).any()):
-                rng = ">= 0" if name == "mu" else "in [0, 1]"
-                raise ValueError(f"{name} must be {rng}, got {t.tolist()}")
-        if tensor("gravity").shape != ():
-            raise ValueError(f"gravity must be a 0-d tensor (the magnitude), got {self.gravity}")
-        if self.type == "rope":
-            if float(tensor("stiffness")) < 0:
-                raise ValueError(f"stiffness must be >= 0, got {float(self.stiffness)}")
-            if float(tensor("rest_length")) <= 0:
-                raise ValueError(f"rest_length must be positive, got {float(self.rest_length)}")
+    def _params(self, params: PhysicalParams | None, n_states: int | None) -> PhysicalParams:
+        """``params`` (default: :meth:`parameters`), validated for ``n_states`` states."""
+        if params is None:
+            params = self.parameters()
+        elif not isinstance(params, PhysicalParams):
+            raise ValueError(
+                f"params must be a PhysicalParams (system.parameters().replace(...)), "
+                f"got {type(params).__name__}"
+            )
+        params.validate(
+            n_bodies=self.n_bodies,
+            n_contacts=self.n_contacts,
+            axes=None if self.second_moments is None else self.dim,
+            rope=self.type == "rope",
+            n_states=n_states,
+        )
+        return params
 
     # ------------------------------------------------------------- parameters
     def _static_on(self, device: torch.device) -> tuple[Any, EqualityConstraints | None]:
@@ -381,27 +464,43 @@ class System:
             self._device_cache[key] = (geometry, constraints)
         return self._device_cache[key]
 
-    def _body_blocks(self, inverse: bool, dtype: torch.dtype, device: torch.device) -> Tensor:
-        mass = self.mass.to(dtype=dtype, device=device)
-        if self.second_moments is None:
-            return torch.diag(1.0 / mass if inverse else mass)
-        s = self.second_moments.to(dtype=dtype, device=device)
+    def _body_blocks(
+        self, params: PhysicalParams, inverse: bool, dtype: torch.dtype, device: torch.device
+    ) -> Tensor:
+        """``M`` or ``M^-1`` over points, ``(P, P)`` or ``(N, P, P)`` for batched masses."""
+        mass = params.mass.to(dtype=dtype, device=device)
+        if params.second_moments is None:
+            return torch.diag_embed(1.0 / mass if inverse else mass)
+        s = params.second_moments.to(dtype=dtype, device=device)
         fn = body_inverse_mass_matrix if inverse else body_mass_matrix
-        return torch.block_diag(*fn(mass, s).unbind(0))
+        return assemble_mass_matrix(fn(mass, s).unbind(-3))
 
-    def mass_matrix(self, dtype: torch.dtype = _F, device: torch.device | str = "cpu") -> Tensor:
-        """Mass matrix over points ``M: (P, P)`` built from ``mass`` and ``second_moments``."""
-        return self._body_blocks(False, dtype, torch.device(device))
+    def mass_matrix(
+        self,
+        dtype: torch.dtype = _F,
+        device: torch.device | str = "cpu",
+        *,
+        params: PhysicalParams | None = None,
+    ) -> Tensor:
+        """Mass matrix over points ``M: (P, P)`` (``(N, P, P)`` for batched ``params``)."""
+        return self._body_blocks(self._params(params, None), False, dtype, torch.device(device))
 
     def inverse_mass_matrix(
-        self, dtype: torch.dtype = _F, device: torch.device | str = "cpu"
+        self,
+        dtype: torch.dtype = _F,
+        device: torch.device | str = "cpu",
+        *,
+        params: PhysicalParams | None = None,
     ) -> Tensor:
         """Inverse mass matrix over points ``M^-1: (P, P)`` (closed form per body)."""
-        return self._body_blocks(True, dtype, torch.device(device))
+        return self._body_blocks(self._params(params, None), True, dtype, torch.device(device))
 
-    def _context(self, like: Tensor, check: bool = True) -> _Context:
-        if check:
-            self._check_parameters()
+    def _context(
+        self, like: Tensor, params: PhysicalParams | None = None, n_states: int | None = None
+    ) -> _Context:
+        """Parameters cast to ``like``'s dtype and device, validated for ``n_states``."""
+        params = self._params(params, n_states)
+        batched = params.batch_size() is not None
         dtype, device = like.dtype, like.device
         geometry, constraints = self._static_on(device)
         K = self.n_contacts
@@ -409,37 +508,58 @@ class System:
         def cast(t: Tensor | None) -> Tensor | None:
             return None if t is None else t.to(dtype=dtype, device=device)
 
-        mass = cast(self.mass)
+        mass = cast(params.mass)
         com = torch.tensor(self.body_points, dtype=torch.long, device=device)
-        weights = torch.zeros(self.n_points, dtype=dtype, device=device).index_put((com,), mass)
-        zero = torch.zeros((), dtype=dtype, device=device)
-        g = cast(self.gravity).reshape(())
-        g_vec = torch.stack([zero, -g] if self.dim == 2 else [zero, zero, -g])
+        if mass.dim() == 2:  # (N, B): one set of masses per trajectory
+            weights = mass.new_zeros(mass.shape[0], self.n_points).index_copy(1, com, mass)
+        else:
+            weights = torch.zeros(self.n_points, dtype=dtype, device=device).index_put((com,), mass)
+        g = cast(params.gravity)
+        zero = torch.zeros_like(g)
+        g_vec = torch.stack([zero, -g] if self.dim == 2 else [zero, zero, -g], dim=-1)
+        eps = params.eps
+        eps = (
+            cast(eps) if isinstance(eps, Tensor) else torch.tensor(eps, dtype=dtype, device=device)
+        )
+
+        def per_contact(t: Tensor) -> Tensor:
+            t = cast(t)
+            return t.expand(t.shape[0], K) if t.dim() == 2 else t.expand(K)
+
         return _Context(
             dtype=dtype,
             device=device,
+            batched=batched,
             geometry=geometry,
             constraints=constraints,
-            M=self._body_blocks(False, dtype, device),
-            M_inv=self._body_blocks(True, dtype, device),
+            M=self._body_blocks(params, False, dtype, device),
+            M_inv=self._body_blocks(params, True, dtype, device),
             weights=weights,
             g_vec=g_vec,
-            mu=cast(self.mu).expand(K),
-            cor=cast(self.cor).expand(K),
-            stiffness=cast(self.stiffness),
-            rest_length=cast(self.rest_length),
+            mu=per_contact(params.mu),
+            cor=per_contact(params.cor),
+            eps=eps,
+            stiffness=cast(params.stiffness),
+            rest_length=cast(params.rest_length),
             anchor=cast(self._anchor),
+            potential=params.potential,
         )
 
     # ------------------------------------------------------------------ energy
     def _potential(self, x: Tensor, ctx: _Context) -> Tensor:
-        V = -(ctx.weights * (x @ ctx.g_vec)).sum(-1)
+        weights, g_vec = ctx.per_state(ctx.weights, x, 1, 0), ctx.per_state(ctx.g_vec, x, 1, 0)
+        if g_vec.dim() == 1:
+            V = -(weights * (x @ g_vec)).sum(-1)
+        else:
+            V = -(weights * (x @ g_vec.unsqueeze(-1)).squeeze(-1)).sum(-1)
         if ctx.stiffness is not None:
             seg = self._segments(x, ctx)
             length = (seg * seg).sum(-1).sqrt()
-            V = V + (ctx.stiffness * (length - ctx.rest_length) ** 2).sum(-1)
-        if self.potential_model is not None:
-            V = V + self.potential_model(x)
+            k = ctx.per_state(ctx.stiffness, x, 0, 1)
+            rest = ctx.per_state(ctx.rest_length, x, 0, 1)
+            V = V + (k * (length - rest) ** 2).sum(-1)
+        if ctx.potential is not None:
+            V = V + ctx.potential(x)
         return V
 
     def _segments(self, x: Tensor, ctx: _Context) -> Tensor:
@@ -448,51 +568,68 @@ class System:
 
     def _grad_potential(self, x: Tensor, ctx: _Context) -> Tensor:
         """Analytic ``grad_x V``: gravity plus, for the rope, the segment springs."""
-        grad = -ctx.weights[:, None] * ctx.g_vec  # (P, dim)
+        weights, g_vec = ctx.per_state(ctx.weights, x, 1, 0), ctx.per_state(ctx.g_vec, x, 1, 0)
+        grad = -weights[..., :, None] * g_vec[..., None, :]  # (P, dim) or (N, ..., P, dim)
         grad = grad.expand_as(x)
         if ctx.stiffness is not None:
             seg = self._segments(x, ctx)
             length = (seg * seg).sum(-1, keepdim=True).clamp_min(1e-300).sqrt()
-            g_seg = 2.0 * ctx.stiffness * (length - ctx.rest_length) / length * seg
+            k = ctx.per_state(ctx.stiffness, x, 0, 2)
+            rest = ctx.per_state(ctx.rest_length, x, 0, 2)
+            g_seg = 2.0 * k * (length - rest) / length * seg
             nxt = torch.cat([g_seg[..., 1:, :], torch.zeros_like(g_seg[..., :1, :])], dim=-2)
             grad = grad + g_seg - nxt
-        if self.potential_model is not None:
-            grad = grad + potential_gradient(
-                self.potential_model, x, create_graph=torch.is_grad_enabled()
-            )
+        if ctx.potential is not None:
+            grad = grad + potential_gradient(ctx.potential, x, create_graph=torch.is_grad_enabled())
         return grad
 
-    def potential(self, x: Tensor) -> Tensor:
+    def _batch(self, x: Tensor, params: PhysicalParams | None, state_dims: int) -> int | None:
+        """The leading batch size that batched ``params`` must match (``None`` if unbatched)."""
+        if params is None or params.batch_size() is None:
+            return None
+        if x.dim() <= state_dims:
+            raise ValueError(
+                "params carry a batch dimension (one set per trajectory), so the states "
+                f"need a leading batch dimension too; got shape {tuple(x.shape)}"
+            )
+        return int(x.shape[0])
+
+    def potential(self, x: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Potential energy ``V(x): (...)`` of positions ``x: (..., P, dim)``.
 
-        Gravity ``-g . sum_b m_b c_b`` (centres of mass) and, for the rope,
-        ``sum_k k (l_k - l0)^2`` over the segments, the first from the anchor.
+        Gravity ``-g . sum_b m_b c_b`` (centres of mass), for the rope
+        ``sum_k k (l_k - l0)^2`` over the segments, the first from the anchor,
+        and ``params.potential`` when set. Batched ``params`` need ``x: (N, ..., P, dim)``.
         """
-        return self._potential(x, self._context(x))
+        return self._potential(x, self._context(x, params, self._batch(x, params, 2)))
 
-    def grad_potential(self, x: Tensor) -> Tensor:
+    def grad_potential(self, x: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Analytic ``grad_x V: (..., P, dim)`` of :meth:`potential` (what the dynamics use)."""
-        return self._grad_potential(x, self._context(x))
+        return self._grad_potential(x, self._context(x, params, self._batch(x, params, 2)))
 
-    def kinetic_energy(self, z: Tensor) -> Tensor:
+    def kinetic_energy(self, z: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Kinetic energy ``0.5 sum_c v_c^T M v_c: (...)`` of states ``z: (..., 2, P, dim)``."""
-        ctx = self._context(z)
+        ctx = self._context(z, params, self._batch(z, params, 3))
         v = z[..., 1, :, :]
-        return 0.5 * (v * (ctx.M @ v)).sum((-2, -1))
+        return 0.5 * (v * (ctx.per_state(ctx.M, v, 2, 0) @ v)).sum((-2, -1))
 
-    def energy(self, z: Tensor) -> Tensor:
+    def energy(self, z: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Total energy (kinetic + potential) of states or trajectories.
 
         Args:
             z: ``(..., 2, P, dim)``, e.g. a trajectory ``(N, T, 2, P, dim)``.
+            params: physical parameters (default: the system's); batched ones
+                need ``z: (N, ...)``.
 
         Returns:
             ``(...)``, e.g. ``(N, T)``.
         """
         self._check_state_shape(z, "z", batched=False)
-        ctx = self._context(z)
+        ctx = self._context(z, params, self._batch(z, params, 3))
         x, v = z[..., 0, :, :], z[..., 1, :, :]
-        return 0.5 * (v * (ctx.M @ v)).sum((-2, -1)) + self._potential(x, ctx)
+        return 0.5 * (v * (ctx.per_state(ctx.M, v, 2, 0) @ v)).sum((-2, -1)) + self._potential(
+            x, ctx
+        )
 
     def gaps(self, x: Tensor) -> Tensor:
         """Signed gaps ``(..., K)`` of all candidate contacts at positions ``(..., P, dim)``."""
@@ -597,8 +734,7 @@ class System:
         self,
         z: Tensor,
         ctx: _Context,
-        contact_model: str,
-        eps: float | Tensor,
+        model: ContactModel,
         fraction: float,
         settings: SolverSettings | None = None,
     ) -> ContactResult:
@@ -608,17 +744,16 @@ class System:
         with torch.no_grad():
             gaps = ctx.geometry.gaps(x.detach())
             active = gaps < 0
-            has = active.any(-1)
-        empty = torch.zeros(0, dtype=torch.long, device=z.device)
-        if not bool(has.any()):
+            b = active.any(-1).nonzero().squeeze(-1)  # (n,) the states with a contact
+        n = b.shape[0]
+        if n == 0:
+            empty = torch.zeros(0, dtype=torch.long, device=z.device)
             zf = z.new_zeros(0, 0, d)
             return ContactResult(
                 z, gaps, empty, empty.reshape(0, 0), active[:0, :0], zf, zf,
                 z.new_zeros(0, 0, D), z.new_zeros(0, 0),
             )  # fmt: skip
-        b = has.nonzero().squeeze(-1)  # (n,)
         act = active[b]  # (n, K)
-        n = b.shape[0]
         Ka = int(act.sum(-1).max())
         order = torch.argsort((~act).to(torch.uint8), dim=-1, stable=True)
         idx = order[:, :Ka]  # active candidates first, in candidate order
@@ -626,28 +761,32 @@ class System:
         xs, vs = x[b], v[b]
         J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
         J = torch.where(mask[:, :, None, None, None], J, torch.zeros_like(J)).reshape(n, Ka * d, D)
+        M_inv = ctx.select(ctx.M_inv, 2, b)
         if ctx.constraints is not None:
             J_E = ctx.constraints.jacobian(xs)  # (n, E, D)
-            Mh = Mhat_inv(ctx.M_inv, J_E)
+            Mh = Mhat_inv(M_inv, J_E)
         else:
             J_E = None
-            Mh = kron_identity(ctx.M_inv, dim).expand(n, D, D)
+            Mh = kron_identity(M_inv, dim).expand(n, D, D)
         if fraction > 0:
             depth = -gaps[b].gather(-1, idx)
             v_star = penetration_target(J, depth, mask, self.dt, d, fraction, J_E)
         else:
             v_star = J.new_zeros(n, Ka * d)
-        res = two_phase_impulse(
+        mu, cor = ctx.mu, ctx.cor
+        if mu.dim() == 2:
+            mu, cor = mu[b].gather(-1, idx), cor[b].gather(-1, idx)
+        else:
+            mu, cor = mu[idx], cor[idx]
+        contact_params = ContactParams(mu=mu, cor=cor, eps=ctx.select(ctx.eps, 0, b))
+        res = model.resolve(
             J,
             Mh,
             vs.reshape(n, D),
-            ctx.mu[idx],
-            ctx.cor[idx],
+            contact_params,
             mask,
             d,
             v_C_star=v_star if fraction > 0 else None,
-            contact_model=contact_model,
-            eps=eps,
             settings=settings,
         )
         v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
@@ -664,51 +803,61 @@ class System:
         )
 
     def _options(
-        self, contact_model: str, dynamics: str | None, fraction: float | None
-    ) -> tuple[str, float]:
-        if contact_model not in CONTACT_MODELS:
-            raise ValueError(
-                f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}"
-            )
+        self,
+        contact_model: Any,
+        dynamics: str | None,
+        fraction: float | None,
+        params: PhysicalParams | None = None,
+        eps: float | Tensor | None = None,
+    ) -> tuple[ContactModel, str, float, PhysicalParams | None]:
+        model = create_contact_model(contact_model)
         dynamics = self.dynamics if dynamics is None else dynamics
         if dynamics not in DYNAMICS:
             raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
         fraction = self.penetration_fraction if fraction is None else float(fraction)
         if not 0 <= fraction <= 1:
             raise ValueError(f"penetration_fraction must lie in [0, 1], got {fraction}")
-        return dynamics, fraction
+        if eps is not None:
+            params = (self.parameters() if params is None else params).replace(eps=eps)
+        return model, dynamics, fraction, params
 
-    def integrate(self, z: Tensor, *, dynamics: str | None = None) -> Tensor:
+    def integrate(
+        self, z: Tensor, *, params: PhysicalParams | None = None, dynamics: str | None = None
+    ) -> Tensor:
         """One RK4 step of the smooth constrained dynamics, no contacts.
 
         Args:
             z: ``(N, 2, P, dim)``.
+            params: physical parameters (default: the system's own).
             dynamics: ``"lagrangian"`` or ``"hamiltonian"`` (default: the config's).
 
         Returns:
             ``(N, 2, P, dim)``.
         """
         self._check_state(z, "z")
-        dynamics, _ = self._options("CM", dynamics, None)
-        return self._integrate(z, self._context(z), dynamics)
+        _, dynamics, _, params = self._options("CM", dynamics, None, params)
+        return self._integrate(z, self._context(z, params, z.shape[0]), dynamics)
 
     def resolve_contacts(
         self,
         z: Tensor,
         *,
-        contact_model: str = "CM",
-        eps: float | Tensor = 0.01,
+        params: PhysicalParams | None = None,
+        contact_model: Any = "CM",
+        eps: float | Tensor | None = None,
         penetration_fraction: float | None = None,
         solver_settings: SolverSettings | None = None,
     ) -> ContactResult:
-        """Collision detection and the two-phase impulse on the velocities of ``z``.
+        """Collision detection and the contact model's impulse on the velocities of ``z``.
 
-        Only states with an active candidate (gap < 0) go through the solver.
+        Only states with an active candidate (gap < 0) go through the contact model.
 
         Args:
             z: ``(N, 2, P, dim)``.
-            contact_model: ``"CM"`` or ``"CMr"``.
-            eps: CMr's regulariser.
+            params: physical parameters (default: the system's own).
+            contact_model: a registered name (:func:`~diffcontact.contact.contact_models`)
+                or a :class:`~diffcontact.contact.ContactModel` object.
+            eps: shorthand for ``params.replace(eps=eps)`` (CMr's regulariser).
             penetration_fraction: share of the depth removed per step by the
                 compensation target (default: the config's; 0 switches it off).
             solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
@@ -717,48 +866,61 @@ class System:
             A :class:`ContactResult` (positions unchanged).
         """
         self._check_state(z, "z")
-        _, fraction = self._options(contact_model, None, penetration_fraction)
-        return self._resolve(z, self._context(z), contact_model, eps, fraction, solver_settings)
+        model, _, fraction, params = self._options(
+            contact_model, None, penetration_fraction, params, eps
+        )
+        ctx = self._context(z, params, z.shape[0])
+        return self._resolve(z, ctx, model, fraction, solver_settings)
 
     def step(
         self,
         z: Tensor,
         *,
-        contact_model: str = "CM",
-        eps: float | Tensor = 0.01,
+        params: PhysicalParams | None = None,
+        contact_model: Any = "CM",
+        eps: float | Tensor | None = None,
         dynamics: str | None = None,
         penetration_fraction: float | None = None,
         solver_settings: SolverSettings | None = None,
     ) -> Tensor:
         """One full step: :meth:`integrate`, then :meth:`resolve_contacts`. ``(N, 2, P, dim)``."""
         self._check_state(z, "z")
-        dynamics, fraction = self._options(contact_model, dynamics, penetration_fraction)
-        ctx = self._context(z)
+        model, dynamics, fraction, params = self._options(
+            contact_model, dynamics, penetration_fraction, params, eps
+        )
+        ctx = self._context(z, params, z.shape[0])
         z1 = self._integrate(z, ctx, dynamics)
-        return self._resolve(z1, ctx, contact_model, eps, fraction, solver_settings).z
+        return self._resolve(z1, ctx, model, fraction, solver_settings).z
 
     def simulate(
         self,
         z0: Tensor,
         steps: int | None = None,
         *,
-        contact_model: str = "CM",
-        eps: float | Tensor = 0.01,
+        params: PhysicalParams | None = None,
+        contact_model: Any = "CM",
+        eps: float | Tensor | None = None,
         progress: bool = False,
         dynamics: str | None = None,
         penetration_fraction: float | None = None,
         check_overlap: bool = True,
         solver_settings: SolverSettings | None = None,
     ) -> Tensor:
-        """Roll out trajectories from initial states.
+        """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
         Args:
             z0: ``(N, 2, P, dim)`` initial states (float64 for ground truth;
                 the computation follows its dtype and device).
             steps: number of steps (default :attr:`default_steps`, so that the
                 trajectory holds ``horizon / dt`` states).
-            contact_model: ``"CM"`` or ``"CMr"``.
-            eps: CMr's regulariser (a number or a tensor).
+            params: :class:`~diffcontact.systems.PhysicalParams` (default:
+                :meth:`parameters`, the system's own); fields may carry a
+                leading dimension ``N`` (one set per trajectory). Differentiable
+                with respect to every tensor in it.
+            contact_model: a registered name (``"CM"``, ``"CMr"``, see
+                :func:`~diffcontact.contact.contact_models`) or a
+                :class:`~diffcontact.contact.ContactModel` object.
+            eps: shorthand for ``params.replace(eps=eps)`` (CMr's regulariser).
             progress: show a progress bar over the steps.
             dynamics: ``"lagrangian"`` (S.2) or ``"hamiltonian"`` (S.4-S.7);
                 default the config's.
@@ -771,17 +933,19 @@ class System:
 
         Raises:
             ValueError: bad shape, NaN, overlapping bodies in ``z0``, bad
-                parameters or options.
+                parameters or options, an unknown contact model.
         """
         self._check_state(z0, "z0")
         if steps is None:
             steps = self.default_steps
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
             raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
-        dynamics, fraction = self._options(contact_model, dynamics, penetration_fraction)
+        model, dynamics, fraction, params = self._options(
+            contact_model, dynamics, penetration_fraction, params, eps
+        )
+        ctx = self._context(z0, params, z0.shape[0])
         if check_overlap:
             self._check_no_overlap(z0, "z0")
-        ctx = self._context(z0)
         states = [z0]
         z = z0
         iterator: Any = range(steps)
@@ -791,6 +955,6 @@ class System:
             iterator = tqdm(iterator, desc=f"simulate {self.name}", unit="step")
         for _ in iterator:
             z1 = self._integrate(z, ctx, dynamics)
-            z = self._resolve(z1, ctx, contact_model, eps, fraction, solver_settings).z
+            z = self._resolve(z1, ctx, model, fraction, solver_settings).z
             states.append(z)
         return torch.stack(states, dim=1)

@@ -36,10 +36,8 @@ truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
 - CMr's regulariser ``eps``: a fixed number or ``exp(log_eps)`` (learnable,
   initialised at 0.01).
 
-Model names (paper-facts.md, "Models compared"): ``CM-CD-CLNN``,
-``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``: contact model CM or CMr,
-true collision detection, constrained Lagrangian (``dynamics="lagrangian"``,
-S.2) or Hamiltonian (``"hamiltonian"``, S.4-S.7) dynamics.
+Model names (:data:`~diffcontact.learning.models.names.MODELS`): ``CM-CD-CLNN``,
+``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``.
 
 Example::
 
@@ -51,7 +49,6 @@ Example::
 
 from __future__ import annotations
 
-import io
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -62,22 +59,24 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from diffcontact.systems import System, load_config
+from diffcontact.learning.models.protocol import OptimizerSettings
+from diffcontact.learning.models.registry import BUILTIN_MODELS as MODELS
+from diffcontact.learning.models.registry import parse_model_name
+from diffcontact.systems import PhysicalParams, System, load_config
 
 __all__ = [
-    "HETEROGENEOUS_TASKS",
-    "HOMOGENEOUS_TASKS",
     "MODELS",
+    "PHYSICS_BETAS",
     "LearnedModel",
     "PotentialMLP",
-    "load_model",
     "parse_model_name",
 ]
 
-MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
 # paper-facts.md, "Homogeneous tasks": one mu/e_P shared by all contacts, or one per contact
-HOMOGENEOUS_TASKS = ("BP5-e", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
-HETEROGENEOUS_TASKS = ("BP5", "BD5")
+# Adam's betas for the physical parameters: beta2 = 0.99 (not 0.999) so that their step
+# size follows the gradient scale within ~100 steps: their gradients shrink by orders of
+# magnitude once mu and e_P settle, and a run has only a few hundred steps
+PHYSICS_BETAS = (0.9, 0.99)
 # 2: e_P = hardsigmoid(6 raw_cor - 3) (format 1 had hardsigmoid(raw_cor))
 # 3: mass = exp(log_mass_scale + log_mass_rel) (format 2 had exp(log_mass); read and converted)
 FORMAT_VERSION = 3
@@ -86,17 +85,9 @@ _INIT_COR = 0.5
 _INIT_EPS = 0.01
 
 
-def parse_model_name(name: str) -> tuple[str, str]:
-    """``"CMr-CD-CHNN"`` -> ``("CMr", "hamiltonian")``; ``ValueError`` for unknown names."""
-    if name not in MODELS:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(MODELS)}")
-    contact, _, net = name.split("-")
-    return contact, "lagrangian" if net == "CLNN" else "hamiltonian"
-
-
 def _default_heterogeneous(system: System) -> bool:
-    """One mu/e_P per contact for BP5 and BD5, one shared value otherwise (paper-facts.md)."""
-    return system.name in HETEROGENEOUS_TASKS
+    """One mu/e_P per contact when the config says ``contact_parameters: per_contact``."""
+    return system.config.contact_parameters == "per_contact"
 
 
 class PotentialMLP(nn.Module):
@@ -176,8 +167,9 @@ class LearnedModel(nn.Module):
             paper's ablation) or ``"learnable"`` (``exp(log_eps)``, initialised
             at 0.01). Ignored (``None``) for CM models.
         heterogeneous: one ``mu``/``e_P`` per contact (``True``) or one shared
-            value (``False``); ``None`` picks from the task list of
-            paper-facts.md (BP5, BD5 heterogeneous, everything else shared).
+            value (``False``); ``None`` reads the config key
+            ``contact_parameters`` (``per_contact`` in BP5 and BD5, ``shared``
+            by default; docs/config.md).
         hidden: hidden widths of the potential MLP.
 
     Parameters (``nn.Parameter``): ``log_mass_scale ()``, ``log_mass_rel (B,)``,
@@ -422,26 +414,69 @@ class LearnedModel(nn.Module):
         """The potential MLP's parameters (empty when there is no potential network)."""
         return [] if self.potential is None else list(self.potential.parameters())
 
-    # ---------------------------------------------------------- simulation
-    def _fill(self, system: System) -> None:
-        """Write the module's parameters (with their graphs) into ``system``."""
-        system.mass = self.mass()
-        if self.log_second_moments is not None:
-            system.second_moments = self.second_moments()
-        system.mu = self.mu()
-        system.cor = self.cor()
-        ref = self.log_mass_rel
-        system.gravity = torch.zeros((), dtype=ref.dtype, device=ref.device)
-        if system.stiffness is not None:
-            system.stiffness = torch.zeros_like(system.gravity)
-        system.potential_model = self.potential
+    # ------------------------------------------------------ training protocol
+    def param_groups(self, settings: OptimizerSettings) -> list[dict[str, Any]]:
+        """Two AdamW groups: the potential network (``lr``, weight decay) and the
+        physical parameters (``physics_lr``, no weight decay, which would pull them
+        towards the parameterisation's zero; betas :data:`PHYSICS_BETAS`)."""
+        physical = [p for p in self.physical_parameters() if p.requires_grad]
+        chosen = {id(p) for p in physical}
+        network = [p for p in self.parameters() if p.requires_grad and id(p) not in chosen]
+        return [
+            {
+                "name": "network",
+                "params": network,
+                "lr": settings.lr,
+                "weight_decay": settings.weight_decay,
+            },
+            {
+                "name": "physical",
+                "params": physical,
+                "lr": settings.physics_lr,
+                "weight_decay": 0.0,
+                "betas": PHYSICS_BETAS,
+            },
+        ]
 
-    def _release(self, system: System) -> None:
-        """Replace the graph-carrying tensors by detached copies (no graph kept alive)."""
-        for name in ("mass", "second_moments", "mu", "cor"):
-            t = getattr(system, name)
-            if t is not None:
-                setattr(system, name, t.detach())
+    def metrics(self) -> dict[str, float]:
+        """``param/mass_0`` (the free mass scale), ``param/mass_ratio_i`` (i >= 1),
+        ``param/mu`` and ``param/cor`` (or ``param/mu_k``, ``param/cor_k`` per
+        contact) and ``param/eps`` when learnable."""
+        params = self.learned_parameters()
+        out: dict[str, float] = {"param/mass_0": params["mass"][0]}
+        for i, r in enumerate(params["mass_ratios"][1:], start=1):
+            out[f"param/mass_ratio_{i}"] = r
+        for key in ("mu", "cor"):
+            values = params[key]
+            if self.heterogeneous:
+                out.update({f"param/{key}_{k}": v for k, v in enumerate(values)})
+            else:
+                out[f"param/{key}"] = values[0]
+        if params["eps"] is not None and self.eps_option == "learnable":
+            out["param/eps"] = params["eps"]
+        return out
+
+    # ---------------------------------------------------------- simulation
+    def physical_params(self) -> PhysicalParams:
+        """The learned parameters (with their graphs) as the system's :class:`PhysicalParams`.
+
+        Gravity (and the rope's springs) are zero: the potential network carries
+        the whole potential, and is passed as ``potential``.
+        """
+        ref = self.log_mass_rel
+        zero = torch.zeros((), dtype=ref.dtype, device=ref.device)
+        base = self.system.parameters()
+        eps = self.eps()
+        return base.replace(
+            mass=self.mass(),
+            second_moments=self.second_moments(),
+            mu=self.mu(),
+            cor=self.cor(),
+            gravity=zero,
+            stiffness=None if base.stiffness is None else zero,
+            eps=base.eps if eps is None else eps,
+            potential=self.potential,
+        )
 
     def _check_options(self, contact_model: str | None, eps: Any, dynamics: str | None) -> None:
         if contact_model is not None and contact_model != self.contact_model:
@@ -485,22 +520,17 @@ class LearnedModel(nn.Module):
             model's parameters and ``z0``.
         """
         self._check_options(contact_model, eps, dynamics)
-        system = self.system
-        self._fill(system)
-        try:
-            return system.simulate(
-                z0,
-                steps,
-                contact_model=self.contact_model,
-                eps=self.eps() if self.contact_model == "CMr" else 0.01,
-                dynamics=self.dynamics,
-                progress=progress,
-                penetration_fraction=penetration_fraction,
-                check_overlap=check_overlap,
-                solver_settings=solver_settings,
-            )
-        finally:
-            self._release(system)
+        return self.system.simulate(
+            z0,
+            steps,
+            params=self.physical_params(),
+            contact_model=self.contact_model,
+            dynamics=self.dynamics,
+            progress=progress,
+            penetration_fraction=penetration_fraction,
+            check_overlap=check_overlap,
+            solver_settings=solver_settings,
+        )
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:
         """Same as :meth:`simulate`."""
@@ -508,30 +538,24 @@ class LearnedModel(nn.Module):
 
     def energy(self, z: Tensor) -> Tensor:
         """Learned energy ``0.5 v^T M v + V(x)``: ``(..., 2, P, dim) -> (...)``."""
-        self._fill(self.system)
-        try:
-            return self.system.energy(z)
-        finally:
-            self._release(self.system)
+        return self.system.energy(z, params=self.physical_params())
 
     def as_system(self) -> System:
         """A new :class:`System` holding the learned values (detached), potential included."""
         system = System(self.system.config)
         with torch.no_grad():
-            self._fill(system)
-        self._release(system)
-        system.gravity = system.gravity.detach()
+            p = self.physical_params()
+        for name, value in p.tensors().items():
+            setattr(system, name, value.detach() if isinstance(value, Tensor) else value)
+        system.potential_model = p.potential
         return system
 
     # ------------------------------------------------------------ saving
     def checkpoint(self) -> dict[str, Any]:
         """Everything :meth:`from_checkpoint` needs, as plain data and tensors."""
-        return {
-            "format_version": FORMAT_VERSION,
-            "config": self.system.config.model_dump(mode="json"),
-            "options": self.options(),
-            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-        }
+        from diffcontact.learning.models.storage import model_checkpoint
+
+        return model_checkpoint(self, FORMAT_VERSION)
 
     @classmethod
     def from_checkpoint(cls, data: Mapping[str, Any]) -> LearnedModel:
@@ -558,55 +582,25 @@ class LearnedModel(nn.Module):
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model (config, options, state dict) to ``path`` atomically."""
-        from diffcontact.io import atomic_write_bytes
+        from diffcontact.learning.models.storage import save_model
 
-        buf = io.BytesIO()
-        torch.save(self.checkpoint(), buf)
-        return atomic_write_bytes(path, buf.getvalue())
-
-    @classmethod
-    def load(cls, path: str | os.PathLike[str], map_location: Any = "cpu") -> LearnedModel:
-        """Read a file written by :meth:`save`."""
-        data = torch.load(path, map_location=map_location, weights_only=True)
-        return cls.from_checkpoint(data)
+        return save_model(self, path)
 
 
-def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> LearnedModel:
-    """The learned model of a training run.
+def _physical_factory(name: str):
+    def factory(config: Any, **options: Any) -> LearnedModel:
+        given = options.pop("model", name)
+        if given != name:
+            raise ValueError(f"options name model {given!r}, the factory builds {name!r}")
+        return LearnedModel(config, model=name, **options)
 
-    Args:
-        run_dir: a run directory (``diffcontact train --out``): its ``model.pt``
-            (written at the end of training) or, when that is missing (training
-            still running or interrupted), its ``checkpoints/last.ckpt``; or
-            the path of a ``model.pt``/``.ckpt`` file.
-        map_location: as in ``torch.load``.
+    factory.__name__ = name.replace("-", "_")
+    factory.__doc__ = f"Registry factory of ``{name}``: ``LearnedModel(config, model={name!r})``."
+    return factory
 
-    Raises:
-        ValueError: nothing loadable at ``run_dir``.
-    """
-    path = Path(run_dir)
-    if path.is_dir():
-        candidates = [path / "model.pt", path / "checkpoints" / "last.ckpt"]
-        found = [p for p in candidates if p.is_file()]
-        if not found:
-            raise ValueError(f"{path} holds neither model.pt nor checkpoints/last.ckpt")
-        path = found[0]
-    elif not path.is_file():
-        raise ValueError(f"{path} does not exist")
-    if path.suffix == ".ckpt":
-        ckpt = torch.load(path, map_location=map_location, weights_only=False)
-        hp = ckpt.get("hyper_parameters", {})
-        if "config" not in hp or "options" not in hp:
-            raise ValueError(f"{path} is not a diffcontact training checkpoint")
-        prefix = "model."
-        state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
-        version = ckpt.get("diffcontact", {}).get("model_format")
-        return LearnedModel.from_checkpoint(
-            {
-                "format_version": version,
-                "config": hp["config"],
-                "options": hp["options"],
-                "state_dict": state,
-            }
-        )
-    return LearnedModel.load(path, map_location=map_location)
+
+# the registry's built-in entries (registry.py names them "physical:CM_CD_CLNN", ...)
+CM_CD_CLNN = _physical_factory("CM-CD-CLNN")
+CM_CD_CHNN = _physical_factory("CM-CD-CHNN")
+CMr_CD_CLNN = _physical_factory("CMr-CD-CLNN")
+CMr_CD_CHNN = _physical_factory("CMr-CD-CHNN")

@@ -10,7 +10,11 @@ import torch
 from torch import nn
 
 import diffcontact as dc
-from diffcontact.learning.model import MODELS, LearnedModel, load_model, parse_model_name
+from diffcontact.learning.models.physical import LearnedModel
+from diffcontact.learning.models.registry import BUILTIN_MODELS as MODELS
+from diffcontact.learning.models.registry import parse_model_name
+from diffcontact.learning.models.storage import load_model
+from diffcontact.systems import load_config
 
 F64 = torch.float64
 
@@ -68,8 +72,12 @@ def test_model_names_and_options():
         contact, dynamics = parse_model_name(name)
         assert (m.contact_model, m.dynamics) == (contact, dynamics)
         assert m.options()["model"] == name
-    with pytest.raises(ValueError, match="unknown model"):
+    with pytest.raises(ValueError, match="'MLP-CD-CLNN' is not a physical model"):
         LearnedModel("CP3", model="MLP-CD-CLNN")
+    # the config key decides, not the task's name: a renamed BP5 is still per contact
+    renamed = load_config("BP5").model_dump()
+    renamed["name"] = "my-balls"
+    assert LearnedModel(renamed, hidden=(8,)).heterogeneous
     with pytest.raises(ValueError, match="eps"):
         LearnedModel("CP3", model="CMr-CD-CLNN", eps=-1.0)
     assert LearnedModel("BP5", hidden=(8,)).heterogeneous

@@ -1,0 +1,43 @@
+"""Datasets: simulated or recorded trajectories, chunked for training (``docs/data.md``).
+
+- :mod:`.format`: the folder format, :func:`load_dataset` (its one reader,
+  checksums verified), :class:`Dataset`, :class:`DataSplit`;
+- :mod:`.generate`: :func:`generate_dataset` simulates a task's train/val/test
+  trajectories;
+- :mod:`.arrays`: :func:`dataset_from_arrays` writes the same format from
+  trajectories recorded elsewhere;
+- :mod:`.chunks`: :func:`contact_states`, :func:`select_chunks` (one chunk per
+  trajectory, starting out of contact); :mod:`.noise`: :func:`add_chunk_noise`;
+- :mod:`.write`: folder checks and atomic writing; :mod:`.checks`: argument checks;
+- :mod:`.cli`: ``diffcontact generate`` (no torch at import).
+
+Names are imported lazily, so ``diffcontact.learning.data.cli`` loads no torch.
+"""
+
+from __future__ import annotations
+
+from diffcontact.learning._lazy import lazy_exports
+
+_FORMAT = "diffcontact.learning.data.format"
+_EXPORTS: dict[str, str] = {
+    "ARRAYS": _FORMAT,
+    "FORMAT_VERSION": _FORMAT,
+    "METADATA": _FORMAT,
+    "SPLITS": _FORMAT,
+    "DataSplit": _FORMAT,
+    "Dataset": _FORMAT,
+    "DatasetError": _FORMAT,
+    "load_dataset": _FORMAT,
+    "split_seeds": _FORMAT,
+    "add_chunk_noise": "diffcontact.learning.data.noise",
+    "contact_states": "diffcontact.learning.data.chunks",
+    "select_chunks": "diffcontact.learning.data.chunks",
+    "dataset_from_arrays": "diffcontact.learning.data.arrays",
+    "generate_dataset": "diffcontact.learning.data.generate",
+    "register_cli": "diffcontact.learning.data.cli",
+    "run_generate_cli": "diffcontact.learning.data.cli",
+}
+
+__all__ = sorted(_EXPORTS)
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

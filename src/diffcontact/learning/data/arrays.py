@@ -1,0 +1,231 @@
+"""Recorded data: :func:`dataset_from_arrays` (``diffcontact generate --from-arrays``)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from diffcontact.cli_args import one_line
+from diffcontact.io import jsonable
+from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
+from diffcontact.learning.data.chunks import chunk_split, contact_states
+from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
+from diffcontact.learning.data.write import prepare_folder, write_dataset
+from diffcontact.systems import load_system
+
+__all__ = ["dataset_from_arrays", "read_arrays_file"]
+
+
+def _as_array(trajectories: Any) -> np.ndarray:
+    if isinstance(trajectories, Tensor):
+        trajectories = trajectories.detach().cpu().numpy()
+    try:
+        arr = np.asarray(trajectories)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"trajectories must be a numeric array: {err}") from None
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"trajectories must be a numeric array, got dtype {arr.dtype}")
+    return arr
+
+
+def dataset_from_arrays(
+    trajectories: Any,
+    config: Any,
+    out_dir: str | Path,
+    *,
+    dt: float | None = None,
+    val_fraction: float = 0.1,
+    test_fraction: float = 0.1,
+    seed: int = 0,
+    chunk_length: int = 5,
+    contact_fraction: float = 0.5,
+    progress: bool = True,
+) -> Path:
+    """Write a dataset folder (same format as ``generate_dataset``) from recorded data.
+
+    The trajectories are split at random into train/val/test, marked for
+    contact with the config's geometry and chunked like simulated data (no
+    noise is added: recorded data carries its own).
+
+    Args:
+        trajectories: ``(N, T, 2, P, d)`` array (numpy or torch): positions then
+            velocities of the config's P points in d dimensions, sampled every
+            ``dt`` (the config's).
+        config: the known geometry and dt: built-in task name, ``.yaml``/``.json``
+            path or dict.
+        out_dir: dataset folder (as in ``generate_dataset``).
+        dt: the recording's time step, checked against the config's ``dt``.
+        val_fraction, test_fraction: shares of the trajectories for val and
+            test (at least one each when positive; at least one left for train).
+        seed: seed of the split (``numpy.random.default_rng([seed, 3])``) and,
+            through ``split_seeds``, of the chunk choice.
+        chunk_length, contact_fraction: as in ``generate_dataset``.
+        progress: print messages (e.g. that an existing dataset was reused).
+
+    Returns:
+        The dataset folder.
+
+    Raises:
+        ValueError: a message naming the problem: wrong shape (expected vs
+            got), NaN/inf (which trajectory and state), dt different from the
+            config's, fewer states than ``chunk_length``, trajectories in
+            contact at every possible chunk start, bad fractions, or an output
+            folder as in ``generate_dataset``.
+    """
+    system = load_system(config)
+    seed = check_seed(seed)
+    chunk_length = int_arg("chunk_length", chunk_length, 2)
+    contact_fraction = float_arg("contact_fraction", contact_fraction, 0.0, 1.0)
+    vf = float_arg("val_fraction", val_fraction, 0.0, 1.0, high_open=True)
+    tf = float_arg("test_fraction", test_fraction, 0.0, 1.0, high_open=True)
+    if vf + tf >= 1:
+        raise ValueError(
+            f"val_fraction + test_fraction must be below 1 (some data must be left to "
+            f"train on), got {vf} + {tf}"
+        )
+    if dt is not None:
+        dt_f = float_arg("dt", dt, 0.0, math.inf)
+        if not math.isclose(dt_f, system.dt, rel_tol=1e-6, abs_tol=1e-12):
+            raise ValueError(
+                f"dt={dt_f:g} of the data differs from the config's dt={system.dt:g}; models "
+                "step with the config's dt: set dt in the config to the recording's step "
+                "(or resample the data)"
+            )
+
+    arr = _as_array(trajectories)
+    P, d = system.n_points, system.dim
+    want = f"(N, T, 2, {P}, {d})"
+    if arr.ndim != 5 or arr.shape[2:] != (2, P, d):
+        hint = ""
+        if arr.ndim == 4 and arr.shape[1:] == (2, P, d):
+            hint = " (a single trajectory? add a leading axis: traj[None])"
+        raise ValueError(
+            f"trajectories must have shape {want} for {system.name}: N trajectories of T "
+            f"states, positions then velocities of its {P} points in {d}D (from the "
+            f"config); got {arr.shape}{hint}"
+        )
+    N, T = arr.shape[:2]
+    if N == 0:
+        raise ValueError(f"trajectories hold no trajectory (shape {arr.shape})")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(arr).reshape(N, T, -1).all(-1)
+    if bad.any():
+        rows, cols = np.nonzero(bad)
+        where = ", ".join(
+            f"trajectory {r} state {c} (t = {c * system.dt:g} s)"
+            for r, c in zip(rows[:5].tolist(), cols[:5].tolist(), strict=True)
+        )
+        more = f" and {rows.size - 5} more states" if rows.size > 5 else ""
+        raise ValueError(f"trajectories contain NaN or infinite values at {where}{more}")
+    if T < chunk_length:
+        raise ValueError(
+            f"trajectories hold {T} states, fewer than chunk_length={chunk_length}: each "
+            f"trajectory needs at least {chunk_length} states"
+        )
+    n_val = math.floor(vf * N + 0.5) if vf > 0 else 0
+    n_test = math.floor(tf * N + 0.5) if tf > 0 else 0
+    n_val, n_test = (max(n_val, 1) if vf > 0 else 0), (max(n_test, 1) if tf > 0 else 0)
+    n_train = N - n_val - n_test
+    if n_train < 1:
+        raise ValueError(
+            f"{N} trajectories are too few for val_fraction={vf:g} and test_fraction={tf:g} "
+            "(at least one each): no trajectory is left for training"
+        )
+
+    contact = contact_states(system, arr)
+    S = T - chunk_length + 1
+    stuck = contact[:, :S].all(1)
+    if stuck.any():
+        rows = np.flatnonzero(stuck)
+        with torch.no_grad():
+            gaps = system.gaps(torch.from_numpy(arr[rows[0], 0, 0]))
+        k = int(gaps.argmin())
+        listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
+        raise ValueError(
+            f"{rows.size} of {N} trajectories ({listed}) are in contact (gap < 0: overlapping "
+            f"bodies or a violated limit) at every state that could start a chunk "
+            f"(states 0..{S - 1}), so they cannot be chunked (a chunk must start out of "
+            f"contact); e.g. trajectory {rows[0]} state 0: {system.contact_names[k]} "
+            f"(gap {float(gaps[k]):.3g}). Drop them, or check that the config's geometry "
+            "(radii, walls, limits) matches the data"
+        )
+
+    digest = hashlib.sha256(repr(arr.shape).encode() + arr.tobytes()).hexdigest()
+    arguments = {
+        "source": "arrays",
+        "config": jsonable(system.config.model_dump(mode="json")),
+        "traj_sha256": digest,
+        "n_trajectories": N,
+        "n_states": T,
+        "val_fraction": vf,
+        "test_fraction": tf,
+        "seed": seed,
+        "chunk_length": chunk_length,
+        "contact_fraction": contact_fraction,
+    }
+    folder = Path(out_dir)
+    if prepare_folder(folder, arguments, progress):
+        return folder
+
+    perm = np.random.default_rng([seed, STREAM_SPLIT]).permutation(N)
+    index = {
+        "test": np.sort(perm[:n_test]),
+        "val": np.sort(perm[n_test : n_test + n_val]),
+        "train": np.sort(perm[n_test + n_val :]),
+    }
+    seeds = split_seeds(seed)
+    splits = {
+        name: chunk_split(
+            system,
+            arr[index[name]],
+            contact[index[name]],
+            seeds[name],
+            chunk_length,
+            contact_fraction,
+            0.0,
+        )
+        for name in SPLITS
+    }
+    source_indices = {name: index[name].tolist() for name in SPLITS}
+    write_dataset(folder, system, splits, arguments, source_indices=source_indices)
+    return folder
+
+
+def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
+    """``traj`` and, when present, ``dt`` and ``config`` (JSON) of an .npz (or an .npy array).
+
+    The file format of ``diffcontact generate --from-arrays`` (what
+    ``diffcontact simulate`` writes).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"--from-arrays file {path!r} does not exist")
+    try:
+        data = np.load(p, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise ValueError(f"cannot read {path} as .npz or .npy: {one_line(err)}") from None
+    if isinstance(data, np.ndarray):
+        return data, None, None
+    with data:
+        keys = list(data.files)
+        if "traj" not in keys:
+            raise ValueError(
+                f"{path} has no array named 'traj' (found: {', '.join(keys) or 'nothing'}); "
+                "save the trajectories with numpy.savez(FILE, traj=...)"
+            )
+        traj = data["traj"]
+        dt = float(data["dt"]) if "dt" in keys else None
+        config = None
+        if "config" in keys:
+            try:
+                config = json.loads(str(data["config"]))
+            except json.JSONDecodeError as err:
+                raise ValueError(f"{path}: entry 'config' is not JSON: {err}") from None
+    return traj, dt, config

@@ -1,0 +1,370 @@
+"""The dataset format and its one reader (``docs/data.md``).
+
+A dataset is a folder (``docs/conventions.md``, "Learning")::
+
+    metadata.json   arguments, config, seeds, counts, sha256 of every file
+    train.npz       traj (N, T, 2, P, d) float64, chunks (N, L, 2, P, d) float64,
+    val.npz         chunk_start (N,) int64, chunk_has_contact (N,) bool,
+    test.npz        contact (N, T) bool
+
+``metadata.json`` is written last, so a folder without it is unfinished (an
+interrupted run leaves the marker file :data:`MARKER`). :func:`load_dataset`
+reads a folder, checks every file against its checksum and returns a
+:class:`Dataset`, whose ``split(name)`` reads one split as tensors; training
+and evaluation read datasets through it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import re
+import time
+from dataclasses import dataclass, fields
+from functools import cached_property
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from diffcontact.io import read_json_object
+from diffcontact.systems import System, load_config, load_system
+
+__all__ = [
+    "ARRAYS",
+    "FORMAT_VERSION",
+    "MARKER",
+    "METADATA",
+    "SPLITS",
+    "DataSplit",
+    "Dataset",
+    "DatasetError",
+    "load_dataset",
+    "read_metadata",
+    "sha256_file",
+    "split_seeds",
+    "verify_files",
+]
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "val", "test")
+METADATA = "metadata.json"
+ARRAYS = ("traj", "chunks", "chunk_start", "chunk_has_contact", "contact")
+MARKER = ".generating.json"  # arguments of a run in progress; removed after metadata.json
+TMP_NAME = re.compile(r"^\.(train|val|test|metadata|\.generating)\.tmp-")
+# numpy SeedSequence streams derived from one split seed (see split_seeds)
+STREAM_CHUNKS, STREAM_NOISE, STREAM_SPLIT = 1, 2, 3
+# metadata keys every dataset has
+_REQUIRED = (
+    "format_version", "config", "task", "seed", "seeds", "dt", "n_train", "n_val", "n_test",
+    "n_states", "noise_std", "chunk_length", "files", "arguments",
+)  # fmt: skip
+# a file whose timestamps were this close to its verification may change unnoticed within
+# the file system's timestamp granularity; it is hashed again when a split is read
+_RECENT_NS = 2_000_000_000
+
+
+class DatasetError(ValueError):
+    """A dataset folder is missing, incomplete, corrupted or of an unknown format."""
+
+
+def split_seeds(seed: int) -> dict[str, int]:
+    """Seeds of the splits: ``seed * 1000 + 0, 1, 2`` for train, val, test.
+
+    Each split seed seeds the initial conditions
+    (``System.sample_initial_conditions``); the chunk choice and the noise of
+    that split use ``numpy.random.default_rng([split_seed, 1])`` and
+    ``default_rng([split_seed, 2])``.
+    """
+    return {name: seed * 1000 + k for k, name in enumerate(SPLITS)}
+
+
+# ------------------------------------------------------------------- checksums
+
+
+def _sha256(fh: IO[bytes]) -> str:
+    h = hashlib.sha256()
+    for block in iter(lambda: fh.read(1 << 20), b""):
+        h.update(block)
+    return h.hexdigest()
+
+
+def sha256_file(path: Path) -> str:
+    """The sha256 hex digest of a file, read in blocks."""
+    with open(path, "rb") as fh:
+        return _sha256(fh)
+
+
+def _signature(st: os.stat_result) -> tuple[int, int, int, int]:
+    """What changes when a file is written: inode, size and timestamps."""
+    return (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def _checksum_error(path: Path, folder: Path) -> DatasetError:
+    return DatasetError(
+        f"{path} does not match its sha256 checksum in metadata.json (the file was "
+        f"changed or is corrupted); delete {folder} and generate it again"
+    )
+
+
+def verify_files(folder: Path, meta: dict[str, Any]) -> dict[str, tuple[int, int, int, int]]:
+    """Check every split file of ``folder`` against the checksums in ``meta["files"]``.
+
+    Returns:
+        ``{file name: signature}`` of the verified files that had not been
+        written within the last seconds: while such a file's signature (inode,
+        size, timestamps) stays the same, its bytes are those verified.
+
+    Raises:
+        DatasetError: ``files`` is malformed, a file is missing or fails its checksum.
+    """
+    files = meta.get("files")
+    expected = {f"{s}.npz" for s in SPLITS}
+    if not isinstance(files, dict) or set(files) != expected:
+        raise DatasetError(
+            f"{folder / METADATA}: 'files' must map {sorted(expected)} to sha256 checksums, "
+            f"got {files!r}"
+        )
+    verified = {}
+    for name in sorted(files):
+        path = folder / name
+        if not path.is_file():
+            raise DatasetError(
+                f"{path} is missing (metadata.json lists it): the dataset is incomplete; "
+                f"delete {folder} and generate it again"
+            )
+        now = time.time_ns()
+        with open(path, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if _sha256(fh) != files[name]:
+                raise _checksum_error(path, folder)
+        if max(st.st_mtime_ns, st.st_ctime_ns) < now - _RECENT_NS:
+            verified[name] = _signature(st)
+    return verified
+
+
+def read_metadata(folder: Path) -> dict[str, Any]:
+    """``folder/metadata.json`` as a dict (``DatasetError`` when it cannot be read)."""
+    return read_json_object(folder / METADATA, "dataset metadata", DatasetError)
+
+
+# -------------------------------------------------------------------------- load
+
+
+@dataclass(frozen=True)
+class DataSplit:
+    """One split of a dataset as tensors (``N`` trajectories of ``T`` states, chunks of ``L``).
+
+    Attributes:
+        name: ``"train"``, ``"val"`` or ``"test"``.
+        traj: ``(N, T, 2, P, d)`` clean full trajectories.
+        chunks: ``(N, L, 2, P, d)`` training chunks (noisy when the dataset's
+            ``noise_std > 0``).
+        chunk_start: ``(N,)`` int64, index of each chunk's first state in ``traj``.
+        chunk_has_contact: ``(N,)`` bool, the chunk contains a state in contact.
+        contact: ``(N, T)`` bool, states in contact (a contact was resolved there).
+    """
+
+    name: str
+    traj: Tensor
+    chunks: Tensor
+    chunk_start: Tensor
+    chunk_has_contact: Tensor
+    contact: Tensor
+
+    def __len__(self) -> int:
+        return int(self.traj.shape[0])
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> DataSplit:
+        """A copy with the tensors on ``device`` and the float ones (traj, chunks) in ``dtype``."""
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Tensor):
+                value = value.to(device=device, dtype=dtype if value.is_floating_point() else None)
+            out[f.name] = value
+        return DataSplit(**out)
+
+
+class Dataset:
+    """A dataset folder read by :func:`load_dataset`.
+
+    Attributes:
+        path: the folder.
+        metadata: ``metadata.json`` as a dict.
+        config: the validated system config.
+        system: a :class:`~diffcontact.systems.System` built from the config
+            (created on first use).
+        task, dt, chunk_length, noise_std, n_states, counts: from the metadata.
+
+    ``split(name)`` (or ``.train``, ``.val``, ``.test``) reads a split as a
+    :class:`DataSplit`. Its bytes are checked against their checksum unless
+    :func:`load_dataset` verified the file and it is unchanged since
+    (``verified``: file name -> signature, from :func:`verify_files`), so a
+    dataset is hashed once on the way from the folder to the tensors.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        metadata: dict[str, Any],
+        config: Any,
+        verified: dict[str, tuple[int, int, int, int]] | None = None,
+    ) -> None:
+        self.path = path
+        self.metadata = metadata
+        self.config = config
+        self._verified = dict(verified or {})
+
+    @cached_property
+    def system(self) -> System:
+        return load_system(self.metadata["config"])
+
+    @property
+    def task(self) -> str:
+        return str(self.metadata["task"])
+
+    @property
+    def dt(self) -> float:
+        return float(self.metadata["dt"])
+
+    @property
+    def chunk_length(self) -> int:
+        return int(self.metadata["chunk_length"])
+
+    @property
+    def contact_model(self) -> str | None:
+        """The contact model that simulated the data (``None`` for recorded data).
+
+        Datasets written before this was recorded were simulated with CM.
+        """
+        if self.metadata.get("source") != "simulated":
+            return self.metadata.get("contact_model")
+        return self.metadata.get("contact_model", "CM")
+
+    @property
+    def noise_std(self) -> float:
+        return float(self.metadata["noise_std"])
+
+    @property
+    def n_states(self) -> int:
+        return int(self.metadata["n_states"])
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return {s: int(self.metadata[f"n_{s}"]) for s in SPLITS}
+
+    def __repr__(self) -> str:
+        c = self.counts
+        return (
+            f"Dataset({str(self.path)!r}, task={self.task!r}, train={c['train']}, "
+            f"val={c['val']}, test={c['test']}, states={self.n_states}, "
+            f"chunk_length={self.chunk_length}, noise_std={self.noise_std:g})"
+        )
+
+    def _read_verified(self, path: Path) -> bytes:
+        """The bytes of a split file, checked against their checksum (once)."""
+        try:
+            with open(path, "rb") as fh:
+                before = _signature(os.fstat(fh.fileno()))
+                data = fh.read()
+                after = _signature(os.fstat(fh.fileno()))
+        except OSError as err:
+            raise DatasetError(f"cannot read {path}: {err}") from None
+        known = self._verified.get(path.name)
+        unchanged = known is not None and before == after == known
+        if not unchanged and hashlib.sha256(data).hexdigest() != self.metadata["files"][path.name]:
+            raise _checksum_error(path, self.path)
+        return data
+
+    def split(
+        self,
+        name: str,
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> DataSplit:
+        """Read split ``name`` (``"train"``, ``"val"`` or ``"test"``) as tensors.
+
+        Args:
+            name: the split.
+            dtype: float dtype of ``traj`` and ``chunks`` (stored as float64).
+            device: where to put the tensors.
+
+        Raises:
+            ValueError: an unknown split name.
+            DatasetError: the file is missing, fails its checksum or lacks an array.
+        """
+        if name not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {name!r}")
+        path = self.path / f"{name}.npz"
+        data = self._read_verified(path)
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            missing = [key for key in ARRAYS if key not in npz.files]
+            if missing:
+                raise DatasetError(f"{path} lacks the arrays {missing}")
+            arrays = {key: npz[key] for key in ARRAYS}
+        N, T, L = self.counts[name], self.n_states, self.chunk_length
+        shape = arrays["traj"].shape
+        chunk_shape = (N, L, *shape[2:])
+        if len(shape) != 5 or shape[:3] != (N, T, 2) or arrays["chunks"].shape != chunk_shape:
+            raise DatasetError(
+                f"{path}: traj {shape} / chunks {arrays['chunks'].shape} do not match the "
+                f"metadata (N={N}, T={T}, chunk_length={L})"
+            )
+        out = {key: torch.from_numpy(arrays[key]) for key in ARRAYS}
+        return DataSplit(name=name, **out).to(device=device, dtype=dtype)
+
+    @property
+    def train(self) -> DataSplit:
+        return self.split("train")
+
+    @property
+    def val(self) -> DataSplit:
+        return self.split("val")
+
+    @property
+    def test(self) -> DataSplit:
+        return self.split("test")
+
+
+def load_dataset(data_dir: str | os.PathLike[str]) -> Dataset:
+    """Read a dataset folder written by ``generate_dataset`` or ``dataset_from_arrays``.
+
+    Every file's sha256 is checked against ``metadata.json``.
+
+    Raises:
+        DatasetError (a ``ValueError``): the folder or a file is missing, a
+            checksum does not match, or the metadata is unreadable or of
+            another format version.
+    """
+    folder = Path(data_dir)
+    if not folder.is_dir():
+        raise DatasetError(f"dataset folder {folder} does not exist")
+    meta_path = folder / METADATA
+    if not meta_path.is_file():
+        unfinished = " (an interrupted run left it unfinished)" * (folder / MARKER).exists()
+        raise DatasetError(
+            f"{folder} has no {METADATA}: not a finished dataset{unfinished}; create one "
+            "with `diffcontact generate`"
+        )
+    meta = read_metadata(folder)
+    missing = [key for key in _REQUIRED if key not in meta]
+    if missing:
+        raise DatasetError(f"{meta_path} lacks the keys {missing}")
+    if meta["format_version"] != FORMAT_VERSION:
+        raise DatasetError(
+            f"{meta_path}: format_version {meta['format_version']!r} is not supported "
+            f"(this diffcontact reads version {FORMAT_VERSION})"
+        )
+    verified = verify_files(folder, meta)
+    try:
+        config = load_config(meta["config"])
+    except ValueError as err:
+        raise DatasetError(f"{meta_path}: invalid config: {err}") from None
+    return Dataset(folder, meta, config, verified)

@@ -1,0 +1,194 @@
+"""Writing a dataset folder: checks against an existing one, atomic files, metadata.
+
+Writes are atomic (temporary file + rename); ``metadata.json`` is written last,
+so a folder without it is unfinished. Re-running with the same arguments
+reuses the files; different arguments never overwrite them (``ValueError``).
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from diffcontact import __version__
+from diffcontact.io import atomic_save_npz, atomic_write_json, jsonable, read_json_object
+from diffcontact.learning.data.format import (
+    ARRAYS,
+    FORMAT_VERSION,
+    MARKER,
+    METADATA,
+    SPLITS,
+    TMP_NAME,
+    DatasetError,
+    read_metadata,
+    sha256_file,
+    split_seeds,
+    verify_files,
+)
+from diffcontact.systems import System
+
+__all__ = ["prepare_folder", "say", "write_dataset"]
+
+
+def say(progress: bool, message: str) -> None:
+    if progress:
+        print(message, flush=True)
+
+
+def _now() -> str:
+    """The current UTC time, ISO 8601 to the second."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _differences(old: Any, new: Any, name: str = "") -> list[str]:
+    """Human-readable differences between recorded (``old``) and requested (``new``) arguments."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out: list[str] = []
+        keys = list(new) + [k for k in old if k not in new]
+        for key in keys:
+            sub = f"{name}.{key}" if name else str(key)
+            if key not in old:
+                out.append(f"{sub} (not recorded there, requested {_short(new[key])})")
+            elif key not in new:
+                out.append(f"{sub} ({_short(old[key])} there, not requested)")
+            else:
+                out += _differences(old[key], new[key], sub)
+        return out
+    if old != new:
+        return [f"{name or 'arguments'} ({_short(old)} there, {_short(new)} requested)"]
+    return []
+
+
+def _is_ours(path: Path) -> bool:
+    names = {f"{s}.npz" for s in SPLITS} | {METADATA, MARKER}
+    return path.name in names or bool(TMP_NAME.match(path.name))
+
+
+def prepare_folder(folder: Path, arguments: dict[str, Any], progress: bool) -> bool:
+    """Check ``folder`` against ``arguments``; True when a finished dataset is reused.
+
+    Otherwise the folder exists afterwards, holds at most the leftovers of an
+    interrupted run with the same arguments, and carries the marker file.
+    """
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"output folder {folder} exists and is not a folder")
+    if (folder / METADATA).exists():
+        meta = read_metadata(folder)
+        diff = _differences(jsonable(meta.get("arguments")), arguments)
+        if diff:
+            raise ValueError(
+                f"{folder} already holds a dataset made with different arguments: "
+                f"{'; '.join(diff)}. It is never overwritten: use another output folder "
+                "or delete this one"
+            )
+        verify_files(folder, meta)
+        (folder / MARKER).unlink(missing_ok=True)
+        say(progress, f"reusing the dataset in {folder} (same arguments, checksums verified)")
+        return True
+    if folder.is_dir():
+        entries = sorted(folder.iterdir())
+        if entries:
+            marker = folder / MARKER
+            if not marker.is_file():
+                names = ", ".join(p.name for p in entries[:5]) + (" ..." * (len(entries) > 5))
+                raise ValueError(
+                    f"output folder {folder} is not empty and holds no dataset (no "
+                    f"{METADATA}; found {names}): choose an empty or new folder"
+                )
+            old = read_json_object(marker, "marker of an interrupted run", DatasetError).get(
+                "arguments"
+            )
+            diff = _differences(jsonable(old), arguments)
+            if diff:
+                raise ValueError(
+                    f"{folder} holds an unfinished dataset (an interrupted run) made with "
+                    f"different arguments: {'; '.join(diff)}. Re-run with the same arguments "
+                    "to finish it, or delete the folder"
+                )
+            strangers = [p.name for p in entries if not _is_ours(p)]
+            if strangers:
+                raise ValueError(
+                    f"output folder {folder} holds files that are not part of a dataset: "
+                    f"{', '.join(strangers[:5])}; choose an empty or new folder"
+                )
+            for p in entries:
+                if TMP_NAME.match(p.name):
+                    p.unlink(missing_ok=True)
+            say(progress, f"finishing the interrupted dataset in {folder}")
+    else:
+        try:
+            folder.mkdir(parents=True)
+        except OSError as err:
+            raise ValueError(f"cannot create output folder {folder}: {err}") from None
+    try:
+        atomic_write_json(folder / MARKER, {"arguments": arguments, "started": _now()})
+    except OSError as err:
+        raise ValueError(f"cannot write to output folder {folder}: {err}") from None
+    return False
+
+
+def write_dataset(
+    folder: Path,
+    system: System,
+    splits: dict[str, dict[str, np.ndarray]],
+    arguments: dict[str, Any],
+    **extra: Any,
+) -> None:
+    """Write the split files, then ``metadata.json`` (with their checksums), atomically.
+
+    The metadata records the system, the split sizes and statistics and the
+    ``arguments`` the dataset was made with (``source``, ``seed``,
+    ``chunk_length``, ``contact_fraction``, ``noise_std`` when noise was
+    added); ``extra`` entries (e.g. the simulation's ``device``) follow
+    ``contact_fraction``.
+    """
+    files: dict[str, str] = {}
+    for name in SPLITS:
+        path = folder / f"{name}.npz"
+        atomic_save_npz(path, **{key: splits[name][key] for key in ARRAYS})
+        files[path.name] = sha256_file(path)
+    seed = arguments["seed"]
+    simulated = arguments["source"] == "simulated"
+    metadata = {
+        "format_version": FORMAT_VERSION,
+        "task": system.name,
+        "source": arguments["source"],
+        "config": jsonable(system.config.model_dump(mode="json")),
+        "seed": seed,
+        "seeds": split_seeds(seed),
+        "dt": system.dt,
+        "n_states": int(splits["train"]["traj"].shape[1]),
+        **{f"n_{s}": len(splits[s]["traj"]) for s in SPLITS},
+        "contact_model": arguments.get("contact_model", "CM" if simulated else None),
+        "noise_std": arguments.get("noise_std", 0.0),
+        "chunk_length": arguments["chunk_length"],
+        "contact_fraction": arguments["contact_fraction"],
+        **extra,
+        "diffcontact_version": __version__,
+        "created": _now(),
+        "stats": {s: _split_stats(splits[s]) for s in SPLITS},
+        "arguments": arguments,
+        "files": files,
+    }
+    atomic_write_json(folder / METADATA, metadata)
+    (folder / MARKER).unlink(missing_ok=True)
+
+
+def _split_stats(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Counts of a split for the metadata: trajectories, chunks and states in contact."""
+    contact = arrays["contact"]
+    return {
+        "n": int(contact.shape[0]),
+        "chunks_with_contact": int(arrays["chunk_has_contact"].sum()),
+        "trajectories_with_contact": int(contact.any(1).sum()),
+        "share_of_states_in_contact": float(contact.mean()) if contact.size else 0.0,
+    }

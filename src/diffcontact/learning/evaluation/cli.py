@@ -1,0 +1,142 @@
+"""``diffcontact evaluate``: argument parsing and the handler.
+
+Building the parser imports neither torch nor matplotlib; the handler imports
+:func:`~diffcontact.learning.evaluation.evaluate.evaluate` when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from diffcontact.cli_args import int_at_least, report_errors
+
+__all__ = ["register_cli"]
+
+
+def register_cli(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``evaluate RUN_DIR [--out DIR --device cpu|cuda --n-gif 4 ...]`` to a CLI.
+
+    ``subparsers`` is what ``ArgumentParser.add_subparsers()`` returns. The
+    handler is set as ``func``; it returns the exit status (0; 2 for bad
+    input with a one-line message on stderr; 1 when the evaluation fails).
+    """
+    p = subparsers.add_parser(
+        "evaluate",
+        help="evaluate a trained model: rollout error, energy, learned parameters, plots",
+        description=(
+            "Roll the trained model of RUN_DIR out from every test initial state for "
+            "max(horizon, 100 dt), compare with the ground truth and write metrics.json, "
+            "rollout.npz, rel_error.png, energy.png, training.png and rollout.gif."
+        ),
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="training run directory")
+    p.add_argument(
+        "--out", default=None, metavar="DIR", help="output folder (default RUN_DIR/evaluation)"
+    )
+    p.add_argument(
+        "--device", choices=("cpu", "cuda"), default="cpu", help="rollout device (default cpu)"
+    )
+    p.add_argument(
+        "--n-gif",
+        type=int_at_least(0),
+        default=4,
+        help="test trajectories in the GIF (default 4; 0: none)",
+    )
+    p.add_argument(
+        "--steps",
+        type=int_at_least(1),
+        default=None,
+        help="rollout steps (default max(horizon/dt, 100) - 1)",
+    )
+    p.add_argument(
+        "--n-test", type=int_at_least(1), default=None, help="use the first N test trajectories"
+    )
+    p.add_argument(
+        "--data", default=None, metavar="DIR", help="dataset folder (default: run.json's)"
+    )
+    p.set_defaults(func=_cmd_evaluate)
+    return p
+
+
+def _fmt(x: Any) -> str:
+    if x is None:
+        return "-"
+    return f"{x:.4g}"
+
+
+def _param_rows(
+    name: str, entry: Mapping[str, Any], labels: Sequence[str], shared: bool = True
+) -> list[str]:
+    learned, true = entry.get("learned"), entry.get("true") or []
+    if learned is None:
+        return [f"  {name:<16} {'-':>10} {'(not learned)':>10}"]
+    if shared and len(set(learned)) <= 1 and len(set(true)) <= 1 and true:
+        return [f"  {name:<16} {learned[0]:>10.4f} {true[0]:>10.4f}"]
+    if len(learned) == len(true) and len(true) <= 12:
+        return [
+            f"  {lab:<16} {lv:>10.4f} {tv:>10.4f}"
+            for lab, lv, tv in zip(labels, learned, true, strict=True)
+        ]
+    err = entry.get("max_abs_error", entry.get("max_rel_error"))
+    return [
+        f"  {name:<16} {len(learned)} learned, {len(true)} true values; "
+        f"max error {_fmt(err)} (see metrics.json)"
+    ]
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from diffcontact.learning.evaluation.evaluate import EvaluationInputError
+
+    return report_errors(
+        "diffcontact evaluate",
+        lambda: _evaluate(args),
+        bad_input=EvaluationInputError,
+        failures=(RuntimeError, ValueError, OSError),
+        failed="evaluation failed: ",
+    )
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from diffcontact.learning.evaluation.evaluate import evaluate
+
+    m = evaluate(
+        args.run_dir,
+        args.out,
+        data_dir=args.data,
+        n_gif=args.n_gif,
+        device=args.device,
+        steps=args.steps,
+        n_test=args.n_test,
+    )
+    out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
+    print(
+        f"{m['task']}: {m['model']}, {m['n_test']} test trajectories x {m['steps']} steps "
+        f"(dt {m['dt']:g} s; ground truth: {m['ground_truth']})"
+    )
+    if m["n_nonfinite"]:
+        print(f"  WARNING: {m['n_nonfinite']} rollouts diverged (non-finite); left out below")
+    print(
+        f"  relative error   {_fmt(m['rel_err_mean'])} ± {_fmt(m['rel_err_ci95'])} (95% CI), "
+        f"final step {_fmt(m['rel_err_final'])}"
+    )
+    drift = m["energy_rel_drift"]
+    print(
+        f"  energy drift     model {_fmt(drift['pred'])}, ground truth {_fmt(drift['true'])} "
+        "(true energy, per mean kinetic energy)"
+    )
+    print(f"  {'parameter':<16} {'learned':>10} {'true':>10}")
+    n_ratios = len(m["mass_ratios"]["true"])
+    labels = [f"m{i + 2}/m1" for i in range(n_ratios)]
+    rows = _param_rows("mass ratios", m["mass_ratios"], labels, shared=False)
+    for key, sym in (("mu", "mu"), ("cor", "e_P")):
+        K = len(m[key]["true"])
+        rows += _param_rows(sym, m[key], [f"{sym}[{k}]" for k in range(K)])
+    if m.get("eps") is not None:
+        rows.append(f"  {'eps (CMr)':<16} {_fmt(m['eps']):>10} {'-':>10}")
+    print("\n".join(rows))
+    print(f"  wrote {out}{os.sep}: {', '.join(m['files'])}")
+    return 0

@@ -1,0 +1,386 @@
+"""``evaluate()``: a learned model on the test set: metrics, plots and a GIF.
+
+Protocol (paper-facts.md, "Training set-up"): from the first state of every
+test trajectory, roll the model out for ``max(horizon, 100 dt)`` (that is
+``max(horizon / dt, 100)`` states, ``steps = states - 1``) and compare with the
+ground truth. When the stored test trajectories are shorter than that (e.g.
+the rope, 20 states), the ground truth is simulated from the same initial
+states with the true system (``load_system(config)``, float64).
+
+The metrics are those of :mod:`~diffcontact.learning.evaluation.metrics`
+(``docs/evaluation.md``); :func:`evaluate` writes ``metrics.json``,
+``rollout.npz``, the plots of :mod:`~diffcontact.learning.evaluation.plots`
+and a GIF.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from diffcontact import __version__
+from diffcontact.io import (
+    atomic_save_npz,
+    atomic_write_json,
+    jsonable,
+    parse_device,
+    read_json_object,
+)
+from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.evaluation.log import find_training_log, read_training_log
+from diffcontact.learning.evaluation.metrics import (
+    as_numpy,
+    energy_scale,
+    finite_mean,
+    mean_ci95,
+    relative_drift,
+    relative_error,
+    rollout_steps,
+    true_energy,
+    true_parameters,
+)
+from diffcontact.learning.evaluation.plots import plot_energy, plot_rel_error, plot_training
+
+__all__ = ["METRICS_FORMAT_VERSION", "EvaluationInputError", "evaluate"]
+
+METRICS_FORMAT_VERSION = 1
+
+
+class EvaluationInputError(ValueError):
+    """Bad input to :func:`evaluate` (missing run, checkpoint, test data or config)."""
+
+
+# ---------------------------------------------------------------------------
+# learned parameters
+# ---------------------------------------------------------------------------
+
+
+def _floats(value: Any) -> list[float] | None:
+    if value is None:
+        return None
+    arr = as_numpy(value).reshape(-1)
+    return [float(v) for v in arr]
+
+
+def _learned(raw: Mapping[str, Any], n_bodies: int) -> dict[str, Any]:
+    """Normalise ``model.learned_parameters()``: mass ratios ``m_i/m_1`` for i >= 2."""
+    out: dict[str, Any] = {}
+    ratios = _floats(raw.get("mass_ratios"))
+    if ratios is None and raw.get("mass") is not None:
+        mass = _floats(raw["mass"])
+        ratios = [m / mass[0] for m in mass] if mass else None
+    if ratios is not None and len(ratios) == n_bodies:
+        # the model's list includes the first body (ratio 1): drop it
+        ratios = [r / ratios[0] for r in ratios[1:]] if ratios[0] != 0 else ratios[1:]
+    out["mass_ratios"] = ratios
+    out["mu"] = _floats(raw.get("mu"))
+    out["cor"] = _floats(raw.get("cor"))
+    eps = raw.get("eps")
+    out["eps"] = None if eps is None else _floats(eps)
+    if out["eps"] is not None and len(out["eps"]) == 1:
+        out["eps"] = out["eps"][0]
+    return out
+
+
+def _compare(learned: list[float] | None, true: list[float], relative: bool) -> dict[str, Any]:
+    entry: dict[str, Any] = {"learned": learned, "true": true}
+    key = "max_rel_error" if relative else "max_abs_error"
+    if learned is not None and len(learned) == len(true):
+        if len(true) == 0:
+            entry[key] = 0.0
+        else:
+            lv, tv = np.asarray(learned), np.asarray(true)
+            diff = np.abs(lv - tv)
+            if relative:
+                diff = diff / np.abs(tv)
+            entry[key] = float(diff.max())
+    elif learned is not None and len(learned) == 1 and len(true) > 1:
+        # one shared learned value against per-contact truth
+        entry[key] = float(np.max(np.abs(np.asarray(true) - learned[0])))
+    else:
+        entry[key] = None
+    return entry
+
+
+# ---------------------------------------------------------------------------
+# run directory, dataset and model
+# ---------------------------------------------------------------------------
+
+
+def _has_checkpoint(run_dir: Path) -> bool:
+    if (run_dir / "model.pt").is_file():
+        return True
+    ckpts = run_dir / "checkpoints"
+    return ckpts.is_dir() and any(ckpts.glob("*.ckpt"))
+
+
+def _resolve_data_dir(run_dir: Path | None, run: Mapping[str, Any], data_dir: Any) -> Path:
+    if data_dir is not None:
+        return Path(data_dir)
+    value = run.get("data_dir")
+    if not value:
+        if run_dir is None:
+            raise EvaluationInputError("no test data: give data_dir when there is no run directory")
+        raise EvaluationInputError(
+            f"no test data: {run_dir / 'run.json'} names no data_dir (pass --data DIR)"
+        )
+    path = Path(str(value))
+    if path.is_absolute() or path.exists() or run_dir is None:
+        return path
+    near = run_dir / path  # relative to the run directory
+    return near if near.exists() else path
+
+
+def _model_label(model: Any, run: Mapping[str, Any]) -> str:
+    for value in (getattr(model, "model_name", None), run.get("model")):
+        if isinstance(value, str) and value:
+            return value
+        if isinstance(value, Mapping):
+            name = value.get("model") or value.get("name")
+            if isinstance(name, str) and name:
+                return name
+    return type(model).__name__
+
+
+def _load_test(data_path: Path) -> tuple[np.ndarray, Any, str | None]:
+    """The test trajectories ``(N, T, 2, P, dim)``, the system and the contact model
+    that simulated them (``None`` for recorded data) of a dataset folder."""
+    if not data_path.is_dir():
+        raise EvaluationInputError(
+            f"test data not found: {data_path / 'test.npz'} (missing data directory)"
+        )
+    try:
+        dataset = load_dataset(data_path)
+        traj = dataset.split("test", dtype=torch.float64).traj.numpy()
+        system = dataset.system
+        contact_model = dataset.contact_model
+    except ValueError as err:
+        raise EvaluationInputError(f"cannot read the test data: {err}") from None
+    if len(traj) == 0:
+        raise EvaluationInputError(f"{data_path}: the test split holds no trajectory")
+    if not np.isfinite(traj[:, 0]).all():
+        raise EvaluationInputError(f"{data_path}/test.npz: the initial states contain NaN or inf")
+    if tuple(traj.shape[2:]) != system.state_shape:
+        raise EvaluationInputError(
+            f"{data_path}/test.npz: states have shape {tuple(traj.shape[2:])}, but the system "
+            f"{system.name} has {system.state_shape}"
+        )
+    return traj, system, contact_model
+
+
+# ---------------------------------------------------------------------------
+# evaluate
+# ---------------------------------------------------------------------------
+
+
+def evaluate(
+    run_dir: str | os.PathLike[str] | None,
+    out_dir: str | os.PathLike[str] | None = None,
+    *,
+    model: Any = None,
+    data_dir: str | os.PathLike[str] | None = None,
+    n_gif: int = 4,
+    device: str = "cpu",
+    steps: int | None = None,
+    n_test: int | None = None,
+    gif_frames: int = 100,
+) -> dict[str, Any]:
+    """Evaluate a learned model on the test set and write metrics, plots and a GIF.
+
+    Args:
+        run_dir: a training run (``run.json`` with ``data_dir``, ``model.pt`` or
+            ``checkpoints/``, ``logs/``). May be ``None`` when ``model`` and
+            ``data_dir`` (and ``out_dir``) are given.
+        out_dir: where to write (default ``RUN_DIR/evaluation``; created).
+        model: an object with ``simulate(z0, steps)`` (``(N, 2, P, dim)`` ->
+            ``(N, steps + 1, 2, P, dim)``) and ``learned_parameters()`` (dict
+            with ``mass_ratios``, ``mu``, ``cor``, optionally ``eps``); default
+            ``load_model(run_dir)``.
+        data_dir: the dataset (read with ``load_dataset``: checksums verified); default
+            ``run.json``'s ``data_dir`` (as given, else relative to the run).
+        n_gif: test trajectories in the GIF (0: no GIF).
+        device: ``"cpu"`` or ``"cuda"`` for the rollouts.
+        steps: rollout steps (default ``max(horizon / dt, 100) - 1``).
+        n_test: use only the first ``n_test`` test trajectories.
+        gif_frames: at most this many GIF frames.
+
+    Returns:
+        The metrics dict written to ``metrics.json`` (see ``docs/evaluation.md``).
+
+    Raises:
+        EvaluationInputError: missing run directory, checkpoint, test data or
+            config; bad arguments; CUDA requested but unavailable.
+    """
+    # ---- arguments and files
+    if not isinstance(n_gif, int) or isinstance(n_gif, bool) or n_gif < 0:
+        raise EvaluationInputError(f"n_gif must be a non-negative integer, got {n_gif!r}")
+    for name, value in (("steps", steps), ("n_test", n_test)):
+        if value is not None and (
+            not isinstance(value, int) or isinstance(value, bool) or value < 1
+        ):
+            raise EvaluationInputError(f"{name} must be a positive integer, got {value!r}")
+    try:
+        dev = parse_device(device)
+    except ValueError as err:
+        raise EvaluationInputError(str(err)) from None
+    run_path = None if run_dir is None else Path(run_dir)
+    run: dict[str, Any] = {}
+    if run_path is not None:
+        if not run_path.is_dir():
+            raise EvaluationInputError(f"run directory {run_path} does not exist")
+        if (run_path / "run.json").is_file():
+            run = read_json_object(run_path / "run.json", "run file", EvaluationInputError)
+        elif model is None:
+            raise EvaluationInputError(f"{run_path} is not a training run (no run.json)")
+        if model is None and not _has_checkpoint(run_path):
+            raise EvaluationInputError(
+                f"no trained model in {run_path}: expected model.pt or checkpoints/*.ckpt"
+            )
+    elif model is None:
+        raise EvaluationInputError("give a run directory or a model")
+    data_path = _resolve_data_dir(run_path, run, data_dir)
+    traj, system, contact_model = _load_test(data_path)
+    if out_dir is None:
+        if run_path is None:
+            raise EvaluationInputError("give out_dir when there is no run directory")
+        out_dir = run_path / "evaluation"
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise EvaluationInputError(f"cannot create output folder {out}: {err}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise EvaluationInputError(f"output folder {out} is not writable")
+
+    # ---- model
+    if model is None:
+        from diffcontact.learning.models.storage import load_model
+
+        try:
+            model = load_model(run_path)
+        except (FileNotFoundError, ValueError) as err:
+            raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
+    if isinstance(model, torch.nn.Module):
+        model = model.to(dev).eval()
+
+    # ---- rollouts
+    dt = system.dt
+    steps = rollout_steps(system) if steps is None else steps
+    if n_test is not None:
+        traj = traj[:n_test]
+    N = traj.shape[0]
+    z0 = torch.as_tensor(traj[:, 0], dtype=torch.float64, device=dev)
+    with torch.no_grad():
+        if traj.shape[1] >= steps + 1:
+            true = traj[:, : steps + 1]
+            source = "test set"
+        else:
+            # with the contact model that made the data (recorded data: the default CM)
+            true = as_numpy(system.simulate(z0, steps, contact_model=contact_model or "CM"))
+            source = "simulated (test trajectories shorter than the rollout)"
+        pred = as_numpy(model.simulate(z0, steps))
+    if pred.shape != true.shape:
+        raise RuntimeError(
+            f"model.simulate returned shape {pred.shape}, expected {true.shape} "
+            "(N, steps + 1, 2, P, dim)"
+        )
+
+    # ---- metrics
+    err = relative_error(pred, true)  # (N, T)
+    finite = np.isfinite(err).all(1)
+    n_bad = int((~finite).sum())
+    err_ok = err[finite]
+    later = slice(1, None) if err.shape[1] > 1 else slice(None)  # step 0 is exact
+    if len(err_ok):
+        rel_mean, rel_ci = mean_ci95(err_ok[:, later].mean(1))
+        curve_mean, curve_ci = mean_ci95(err_ok, axis=0)
+    else:
+        rel_mean = rel_ci = math.nan
+        curve_mean = curve_ci = np.full(err.shape[1], np.nan)
+    E_pred, E_true = true_energy(system, pred), true_energy(system, true)
+    E0, scale = E_true[:, 0], energy_scale(system, true)
+    drift_pred, drift_true = relative_drift(E_pred, E0, scale), relative_drift(E_true, E0, scale)
+    gap = np.abs(E_pred - E_true) / scale if scale > 0 else np.full(E_pred.shape, np.nan)
+
+    truth = true_parameters(system)
+    learned_fn = getattr(model, "learned_parameters", None)  # optional in the protocol
+    learned = _learned(learned_fn() if callable(learned_fn) else {}, system.n_bodies)
+    task = system.name
+    label = _model_label(model, run)
+    metrics: dict[str, Any] = {
+        "format_version": METRICS_FORMAT_VERSION,
+        "task": task,
+        "model": label,
+        "n_test": N,
+        "n_nonfinite": n_bad,
+        "steps": steps,
+        "dt": dt,
+        "duration": steps * dt,
+        "ground_truth": source,
+        "rel_err_mean": rel_mean,
+        "rel_err_ci95": rel_ci,
+        "rel_err_final": float(np.atleast_1d(curve_mean)[-1]),
+        "rel_err_curve": {"mean": curve_mean, "ci95": curve_ci},
+        "energy_rel_drift": {
+            "pred": finite_mean(drift_pred),
+            "true": finite_mean(drift_true),
+        },
+        "energy_rel_error": finite_mean(gap),
+        "mass_ratios": _compare(learned["mass_ratios"], truth["mass_ratios"], relative=True),
+        "mu": _compare(learned["mu"], truth["mu"], relative=False),
+        "cor": _compare(learned["cor"], truth["cor"], relative=False),
+        "eps": learned["eps"],
+        "contact_names": list(getattr(system, "contact_names", [])),
+        "device": str(device),
+        "run_dir": None if run_path is None else str(run_path),
+        "data_dir": str(data_path),
+        "diffcontact_version": __version__,
+    }
+
+    # ---- files
+    files = ["metrics.json", "rollout.npz"]
+    atomic_save_npz(
+        out / "rollout.npz",
+        compress=True,
+        pred=pred,
+        true=true,
+        rel_err=err,
+        energy_pred=E_pred,
+        energy_true=E_true,
+        t=np.arange(steps + 1, dtype=np.float64) * dt,
+    )
+    title = f"{task}: {label}"
+    plot_rel_error(err_ok if len(err_ok) else err, dt, out / "rel_error.png", title)
+    files.append("rel_error.png")
+    plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)
+    files.append("energy.png")
+    log_path = None if run_path is None else find_training_log(run_path)
+    if log_path is not None:
+        log = read_training_log(log_path)
+        if log and plot_training(log, truth, system.n_bodies, out / "training.png", title):
+            files.append("training.png")
+    if n_gif > 0:
+        from diffcontact.viz import animate, scene_from_system
+
+        k = min(n_gif, N)
+        animate(
+            true[:k],
+            scene_from_system(system, title=f"{task}: truth (filled) vs {label} (dashed)"),
+            out / "rollout.gif",
+            overlay=pred[:k],
+            dt=dt,
+            max_trajectories=k,
+            max_frames=gif_frames,
+            labels=("ground truth", label),
+        )
+        files.append("rollout.gif")
+    metrics["files"] = sorted(files)
+    metrics = jsonable(metrics)
+    atomic_write_json(out / "metrics.json", metrics)
+    return metrics

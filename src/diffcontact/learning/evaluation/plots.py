@@ -1,0 +1,220 @@
+"""The evaluation plots: relative error, energy and the training curves (PNG).
+
+matplotlib ``Figure`` objects with the Agg canvas (no pyplot state), saved
+atomically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.ticker import MaxNLocator
+
+from diffcontact.io import atomic_path
+from diffcontact.learning.evaluation.log import classify_columns
+from diffcontact.learning.evaluation.metrics import mean_ci95, relative_drift
+
+__all__ = ["plot_energy", "plot_rel_error", "plot_training"]
+
+
+def _figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: Path, dpi: int = 110) -> Path:
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
+    return path
+
+
+def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str) -> Path:
+    """Mean relative error per step with its 95% band (log y), faint single runs.
+
+    Values at or below the bottom of the axis (a tenth of the smallest positive
+    mean, e.g. exact zeros before the first contact) are drawn on the bottom edge.
+    """
+    fig = _figure(6.4, 3.8)
+    ax = fig.subplots()
+    t = np.arange(err.shape[1]) * dt
+    sl = slice(1, None) if err.shape[1] > 1 else slice(None)  # step 0 is exact
+    mean, half = mean_ci95(err, axis=0)
+    mean = np.atleast_1d(mean)[sl]
+    half = np.nan_to_num(np.atleast_1d(half))[sl]
+    t = t[sl]
+    positive = mean[mean > 0]
+    floor = 0.1 * float(positive.min()) if positive.size else 1e-16
+    for e in err[:30]:
+        ax.plot(t, np.maximum(e[sl], floor), color="#9aa6b2", lw=0.5, alpha=0.6)
+    ax.fill_between(
+        t,
+        np.maximum(mean - half, floor),
+        np.maximum(mean + half, floor),
+        color="#1f77b4",
+        alpha=0.25,
+        lw=0,
+        label="95% CI of the mean",
+    )
+    ax.plot(t, np.maximum(mean, floor), color="#1f77b4", lw=2.0, label=f"mean ({len(err)} runs)")
+    ax.plot([], [], color="#9aa6b2", lw=0.8, label="single trajectories")
+    ax.set_yscale("log")
+    ax.set_ylim(bottom=floor)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(r"$\|z_{pred} - z_{true}\| \,/\, \|z_{true}\|$")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="major", lw=0.3, alpha=0.6)
+    ax.legend(fontsize=8, loc="lower right")
+    return _save(fig, path)
+
+
+def plot_energy(
+    E_pred: np.ndarray, E_true: np.ndarray, scale: float, dt: float, path: Path, title: str
+) -> Path:
+    """Left: true energy along a few true (solid) and predicted (dashed) rollouts.
+    Right: mean relative drift from the initial energy, with 95% bands."""
+    palette = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
+    fig = _figure(10.0, 3.8)
+    ax1, ax2 = fig.subplots(1, 2)
+    t = np.arange(E_true.shape[1]) * dt
+    for i in range(min(len(E_true), len(palette))):
+        ax1.plot(t, E_true[i], color=palette[i], lw=1.4)
+        ax1.plot(t, E_pred[i], color=palette[i], lw=1.4, ls="--")
+    ax1.legend(
+        [Line2D([], [], color="k", lw=1.4), Line2D([], [], color="k", lw=1.4, ls="--")],
+        ["ground truth", "model"],
+        fontsize=8,
+    )
+    ax1.set_ylabel("true energy E")
+    ax1.set_title("true energy along trajectories", fontsize=10)
+    E0 = E_true[:, 0]
+    for E, label, color, ls in (
+        (E_true, "ground truth", "#444444", "-"),
+        (E_pred, "model", "#d62728", "--"),
+    ):
+        d = relative_drift(E, E0, scale)
+        d = d[np.isfinite(d).all(-1)]
+        if len(d) == 0:
+            continue
+        mean, half = mean_ci95(d, axis=0)
+        mean, half = np.atleast_1d(mean), np.nan_to_num(np.atleast_1d(half))
+        ax2.fill_between(t, np.maximum(mean - half, 0.0), mean + half, color=color, alpha=0.2, lw=0)
+        ax2.plot(t, mean, color=color, lw=1.8, ls=ls, label=label)
+    ax2.set_ylabel(r"$|E(t) - E_{true}(0)| \,/\, \overline{T_{true}}$")
+    ax2.set_title("relative energy drift (mean, 95% CI)", fontsize=10)
+    ax2.legend(fontsize=8)
+    for ax in (ax1, ax2):
+        ax.set_xlabel("time (s)")
+        ax.grid(True, lw=0.3, alpha=0.6)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+_PANEL_TITLES = {
+    "loss": "loss",
+    "mass_ratios": r"mass ratios $m_i / m_1$",
+    "mu": r"friction $\mu$",
+    "cor": r"restitution $e_P$",
+    "eps": r"CMr $\epsilon$",
+}
+
+
+def _training_series(
+    log: Mapping[str, np.ndarray], true: Mapping[str, list[float]], n_bodies: int
+) -> dict[str, list[tuple[str, np.ndarray, Any]]]:
+    """Per panel: ``(label, values per epoch, true value, list of them, or None)``."""
+    groups = classify_columns(log)
+    panels: dict[str, list[tuple[str, np.ndarray, Any]]] = {}
+    if "loss" in groups:
+        panels["loss"] = [(c, log[c], None) for c in sorted(groups["loss"])]
+    series: list[tuple[str, np.ndarray]] = []
+    ratios = groups.get("mass_ratios")
+    masses = groups.get("mass")
+    if ratios is not None:
+        cols = [ratios[k] for k in sorted(ratios, key=lambda k: -1 if k is None else k)]
+        if len(cols) == n_bodies:
+            cols = cols[1:]  # the first body's ratio (1)
+        series = [(f"m{k + 2}/m1", log[c]) for k, c in enumerate(cols)]
+    elif masses is not None and None not in masses and len(masses) > 1:
+        # raw masses per body: ratios to the first
+        cols = [masses[k] for k in sorted(masses)]
+        series = [(f"m{k + 2}/m1", log[c] / log[cols[0]]) for k, c in enumerate(cols[1:])]
+    if series:
+        tr = true["mass_ratios"]
+        panels["mass_ratios"] = [
+            (label, v, tr[k] if len(series) == len(tr) else None)
+            for k, (label, v) in enumerate(series)
+        ]
+    for cat in ("mu", "cor"):
+        if cat not in groups:
+            continue
+        tv = true[cat]
+        items = []
+        for idx in sorted(groups[cat], key=lambda k: -1 if k is None else k):
+            col = groups[cat][idx]
+            if idx is None or len(groups[cat]) == 1:
+                # one shared learned value: every distinct true value is a reference
+                items.append((cat, log[col], sorted(set(tv))))
+            else:
+                items.append((f"{cat}[{idx}]", log[col], tv[idx] if idx < len(tv) else None))
+        panels[cat] = items
+    if "eps" in groups:
+        panels["eps"] = [("eps", log[c], None) for c in groups["eps"].values()]
+    return panels
+
+
+def plot_training(
+    log: Mapping[str, np.ndarray],
+    true: Mapping[str, list[float]],
+    n_bodies: int,
+    path: Path,
+    title: str,
+) -> Path | None:
+    """Losses and learned parameters per epoch; true values dashed in the same colour."""
+    panels = _training_series(log, true, n_bodies)
+    if not panels:
+        return None
+    epochs = log["epoch"]
+    fig = _figure(3.6 * len(panels) + 0.4, 3.5)
+    axes = np.atleast_1d(fig.subplots(1, len(panels)))
+    for ax, (cat, series) in zip(axes, panels.items(), strict=True):
+        many = len(series) > 10
+        cmap = matplotlib.colormaps["viridis" if many else "tab10"]
+        drawn_true: set[float] = set()
+        for k, (label, values, ref) in enumerate(series):
+            color = cmap(k / max(len(series) - 1, 1)) if many else cmap(k % 10)
+            ok = np.isfinite(values)
+            ax.plot(epochs[ok], values[ok], color=color, lw=1.0 if many else 1.5, label=label)
+            refs = [] if ref is None else ref if isinstance(ref, list) else [ref]
+            for r in refs:
+                if r in drawn_true and (many or len(refs) > 1):
+                    continue
+                grey = many or len(refs) > 1
+                ax.axhline(r, color="#555555" if grey else color, lw=1.0, ls="--")
+                drawn_true.add(r)
+        if cat == "loss":
+            vals = np.concatenate([v[np.isfinite(v)] for _, v, _ in series])
+            if vals.size and (vals > 0).all():
+                ax.set_yscale("log")
+        if len(series) <= 6:
+            ax.legend(fontsize=7)
+        else:
+            ax.text(
+                0.98, 0.98, f"{len(series)} contacts", transform=ax.transAxes,
+                ha="right", va="top", fontsize=7,
+            )  # fmt: skip
+        ax.set_title(_PANEL_TITLES.get(cat, cat), fontsize=10)
+        ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(True, lw=0.3, alpha=0.6)
+    fig.suptitle(f"{title} (dashed: true values)" if title else "dashed: true values", fontsize=10)
+    return _save(fig, path)

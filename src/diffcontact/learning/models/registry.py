@@ -1,0 +1,97 @@
+"""The learned-model registry: ``--model NAME`` to a factory.
+
+Importing this module loads no torch, so the CLI builds its ``--model``
+choices from :func:`model_names` cheaply. A factory is any callable
+``factory(config, **options) -> DynamicsModel`` (:mod:`.protocol`); the
+built-in physical models (paper-facts.md, "Models compared": contact model
+CM or CMr, true collision detection, constrained Lagrangian or Hamiltonian
+network) are loaded on first use. Third-party packages can also register
+through the entry-point group ``diffcontact.models``.
+
+Example::
+
+    import diffcontact as dc
+    dc.learning.register_model("MyNet", MyNet)     # MyNet(config, **options)
+    # then: diffcontact train DATA --model MyNet
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from diffcontact.registry import Registry
+
+__all__ = [
+    "BUILTIN_MODELS",
+    "create_model",
+    "is_physical_model",
+    "model_names",
+    "parse_model_name",
+    "register_model",
+    "unregister_model",
+]
+
+BUILTIN_MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
+_PHYSICAL = "diffcontact.learning.models.physical"
+REGISTRY = Registry(
+    "model",
+    {name: f"{_PHYSICAL}:{name.replace('-', '_')}" for name in BUILTIN_MODELS},
+    entry_point_group="diffcontact.models",
+)
+REQUIRED = ("simulate", "param_groups", "metrics", "options")
+
+
+def parse_model_name(name: str) -> tuple[str, str]:
+    """``"CMr-CD-CHNN"`` -> ``("CMr", "hamiltonian")`` for the built-in physical models.
+
+    Raises:
+        ValueError: not a built-in physical model name.
+    """
+    if name not in BUILTIN_MODELS:
+        raise ValueError(
+            f"{name!r} is not a physical model; physical models: {', '.join(BUILTIN_MODELS)}"
+        )
+    contact, _, net = name.split("-")
+    return contact, "lagrangian" if net == "CLNN" else "hamiltonian"
+
+
+def is_physical_model(name: str) -> bool:
+    """Whether ``name`` is one of the built-in CM/CMr physical models."""
+    return name in BUILTIN_MODELS
+
+
+def register_model(name: str, factory: Callable[..., Any], *, overwrite: bool = False) -> None:
+    """Register ``factory(config, **options) -> DynamicsModel`` under ``name``.
+
+    ``config`` is the dataset's validated system config (the known structure:
+    geometry, constraints, contact candidates, ``dt``); ``options`` are plain
+    data (what the model's ``options()`` returns, stored with a trained model
+    and passed back when it is loaded).
+
+    Raises:
+        ValueError: an empty name, a name already taken (unless ``overwrite``;
+            built-in names can never be replaced) or a factory that is not callable.
+    """
+    REGISTRY.register(name, factory, overwrite=overwrite)
+
+
+def unregister_model(name: str) -> None:
+    """Remove a model registered with :func:`register_model` (built-ins stay)."""
+    REGISTRY.unregister(name)
+
+
+def model_names() -> list[str]:
+    """Registered model names, built-ins first."""
+    return REGISTRY.names()
+
+
+def create_model(name: str, config: Any, **options: Any) -> Any:
+    """Build the model registered as ``name`` for ``config`` with ``options``.
+
+    Raises:
+        ValueError: an unknown name (the message lists the registered ones),
+            options the factory does not take, or a product that lacks a method
+            of the :class:`~diffcontact.learning.models.protocol.DynamicsModel` protocol.
+    """
+    return REGISTRY.create(name, config, required=REQUIRED, **options)

@@ -1,0 +1,111 @@
+"""Saving and loading any registered model: ``model.pt`` files and training checkpoints.
+
+A model file holds ``format_version``, ``model_name`` (the registry name),
+``config`` (the system config as JSON data), ``options`` (the model's
+``options()``) and ``state_dict``; :func:`load_model` rebuilds the model with
+the registry's factory and loads the weights. The physical CM/CMr models read
+older formats through :meth:`LearnedModel.from_checkpoint`.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from diffcontact.io import atomic_write_bytes
+from diffcontact.learning.models.registry import create_model, is_physical_model
+
+__all__ = ["load_model", "model_checkpoint", "model_from_checkpoint", "save_model"]
+
+FORMAT_VERSION = 3  # the physical models' format history is in physical.py
+
+
+def model_checkpoint(model: Any, format_version: int = FORMAT_VERSION) -> dict[str, Any]:
+    """Everything :func:`model_from_checkpoint` needs, as plain data and tensors."""
+    return {
+        "format_version": format_version,
+        "model_name": model.model_name,
+        "config": model.config.model_dump(mode="json"),
+        "options": model.options(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+    }
+
+
+def model_from_checkpoint(data: Mapping[str, Any]) -> Any:
+    """Rebuild a model from :func:`model_checkpoint`'s dict (dtype of the stored weights).
+
+    Raises:
+        ValueError: not a model file, or a model name that is not registered
+            (register it before loading).
+    """
+    if not isinstance(data, Mapping) or "options" not in data or "config" not in data:
+        raise ValueError("not a diffcontact model file: missing config or options")
+    name = data.get("model_name") or dict(data["options"]).get("model")
+    if name is None:
+        raise ValueError("not a diffcontact model file: no model name")
+    if is_physical_model(name):
+        from diffcontact.learning.models.physical import LearnedModel
+
+        return LearnedModel.from_checkpoint(data)
+    model = create_model(name, data["config"], **dict(data["options"]))
+    state = dict(data["state_dict"])
+    floats = [v for v in state.values() if v.is_floating_point()]
+    if floats:
+        model.to(floats[0].dtype)
+    model.load_state_dict(state)
+    return model
+
+
+def save_model(model: Any, path: str | os.PathLike[str]) -> Path:
+    """Write ``model`` (name, config, options, weights) to ``path`` atomically."""
+    checkpoint = model.checkpoint() if hasattr(model, "checkpoint") else model_checkpoint(model)
+    buf = io.BytesIO()
+    torch.save(checkpoint, buf)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> Any:
+    """The learned model of a training run, whatever its registered type.
+
+    Args:
+        run_dir: a run directory (``diffcontact train --out``): its ``model.pt``
+            (written at the end of training) or, when that is missing (training
+            still running or interrupted), its ``checkpoints/last.ckpt``; or
+            the path of a ``model.pt``/``.ckpt`` file.
+        map_location: as in ``torch.load``.
+
+    Raises:
+        ValueError: nothing loadable at ``run_dir``, or an unregistered model.
+    """
+    path = Path(run_dir)
+    if path.is_dir():
+        candidates = [path / "model.pt", path / "checkpoints" / "last.ckpt"]
+        found = [p for p in candidates if p.is_file()]
+        if not found:
+            raise ValueError(f"{path} holds neither model.pt nor checkpoints/last.ckpt")
+        path = found[0]
+    elif not path.is_file():
+        raise ValueError(f"{path} does not exist")
+    if path.suffix == ".ckpt":
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        hp = ckpt.get("hyper_parameters", {})
+        if "config" not in hp or "options" not in hp:
+            raise ValueError(f"{path} is not a diffcontact training checkpoint")
+        prefix = "model."
+        state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
+        return model_from_checkpoint(
+            {
+                "format_version": ckpt.get("diffcontact", {}).get("model_format"),
+                "model_name": hp.get("model_name"),
+                "config": hp["config"],
+                "options": hp["options"],
+                "state_dict": state,
+            }
+        )
+    data = torch.load(path, map_location=map_location, weights_only=True)
+    return model_from_checkpoint(data)

@@ -1,0 +1,187 @@
+"""``diffcontact train``: argument parsing and the handler.
+
+Building the parser imports neither torch nor Lightning (the defaults come
+from :mod:`~diffcontact.learning.training.options`); the handler imports
+:func:`~diffcontact.learning.training.run.train` when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from diffcontact.cli_args import non_negative_int, positive_float, positive_int, report_errors
+from diffcontact.learning.models.registry import model_names
+from diffcontact.learning.training import options
+from diffcontact.learning.training.options import TrainingInputError
+
+__all__ = ["register_cli", "run_train_cli"]
+
+
+def _cli_eps(text: str) -> float | str:
+    if text == "learnable":
+        return text
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected a positive number or 'learnable', got {text!r}"
+        ) from None
+
+
+def _cli_hidden(text: str) -> tuple[int, ...]:
+    try:
+        widths = tuple(int(w) for w in text.split(","))
+    except ValueError:
+        widths = ()
+    if not widths or any(w < 1 for w in widths):
+        raise argparse.ArgumentTypeError(f"expected positive widths like 256,256,256, got {text!r}")
+    return widths
+
+
+def _cli_option(text: str) -> tuple[str, Any]:
+    import json
+
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        return key.strip(), json.loads(value)
+    except json.JSONDecodeError:
+        return key.strip(), value
+
+
+def register_cli(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``train`` subcommand to an argparse ``subparsers`` object; return its parser.
+
+    The handler (``args.func``) returns the exit status: 0, 2 for bad input
+    (one line on stderr) or 1 when training fails.
+    """
+    hidden = ",".join(map(str, options.DEFAULT_HIDDEN))
+    p = subparsers.add_parser(
+        "train",
+        help="train a CM/CMr-CD-CLNN/CHNN model on a dataset",
+        description=(
+            "Train a learned model (contact model CM or CMr, true collision detection, "
+            "constrained Lagrangian or Hamiltonian dynamics) on the chunks of a dataset "
+            "folder with the rollout loss (MAE) and AdamW. Writes run.json, checkpoints/ "
+            "(last.ckpt and one per epoch), logs/metrics.csv, learned.json (every epoch) "
+            "and model.pt (at the end) to --out. See docs/training.md."
+        ),
+    )
+    p.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (diffcontact generate)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    p.add_argument(
+        "--model", default=options.DEFAULT_MODEL, metavar="NAME",
+        help=f"a registered model: {', '.join(model_names())} (default {options.DEFAULT_MODEL})",
+    )  # fmt: skip
+    p.add_argument(
+        "--model-option", action="append", default=[], metavar="KEY=VALUE", type=_cli_option,
+        help="an option of the model's factory (repeatable; VALUE is read as JSON if it "
+        "parses, else as a string), for registered models other than the physical ones",
+    )  # fmt: skip
+    p.add_argument(
+        "--epochs", type=positive_int, default=options.DEFAULT_EPOCHS,
+        help=f"epochs (default {options.DEFAULT_EPOCHS})",
+    )  # fmt: skip
+    p.add_argument(
+        "--batch-size", type=positive_int, default=options.DEFAULT_BATCH_SIZE,
+        help=f"chunks per batch (default {options.DEFAULT_BATCH_SIZE})",
+    )  # fmt: skip
+    p.add_argument(
+        "--lr", type=positive_float, default=options.DEFAULT_LR,
+        help=f"learning rate of the potential network (default {options.DEFAULT_LR:g})",
+    )  # fmt: skip
+    p.add_argument(
+        "--physics-lr", type=positive_float, default=options.DEFAULT_PHYSICS_LR, metavar="LR",
+        help=f"learning rate of masses, inertias, mu, e_P (default {options.DEFAULT_PHYSICS_LR:g})",
+    )  # fmt: skip
+    p.add_argument(
+        "--schedule", choices=options.SCHEDULES, default=options.DEFAULT_SCHEDULE,
+        help=f"learning-rate schedule: cosine decay to 1%% over the epochs, or constant "
+        f"(default {options.DEFAULT_SCHEDULE})",
+    )  # fmt: skip
+    p.add_argument(
+        "--weight-decay", type=float, default=options.DEFAULT_WEIGHT_DECAY,
+        help=f"AdamW weight decay (default {options.DEFAULT_WEIGHT_DECAY:g})",
+    )  # fmt: skip
+    p.add_argument(
+        "--seed", type=non_negative_int, default=options.DEFAULT_SEED,
+        help=f"seed (default {options.DEFAULT_SEED})",
+    )  # fmt: skip
+    p.add_argument(
+        "--device",
+        default=options.DEFAULT_DEVICE,
+        help=f"cpu or cuda (default {options.DEFAULT_DEVICE})",
+    )
+    p.add_argument(
+        "--eps", type=_cli_eps, default=None,
+        help=f"CMr regulariser: a positive number (default {options.DEFAULT_EPS:g}) or 'learnable'",
+    )  # fmt: skip
+    p.add_argument(
+        "--dtype",
+        default=options.DEFAULT_DTYPE,
+        help=f"float32 or float64 (default {options.DEFAULT_DTYPE})",
+    )
+    p.add_argument(
+        "--resume", action="store_true", help="continue RUN_DIR from checkpoints/last.ckpt"
+    )
+    p.add_argument(
+        "--max-time", type=positive_float, default=None, metavar="MIN",
+        help="stop after the epoch that ends after MIN minutes",
+    )  # fmt: skip
+    p.add_argument(
+        "--hidden", type=_cli_hidden, default=None, metavar="W,W,...",
+        help=f"hidden widths of the potential MLP (default {hidden})",
+    )  # fmt: skip
+    p.add_argument(
+        "--keep-checkpoints", type=positive_int, default=None, metavar="K",
+        help="keep only the newest K per-epoch checkpoints (default: all)",
+    )  # fmt: skip
+    p.add_argument("--devices", default="1", help="devices per node for Lightning (default 1)")
+    p.add_argument("--num-nodes", type=positive_int, default=1, help="nodes (default 1)")
+    p.add_argument("--strategy", default="auto", help="Lightning strategy, e.g. ddp (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train_cli)
+    return p
+
+
+def run_train_cli(args: argparse.Namespace) -> int:
+    """Handler of ``diffcontact train``: 0 on success, 2 on bad input, 1 on failure."""
+    return report_errors("diffcontact train", lambda: _train(args), bad_input=TrainingInputError)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from diffcontact.learning.training.run import train
+
+    devices: Any = args.devices
+    if isinstance(devices, str) and devices.isdigit():
+        devices = int(devices)
+    train(
+        args.data_dir,
+        args.out,
+        model=args.model,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        weight_decay=args.weight_decay,
+        physics_lr=args.physics_lr,
+        schedule=args.schedule,
+        seed=args.seed,
+        device=args.device,
+        eps=args.eps,
+        hidden=args.hidden,
+        model_options=dict(args.model_option),
+        dtype=args.dtype,
+        resume=args.resume,
+        progress=not args.quiet,
+        max_time=args.max_time,
+        strategy=args.strategy,
+        devices=devices,
+        num_nodes=args.num_nodes,
+        keep_checkpoints=args.keep_checkpoints,
+    )
+    if not args.quiet:
+        print(f"wrote {Path(args.out) / 'model.pt'} and {Path(args.out) / 'learned.json'}")
+    return 0

@@ -1,0 +1,128 @@
+"""Training options: every default of ``train()``, ``RolloutModule`` and ``diffcontact train``.
+
+One set of constants, used by all three (no torch at import, so the command
+line can show them). :func:`check_options` validates the numbers a user gives
+and raises :class:`TrainingInputError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from diffcontact.io import parse_device
+from diffcontact.learning.models.registry import model_names
+
+__all__ = [
+    "COSINE_FLOOR",
+    "DEFAULT_BATCH_SIZE",
+    "DEFAULT_DEVICE",
+    "DEFAULT_DTYPE",
+    "DEFAULT_EPOCHS",
+    "DEFAULT_EPS",
+    "DEFAULT_HIDDEN",
+    "DEFAULT_LR",
+    "DEFAULT_MODEL",
+    "DEFAULT_PHYSICS_LR",
+    "DEFAULT_SCHEDULE",
+    "DEFAULT_SEED",
+    "DEFAULT_WEIGHT_DECAY",
+    "DTYPE_NAMES",
+    "SCHEDULES",
+    "TrainingInputError",
+    "check_options",
+]
+
+DEFAULT_MODEL = "CM-CD-CLNN"
+DEFAULT_EPOCHS = 100
+# AdamW for the potential network (paper-facts.md, "Training set-up")
+DEFAULT_BATCH_SIZE = 200
+DEFAULT_LR = 1e-3
+DEFAULT_WEIGHT_DECAY = 1e-4
+# the physical parameters (a handful of numbers) take larger steps than the potential
+# network; measured in docs/training.md ("Learning rates")
+DEFAULT_PHYSICS_LR = 3e-2
+SCHEDULES = ("cosine", "constant")
+DEFAULT_SCHEDULE = "cosine"
+COSINE_FLOOR = 0.01  # the cosine schedule ends at 1% of each learning rate
+# chosen from the float32/float64 measurement in docs/training.md: float32 saves ~20% per
+# step but its gradients through CM's singular contact problems need a larger KKT
+# regularisation; float64 gradients match without it
+DTYPE_NAMES = ("float32", "float64")
+DEFAULT_DTYPE = "float64"
+DEFAULT_SEED = 0
+DEFAULT_DEVICE = "cpu"
+DEFAULT_EPS = 0.01  # CMr's regulariser
+DEFAULT_HIDDEN = (256, 256, 256)  # hidden widths of the potential MLP
+
+
+class TrainingInputError(ValueError):
+    """Bad input to ``train()`` (data, options, run directory); one-line message."""
+
+
+def _positive_int(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise TrainingInputError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _number(name: str, value: Any, zero_ok: bool) -> None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise TrainingInputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v < 0 or (v == 0 and not zero_ok):
+        raise TrainingInputError(f"{name} must be {'>= 0' if zero_ok else '> 0'}, got {value!r}")
+
+
+def check_options(
+    *,
+    model: str,
+    epochs: Any,
+    batch_size: Any,
+    lr: Any,
+    physics_lr: Any,
+    weight_decay: Any,
+    schedule: str,
+    seed: Any,
+    device: Any,
+    dtype: str,
+    max_time: Any,
+    keep_checkpoints: Any,
+) -> None:
+    """Check the options of ``train()``; ``physics_lr`` ``None`` stands for ``lr``.
+
+    The model's own options (``eps``, ``heterogeneous``, ``hidden``) are checked
+    when it is built.
+
+    Raises:
+        TrainingInputError: the first bad option, named.
+    """
+    if model not in model_names():
+        raise TrainingInputError(
+            f"unknown model {model!r}; registered models: {', '.join(model_names())}"
+        )
+    try:
+        parse_device(device, allow_index=False)
+    except ValueError as err:
+        raise TrainingInputError(str(err)) from None
+    _positive_int("epochs", epochs)
+    _positive_int("batch_size", batch_size)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise TrainingInputError(f"seed must be a non-negative integer, got {seed!r}")
+    _number("lr", lr, zero_ok=False)
+    _number("weight_decay", weight_decay, zero_ok=True)
+    if physics_lr is not None:
+        _number("physics_lr", physics_lr, zero_ok=False)
+    if max_time is not None:
+        try:
+            mt = float(max_time)
+        except (TypeError, ValueError):
+            mt = math.nan
+        if not mt > 0:
+            raise TrainingInputError(f"max_time must be minutes (> 0), got {max_time!r}")
+    if dtype not in DTYPE_NAMES:
+        raise TrainingInputError(f"dtype must be one of {DTYPE_NAMES}, got {dtype!r}")
+    if schedule not in SCHEDULES:
+        raise TrainingInputError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
+    if keep_checkpoints is not None:
+        _positive_int("keep_checkpoints", keep_checkpoints)

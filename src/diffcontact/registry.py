@@ -1,0 +1,112 @@
+"""A name -> factory registry, shared by contact models and learned models.
+
+Torch-free: command-line parsers read the names (``choices``) without loading
+the numerical code. Built-in entries may be ``"module:attribute"`` strings
+(imported on first use) and third-party packages can add entries through an
+entry-point group, read the first time the registry is used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Iterable
+from typing import Any
+
+__all__ = ["Registry"]
+
+
+class Registry:
+    """Names to factories, with protected built-ins.
+
+    Args:
+        kind: what is registered, for messages (``"contact model"``).
+        builtins: built-in name -> factory or ``"module:attribute"``; these
+            cannot be replaced or removed.
+        entry_point_group: the ``importlib.metadata`` entry-point group read
+            on first use.
+    """
+
+    def __init__(
+        self,
+        kind: str,
+        builtins: dict[str, Callable[..., Any] | str],
+        entry_point_group: str,
+    ) -> None:
+        self.kind = kind
+        self._factories: dict[str, Callable[..., Any] | str] = dict(builtins)
+        self._builtin = tuple(builtins)
+        self._group = entry_point_group
+        self._entry_points_loaded = False
+
+    def _load_entry_points(self) -> None:
+        if self._entry_points_loaded:
+            return
+        self._entry_points_loaded = True
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=self._group):
+            self._factories.setdefault(ep.name, ep.value)
+
+    def register(self, name: str, factory: Callable[..., Any], *, overwrite: bool = False) -> None:
+        """Add ``factory`` under ``name``.
+
+        Raises:
+            ValueError: an empty name, a name already taken (unless
+                ``overwrite``; built-ins never), or a factory that is not callable.
+        """
+        if not isinstance(name, str) or not name.strip() or name != name.strip():
+            raise ValueError(f"{self.kind} name must be a non-empty string, got {name!r}")
+        if not callable(factory):
+            raise ValueError(f"factory for {self.kind} {name!r} must be callable")
+        self._load_entry_points()
+        if name in self._builtin:
+            raise ValueError(f"{name!r} is a built-in {self.kind} and cannot be replaced")
+        if name in self._factories and not overwrite:
+            raise ValueError(
+                f"{self.kind} {name!r} is already registered (pass overwrite=True to replace it)"
+            )
+        self._factories[name] = factory
+
+    def unregister(self, name: str) -> None:
+        """Remove a registered (not built-in) name; unknown names are ignored."""
+        if name in self._builtin:
+            raise ValueError(f"{name!r} is a built-in {self.kind} and cannot be removed")
+        self._factories.pop(name, None)
+
+    def names(self) -> list[str]:
+        """Registered names, built-ins first, then the others sorted."""
+        self._load_entry_points()
+        return [*self._builtin, *sorted(n for n in self._factories if n not in self._builtin)]
+
+    def factory(self, name: str) -> Callable[..., Any]:
+        """The factory of ``name``; ``ValueError`` listing the registered names if unknown."""
+        self._load_entry_points()
+        if name not in self._factories:
+            known = ", ".join(self.names())
+            raise ValueError(f"unknown {self.kind} {name!r}; registered {self.kind}s: {known}")
+        factory = self._factories[name]
+        if isinstance(factory, str):
+            module, _, attr = factory.partition(":")
+            factory = getattr(importlib.import_module(module), attr)
+            self._factories[name] = factory
+        return factory
+
+    def create(self, name: str, *args: Any, required: Iterable[str] = (), **options: Any) -> Any:
+        """``factory(*args, **options)``, checked for the ``required`` methods.
+
+        Raises:
+            ValueError: unknown name, options the factory does not take, or a
+                product lacking one of ``required``.
+        """
+        factory = self.factory(name)
+        try:
+            product = factory(*args, **options)
+        except TypeError as err:
+            raise ValueError(f"{self.kind} {name!r}: bad options {options}: {err}") from None
+        for attr in required:
+            if not callable(getattr(product, attr, None)):
+                raise ValueError(
+                    f"the factory of {self.kind} {name!r} returned {type(product).__name__}, "
+                    f"which has no {attr} method"
+                )
+        return product

@@ -1,0 +1,102 @@
+"""Contact models as registered objects: protocol, registry, CM and CMr."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.contact import (
+    ContactModel,
+    PoissonTwoPhase,
+    contact_models,
+    create_contact_model,
+    register_contact_model,
+    unregister_contact_model,
+)
+
+
+class Frictionless:
+    """CM with friction switched off: a contact model from outside the package."""
+
+    def __init__(self, scale: float = 0.0) -> None:
+        self.inner = PoissonTwoPhase()
+        self.scale = scale
+
+    def resolve(self, J_C, Mhat_inv, v, params, active, d, **kwargs):
+        params = params.replace(mu=params.mu * self.scale)
+        return self.inner.resolve(J_C, Mhat_inv, v, params, active, d, **kwargs)
+
+
+@pytest.fixture
+def frictionless():
+    register_contact_model("Frictionless", Frictionless)
+    yield "Frictionless"
+    unregister_contact_model("Frictionless")
+
+
+def test_builtin_names_and_unknown_name():
+    assert contact_models()[:2] == ["CM", "CMr"]
+    with pytest.raises(ValueError, match=r"unknown contact model 'LCP'; registered .*: CM, CMr"):
+        create_contact_model("LCP")
+    assert isinstance(create_contact_model("CM"), ContactModel)
+    with pytest.raises(ValueError, match=r"has no resolve method|registered name"):
+        create_contact_model(42)
+
+
+def test_registered_model_runs_by_name(frictionless):
+    assert frictionless in contact_models()
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(3, seed=0)
+    by_name = system.simulate(z0, 40, contact_model=frictionless)
+    zero_mu = system.simulate(z0, 40, params=system.parameters().replace(mu=0.0))
+    assert torch.equal(by_name, zero_mu)
+    assert (by_name - system.simulate(z0, 40)).abs().max() > 1e-6  # friction mattered
+    # options reach the factory; an object is used as it is
+    half = system.simulate(z0, 40, contact_model=create_contact_model(frictionless, scale=0.5))
+    half_mu = system.simulate(z0, 40, params=system.parameters().replace(mu=system.mu * 0.5))
+    assert torch.equal(half, half_mu)
+
+
+def test_registry_guards(frictionless):
+    with pytest.raises(ValueError, match="already registered"):
+        register_contact_model(frictionless, Frictionless)
+    register_contact_model(frictionless, Frictionless, overwrite=True)
+    with pytest.raises(ValueError, match="built-in"):
+        register_contact_model("CM", Frictionless, overwrite=True)
+    with pytest.raises(ValueError, match="callable"):
+        register_contact_model("Broken", 3)
+    with pytest.raises(ValueError, match="bad options"):
+        create_contact_model("CM", eps=0.1)
+    with pytest.raises(ValueError, match="options are for contact-model names"):
+        create_contact_model(PoissonTwoPhase(), eps=0.1)
+
+
+def test_cmr_eps_on_the_object_or_in_params():
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=1)
+    p = system.parameters()
+    fixed = system.simulate(z0, 20, contact_model=create_contact_model("CMr", eps=0.1))
+    from_params = system.simulate(z0, 20, contact_model="CMr", params=p.replace(eps=0.1))
+    default = system.simulate(z0, 20, contact_model="CMr")
+    assert torch.equal(fixed, from_params)
+    assert (fixed - default).abs().max() > 0
+    with pytest.raises(ValueError, match=r"CM .* takes none"):
+        PoissonTwoPhase(regularized=False, eps=0.1)
+
+
+def test_poisson_two_phase_is_the_two_phase_impulse():
+    from diffcontact.contact import ContactParams, two_phase_impulse
+
+    gen = torch.Generator().manual_seed(0)
+    n, K, d, D = 4, 3, 2, 6
+    J = torch.randn(n, K * d, D, generator=gen, dtype=torch.float64)
+    Mh = torch.eye(D, dtype=torch.float64).expand(n, D, D)
+    v = torch.randn(n, D, generator=gen, dtype=torch.float64)
+    mu = torch.rand(n, K, generator=gen, dtype=torch.float64)
+    cor = torch.rand(n, K, generator=gen, dtype=torch.float64)
+    active = torch.ones(n, K, dtype=torch.bool)
+    for model, eps in ((PoissonTwoPhase(), None), (PoissonTwoPhase(True, 0.05), 0.05)):
+        res = model.resolve(J, Mh, v, ContactParams(mu, cor), active, d)
+        ref = two_phase_impulse(J, Mh, v, mu, cor, active, d, eps=eps)
+        assert torch.equal(res.v_plus, ref.v_plus) and torch.equal(res.f_r, ref.f_r)

@@ -1,0 +1,109 @@
+"""Recorded data: dataset_from_arrays round trip, validation messages, interrupted writes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffcontact.io import atomic_path
+from diffcontact.learning.data import write as write_mod
+from diffcontact.learning.data.arrays import dataset_from_arrays
+from diffcontact.learning.data.format import DatasetError, load_dataset
+
+from .support import BP5, L, all_trajectories, window_contact
+
+
+def test_arrays_round_trip(bp5_dir, tmp_path, capsys):
+    traj = all_trajectories(bp5_dir)  # (12, 20, 2, 5, 2)
+    out = dataset_from_arrays(traj, BP5, tmp_path / "rec", dt=0.01, seed=4, progress=False)
+    ds = load_dataset(out)
+    meta = ds.metadata
+    assert meta["source"] == "arrays" and ds.counts == {"train": 10, "val": 1, "test": 1}
+    seen = []
+    for name in ("train", "val", "test"):
+        split = ds.split(name)
+        index = meta["source_indices"][name]
+        seen += index
+        assert np.array_equal(split.traj.numpy(), traj[index])
+        window = window_contact(split.contact, split.chunk_start)
+        assert not window[:, 0].any()
+        idx = split.chunk_start[:, None] + torch.arange(L)
+        assert torch.equal(split.chunks, split.traj[torch.arange(len(split))[:, None], idx])
+    assert sorted(seen) == list(range(12))
+    # same arrays and arguments: reused; another seed: refused
+    dataset_from_arrays(torch.from_numpy(traj), BP5, out, dt=0.01, seed=4)
+    assert "reusing" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="seed"):
+        dataset_from_arrays(traj, BP5, out, seed=5)
+    changed = traj.copy()
+    changed[0, 3, 1] += 0.1
+    with pytest.raises(ValueError, match="traj_sha256"):
+        dataset_from_arrays(changed, BP5, out, seed=4)
+
+
+def test_arrays_validation_messages(recorded, tmp_path):
+    out = tmp_path / "rec"
+
+    def fails(traj, match, **kw):
+        with pytest.raises(ValueError, match=match):
+            dataset_from_arrays(traj, kw.pop("config", BP5), out, **kw)
+        assert not out.exists()  # nothing written before validation passes
+
+    bad = recorded.copy()
+    bad[2, 5, 0, 1, 0] = np.nan
+    bad[3, 7, 1, 0, 1] = np.inf
+    fails(bad, r"NaN or infinite values at trajectory 2 state 5 \(t = 0\.05 s\), trajectory 3")
+    fails(recorded[..., :1], r"shape \(N, T, 2, 5, 2\) for BP5.*got \(12, 20, 2, 5, 1\)")
+    fails(recorded[:, :, :, :3], r"got \(12, 20, 2, 3, 2\)")
+    fails(recorded[0], r"got \(20, 2, 5, 2\) \(a single trajectory\? add a leading axis")
+    fails(recorded, r"shape \(N, T, 2, 3, 2\) for CP3", config="CP3")
+    fails(recorded, r"dt=0\.02 of the data differs from the config's dt=0\.01", dt=0.02)
+    fails(recorded[:, :4], r"hold 4 states, fewer than chunk_length=5")
+    fails(recorded[:2], r"2 trajectories are too few")
+    fails(recorded, r"val_fraction \+ test_fraction must be below 1", val_fraction=0.5,
+          test_fraction=0.5)  # fmt: skip
+    fails(recorded, r"val_fraction must lie in \[0, 1\)", val_fraction=1.0)
+    fails(np.array([["a"]]), "numeric array")
+    overlapping = recorded.copy()
+    overlapping[4, :, 0, 0] = (-0.5, 0.5)  # body 0 beyond the left wall at every state
+    fails(
+        overlapping,
+        r"1 of 12 trajectories \(4\) are in contact .* at every state that could start a "
+        r"chunk \(states 0\.\.15\).*body 0 penetrates wall 0",
+    )
+
+
+def test_interrupted_write_leaves_no_partial_file(recorded, tmp_path, monkeypatch):
+    out = tmp_path / "rec"
+    real = write_mod.atomic_save_npz
+    calls = []
+
+    def crash_on_second(path, **arrays):
+        calls.append(Path(path).name)
+        if len(calls) == 2:
+            with atomic_path(path) as tmp:
+                tmp.write_bytes(b"half")
+                raise RuntimeError("simulated crash")
+        return real(path, **arrays)
+
+    monkeypatch.setattr(write_mod, "atomic_save_npz", crash_on_second)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        dataset_from_arrays(recorded, BP5, out, progress=False)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [".generating.json", "train.npz"]  # no val.npz, no temporary, no metadata
+    with pytest.raises(DatasetError, match="interrupted run"):
+        load_dataset(out)
+    with pytest.raises(ValueError, match=r"unfinished dataset .* seed \(0 there, 1 requested\)"):
+        dataset_from_arrays(recorded, BP5, out, seed=1)
+    monkeypatch.setattr(write_mod, "atomic_save_npz", real)
+    dataset_from_arrays(recorded, BP5, out, progress=False)  # same arguments: finishes
+    assert sorted(p.name for p in out.iterdir()) == [
+        "metadata.json",
+        "test.npz",
+        "train.npz",
+        "val.npz",
+    ]
+    load_dataset(out)

@@ -1,0 +1,93 @@
+"""``diffcontact generate``: one-line errors, summaries, reuse."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from diffcontact.learning.data.cli import register_cli
+from diffcontact.learning.data.format import load_dataset
+
+from .support import BP5, short_config
+
+
+def cli(capsys, *argv: str) -> tuple[int, str, str]:
+    parser = argparse.ArgumentParser(prog="diffcontact")
+    register_cli(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(list(argv))
+    code = args.func(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *needles: str) -> None:
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("diffcontact generate: error: "), err
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_cli_bad_input_exits_2(recorded, tmp_path, capsys):
+    out = str(tmp_path / "out")
+    code, _, err = cli(capsys, "generate", "NoSuchTask", "--out", out)
+    assert_one_line_error(code, err, "unknown task 'NoSuchTask'")
+    code, _, err = cli(capsys, "generate", "--out", out)
+    assert_one_line_error(code, err, "give TASK_OR_CONFIG")
+    code, _, err = cli(capsys, "generate", "--from-arrays", str(tmp_path / "no.npz"), "--out", out)
+    assert_one_line_error(code, err, "does not exist")
+    np.savez(tmp_path / "wrong.npz", x=recorded)
+    code, _, err = cli(
+        capsys, "generate", "--from-arrays", str(tmp_path / "wrong.npz"), "--config", "BP5",
+        "--out", out,
+    )  # fmt: skip
+    assert_one_line_error(code, err, "no array named 'traj'", "found: x")
+    np.savez(tmp_path / "rec.npz", traj=recorded)
+    code, _, err = cli(
+        capsys, "generate", "--from-arrays", str(tmp_path / "rec.npz"), "--config", "CP3",
+        "--out", out,
+    )  # fmt: skip
+    assert_one_line_error(code, err, "(N, T, 2, 3, 2)", "got (12, 20, 2, 5, 2)")
+    code, _, err = cli(
+        capsys, "generate", "--from-arrays", str(tmp_path / "rec.npz"), "--config", "BP5",
+        "--n-train", "5", "--out", out,
+    )  # fmt: skip
+    assert_one_line_error(code, err, "--n-train does not apply with --from-arrays")
+    code, _, err = cli(capsys, "generate", "BP5", "--dt", "0.01", "--out", out)
+    assert_one_line_error(code, err, "--dt applies only with --from-arrays")
+    assert not Path(out).exists()
+
+
+def test_cli_from_arrays_summary_and_reuse(recorded, tmp_path, capsys):
+    config = tmp_path / "bp5.yaml"
+    config.write_text(json.dumps(BP5))  # JSON is YAML
+    np.savez(tmp_path / "rec.npz", traj=recorded, dt=0.01)
+    out = tmp_path / "ds"
+    argv = ["generate", "--from-arrays", str(tmp_path / "rec.npz"), "--config", str(config)]
+    code, stdout, err = cli(capsys, *argv, "--out", str(out))
+    assert code == 0, err
+    assert "BP5 dataset (arrays) written" in stdout
+    assert "train: 10 trajectories x 20 states" in stdout and "% of chunks" in stdout
+    assert str(out / "train.npz") in stdout
+    code, stdout, _ = cli(capsys, *argv, "--out", str(out))
+    assert code == 0 and "reused" in stdout
+    code, _, err = cli(capsys, *argv, "--seed", "3", "--out", str(out))
+    assert_one_line_error(code, err, "different arguments", "seed (0 there, 3 requested)")
+
+
+def test_cli_simulates_a_tiny_dataset(tmp_path, capsys):
+    config = tmp_path / "tiny.json"
+    config.write_text(json.dumps(short_config("BP5", 0.1)))  # 10 states
+    out = tmp_path / "ds"
+    code, stdout, err = cli(
+        capsys, "generate", str(config), "--out", str(out), "--n-train", "2", "--n-val", "1",
+        "--n-test", "1", "--seed", "2", "--quiet",
+    )  # fmt: skip
+    assert code == 0, err
+    assert stdout == ""
+    ds = load_dataset(out)
+    assert ds.counts == {"train": 2, "val": 1, "test": 1}
+    assert ds.metadata["seeds"] == {"train": 2000, "val": 2001, "test": 2002}

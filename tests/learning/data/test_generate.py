@@ -1,0 +1,56 @@
+"""Simulated datasets: independent splits, reuse with the same arguments, refusals."""
+
+from __future__ import annotations
+
+import pytest
+
+from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.data.generate import generate_dataset
+from diffcontact.systems import System
+
+from .support import BP5, SIZES, copy_dataset, short_config
+
+
+def test_val_and_test_are_independent_of_train(bp5_dir):
+    ds = load_dataset(bp5_dir)
+    z0 = {name: ds.split(name).traj[:, 0] for name in ("train", "val", "test")}
+    for a, b in (("train", "val"), ("train", "test"), ("val", "test")):
+        dist = (z0[a][:, None] - z0[b][None]).flatten(2).abs().amax(-1)
+        assert bool((dist > 1e-6).all()), (a, b)
+
+
+def test_same_arguments_reuse_files(bp5_dir, tmp_path, monkeypatch, capsys):
+    folder = copy_dataset(bp5_dir, tmp_path)
+    before = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in folder.iterdir()}
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated again")
+
+    monkeypatch.setattr(System, "simulate", no_simulation)
+    assert generate_dataset(BP5, folder, **SIZES, seed=0, progress=True) == folder
+    assert "reusing" in capsys.readouterr().out
+    after = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in folder.iterdir()}
+    assert after == before
+
+
+def test_different_arguments_raise_and_keep_files(bp5_dir, tmp_path):
+    folder = copy_dataset(bp5_dir, tmp_path)
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    with pytest.raises(ValueError, match="different arguments") as info:
+        generate_dataset(BP5, folder, n_train=7, n_val=3, n_test=3, noise_std=0.1)
+    msg = str(info.value)
+    assert "n_train (6 there, 7 requested)" in msg and "noise_std" in msg and "seed" not in msg
+    with pytest.raises(ValueError, match=r"config\.horizon \(0\.2 there, 0\.5 requested\)"):
+        generate_dataset(short_config("BP5", 0.5), folder, **SIZES)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+
+
+def test_foreign_folder_is_refused(tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not empty and holds no dataset"):
+        generate_dataset(BP5, tmp_path, **SIZES)
+    with pytest.raises(ValueError, match="n_train must be an integer >= 1"):
+        generate_dataset(BP5, tmp_path / "x", n_train=0)
+    with pytest.raises(ValueError, match="unknown task"):
+        generate_dataset("NoSuchTask", tmp_path / "x")
+    assert not (tmp_path / "x").exists()

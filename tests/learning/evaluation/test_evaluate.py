@@ -1,0 +1,172 @@
+"""evaluate() end to end: an injected model, load_model, a trained run; bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+import diffcontact as dc
+from diffcontact.learning.data.arrays import dataset_from_arrays
+from diffcontact.learning.evaluation.evaluate import EvaluationInputError, evaluate
+from diffcontact.learning.models.physical import LearnedModel
+from diffcontact.learning.training.run import train
+
+from .support import TINY, SystemModel, cli, run_dir
+
+
+def test_evaluate_truth_as_model(tmp_path, dataset):
+    run = run_dir(tmp_path, dataset)
+    metrics = evaluate(run, model=SystemModel(TINY), steps=30, n_gif=2, gif_frames=12)
+    out = run / "evaluation"
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk == metrics
+    for key in (
+        "rel_err_mean", "rel_err_ci95", "mass_ratios", "mu", "cor", "energy_rel_drift",
+        "n_test", "steps", "model", "task",
+    ):  # fmt: skip
+        assert key in metrics, key
+    assert metrics["n_test"] == 3 and metrics["steps"] == 30
+    assert metrics["task"] == "BP2" and metrics["model"] == "truth"
+    # the test trajectories hold 20 states: the 31-state ground truth was simulated
+    assert metrics["ground_truth"].startswith("simulated")
+    assert metrics["rel_err_mean"] == pytest.approx(0.0, abs=1e-12)
+    assert metrics["rel_err_ci95"] == pytest.approx(0.0, abs=1e-12)
+    assert metrics["n_nonfinite"] == 0
+    drift = metrics["energy_rel_drift"]
+    assert drift["pred"] == pytest.approx(drift["true"], abs=1e-12)
+    assert metrics["mass_ratios"]["learned"] == pytest.approx([3.0])
+    assert metrics["mass_ratios"]["true"] == pytest.approx([3.0])
+    for key in ("mu", "cor"):
+        assert metrics[key]["learned"] == pytest.approx(metrics[key]["true"])
+        assert metrics[key]["max_abs_error"] == pytest.approx(0.0)
+    assert metrics["cor"]["true"] == pytest.approx(TINY["cor"])
+    assert sorted(metrics["files"]) == sorted(
+        [
+            "metrics.json",
+            "rollout.npz",
+            "rel_error.png",
+            "energy.png",
+            "training.png",
+            "rollout.gif",
+        ]
+    )
+    for name in ("rel_error.png", "energy.png", "training.png"):
+        with Image.open(out / name) as im:
+            assert im.format == "PNG" and im.width >= 400 and im.height >= 200
+        assert (out / name).stat().st_size > 10_000
+    with Image.open(out / "rollout.gif") as gif:
+        assert gif.format == "GIF" and gif.n_frames > 5
+    with np.load(out / "rollout.npz") as f:
+        assert f["pred"].shape == f["true"].shape == (3, 31, 2, 2, 2)
+        np.testing.assert_array_equal(f["pred"], f["true"])
+
+
+def test_evaluate_detects_a_wrong_model(tmp_path, dataset):
+    run = run_dir(tmp_path, dataset, log=False)
+    wrong = SystemModel(TINY, masses=[0.1, 0.15], gravity=9.81)
+    out = tmp_path / "eval"
+    metrics = evaluate(run, out, model=wrong, steps=19, n_gif=0)
+    assert metrics["ground_truth"] == "test set"  # 20 stored states suffice
+    assert metrics["rel_err_mean"] > 1e-3
+    assert metrics["rel_err_ci95"] > 0
+    assert metrics["mass_ratios"]["learned"] == pytest.approx([1.5])
+    assert metrics["mass_ratios"]["max_rel_error"] == pytest.approx(0.5)
+    assert "training.png" not in metrics["files"] and "rollout.gif" not in metrics["files"]
+    assert (out / "rel_error.png").is_file()
+
+
+def test_evaluate_without_run_dir(tmp_path, dataset):
+    metrics = evaluate(
+        None, tmp_path / "out", model=SystemModel(TINY), data_dir=dataset, steps=5, n_gif=0
+    )
+    assert metrics["run_dir"] is None and metrics["rel_err_mean"] == 0.0
+    with pytest.raises(EvaluationInputError, match="out_dir"):
+        evaluate(None, model=SystemModel(TINY), data_dir=dataset, steps=5, n_gif=0)
+
+
+def test_evaluate_bad_input(tmp_path, dataset):
+    with pytest.raises(EvaluationInputError, match="does not exist"):
+        evaluate(tmp_path / "missing")
+    run = tmp_path / "run"
+    run.mkdir()
+    with pytest.raises(EvaluationInputError, match=r"no run\.json"):
+        evaluate(run)
+    (run / "run.json").write_text(json.dumps({"data_dir": str(dataset)}))
+    with pytest.raises(EvaluationInputError, match="no trained model"):
+        evaluate(run)
+    (run / "run.json").write_text(json.dumps({"data_dir": str(tmp_path / "nodata")}))
+    with pytest.raises(EvaluationInputError, match="test data not found"):
+        evaluate(run, model=SystemModel(TINY))
+    other = _other_dataset(tmp_path, dataset)
+    with pytest.raises(EvaluationInputError, match="states have shape"):
+        evaluate(None, tmp_path / "o", model=SystemModel("BP5"), data_dir=other)
+    with pytest.raises(EvaluationInputError, match="n_gif"):
+        evaluate(run, model=SystemModel(TINY), data_dir=dataset, n_gif=-1)
+
+
+def test_evaluate_through_load_model(tmp_path, dataset, capsys):
+    torch.manual_seed(0)
+    model = LearnedModel(TINY, model="CM-CD-CLNN", heterogeneous=True, hidden=(8,))
+    truth = dc.load_system(TINY)
+    model.set_parameters(mass=truth.mass, mu=truth.mu, cor=truth.cor)
+    with torch.no_grad():  # a constant learned potential: the truth has no gravity
+        for p in model.potential.layers[-1].parameters():
+            p.zero_()
+    run = run_dir(tmp_path, dataset, log=False)
+    model.save(run / "model.pt")
+    assert cli(["evaluate", str(run), "--steps", "19", "--n-gif", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "relative error" in printed and "m2/m1" in printed
+    metrics = json.loads((run / "evaluation" / "metrics.json").read_text())
+    assert metrics["model"] == "CM-CD-CLNN"
+    # float32 parameters, float64 rollout: the truth up to float32 rounding
+    assert metrics["rel_err_mean"] < 1e-4
+    assert metrics["mass_ratios"]["learned"] == pytest.approx([3.0], rel=1e-6)
+    assert metrics["cor"]["learned"] == pytest.approx(TINY["cor"], abs=1e-6)
+    assert "rollout.gif" in metrics["files"]
+
+
+def test_evaluate_a_trained_run(tmp_path):
+    """dataset_from_arrays -> train (1 epoch) -> evaluate, on the real files."""
+    system = dc.load_system(TINY)
+    traj = system.simulate(system.sample_initial_conditions(6, seed=2))
+    data = dataset_from_arrays(
+        traj, TINY, tmp_path / "data", val_fraction=0.2, test_fraction=0.2, progress=False
+    )
+    run = tmp_path / "run"
+    train(data, run, epochs=1, batch_size=8, hidden=(8,), progress=False)
+    metrics = evaluate(run, steps=10, n_gif=0)
+    assert metrics["model"] == "CM-CD-CLNN" and metrics["task"] == "BP2"
+    assert metrics["steps"] == 10 and metrics["n_test"] >= 1
+    assert math.isfinite(metrics["rel_err_mean"]) and metrics["rel_err_mean"] > 0
+    assert len(metrics["mass_ratios"]["learned"]) == 1
+    assert metrics["mass_ratios"]["true"] == pytest.approx([3.0])
+    assert "training.png" in metrics["files"]  # from RUN/logs/metrics.csv
+
+
+def _other_dataset(tmp_path: Path, dataset: Path) -> Path:
+    """TINY's dataset with BP5's config in its metadata: a shape mismatch."""
+    folder = tmp_path / "other"
+    shutil.copytree(dataset, folder)
+    meta = json.loads((folder / "metadata.json").read_text())
+    meta["config"] = dc.load_system("BP5").config.model_dump(mode="json")
+    (folder / "metadata.json").write_text(json.dumps(meta))
+    return folder
+
+
+def test_evaluate_reads_the_test_data_through_the_dataset_reader(tmp_path, dataset):
+    """A corrupted test split is refused (checksums), like training's data."""
+    folder = tmp_path / "corrupt"
+    shutil.copytree(dataset, folder)
+    raw = bytearray((folder / "test.npz").read_bytes())
+    raw[-100] ^= 0xFF
+    (folder / "test.npz").write_bytes(bytes(raw))
+    with pytest.raises(EvaluationInputError, match=r"test\.npz does not match its sha256"):
+        evaluate(None, tmp_path / "out", model=SystemModel(TINY), data_dir=folder, n_gif=0)

@@ -1,0 +1,51 @@
+"""``diffcontact train``: bad input gives one line on stderr and exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+import torch
+
+from diffcontact.learning.training.cli import register_cli
+from diffcontact.learning.training.options import TrainingInputError
+from diffcontact.learning.training.run import train
+
+
+def _run_cli(argv, capsys):
+    parser = argparse.ArgumentParser(prog="diffcontact")
+    register_cli(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(argv)
+    code = args.func(args)
+    return code, capsys.readouterr().err
+
+
+def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    cases = [
+        (["train", str(tmp_path / "missing"), "--out", out], "does not exist"),
+        (["train", str(bp5_data), "--model", "XX-CD-CLNN", "--out", out], "unknown model"),
+        (["train", str(bp5_data), "--resume", "--out", out], "cannot resume"),
+        (["train", str(bp5_data), "--dtype", "float16", "--out", out], "dtype"),
+    ]
+    if not torch.cuda.is_available():
+        cases.append((["train", str(bp5_data), "--device", "cuda", "--out", out], "CUDA"))
+    for argv, text in cases:
+        code, err = _run_cli(argv, capsys)
+        assert code == 2, argv
+        assert text in err and err.count("\n") == 1, err
+    # an out dir holding a different run
+    run = tmp_path / "other"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    (run / "run.json").write_text(json.dumps({"model": "CM-CD-CLNN", "lr": 0.5}))
+    code, err = _run_cli(["train", str(bp5_data), "--resume", "--out", str(run)], capsys)
+    assert code == 2 and "different run" in err and err.count("\n") == 1
+    code, err = _run_cli(["train", str(bp5_data), "--out", str(run)], capsys)
+    assert code == 2 and "already holds a run" in err
+    with pytest.raises(TrainingInputError, match="epochs"):
+        train(bp5_data, tmp_path / "x", epochs=0)
+    with pytest.raises(TrainingInputError, match="strategy"):
+        train(bp5_data, tmp_path / "x", epochs=1, strategy="nonsense", progress=False)
+    assert not (tmp_path / "x").exists()  # nothing written before the checks pass

@@ -1,0 +1,115 @@
+"""train(): the run directory, resume, the cosine schedule and run identity."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import lightning.pytorch as pl
+import numpy as np
+import pytest
+import torch
+
+from diffcontact.learning.models.storage import load_model
+from diffcontact.learning.training.options import COSINE_FLOOR, TrainingInputError
+from diffcontact.learning.training.run import train
+
+from .support import SMALL
+
+
+def _state(run_dir):
+    return torch.load(run_dir / "model.pt", weights_only=True)["state_dict"]
+
+
+def test_train_writes_the_run_directory(bp5_data, tmp_path):
+    out = tmp_path / "run"
+    # max_time: stop after the first epoch that ends after 1e-9 minutes, i.e. after epoch 0
+    model = train(bp5_data, out, epochs=3, batch_size=4, max_time=1e-9, **SMALL)
+    run = json.loads((out / "run.json").read_text())
+    assert run["model"] == "CM-CD-CLNN" and run["data_dir"] == str(bp5_data.resolve())
+    assert run["dtype"] == "float64" and run["options"]["heterogeneous"] is True
+    assert (out / "checkpoints" / "last.ckpt").is_file()
+    assert (out / "checkpoints" / "epoch0000.ckpt").is_file()
+    learned = json.loads((out / "learned.json").read_text())
+    assert learned["finished"] and learned["epoch"] == 0
+    assert not (out / "checkpoints" / "epoch0001.ckpt").exists()
+    assert learned["learned"] == model.learned_parameters()
+    with open(out / "logs" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    columns = set(rows[0])
+    assert {"train/loss_epoch", "val/loss", "param/mass_ratio_4", "param/mu_29"} <= columns
+    assert {"param/cor_0", "train/loss_step", "train/skipped"} <= columns
+    val = [float(r["val/loss"]) for r in rows if r["val/loss"]]
+    assert len(val) == 1 and np.isfinite(val[0])
+    back = load_model(out)
+    assert back.learned_parameters() == model.learned_parameters()
+    from_ckpt = load_model(out / "checkpoints" / "last.ckpt")
+    assert from_ckpt.learned_parameters() == model.learned_parameters()
+
+
+class _CrashAt(pl.Callback):
+    """Raise in the middle of an epoch (an interruption)."""
+
+    def __init__(self, epoch, batch):
+        self.epoch, self.batch = epoch, batch
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.current_epoch == self.epoch and batch_idx == self.batch:
+            raise RuntimeError("simulated crash")
+
+
+def test_resume_gives_the_uninterrupted_result(bp5_data, tmp_path):
+    opts = dict(batch_size=4, seed=3, **SMALL)
+    train(bp5_data, tmp_path / "a", epochs=2, keep_checkpoints=1, **opts)
+    kept = sorted(p.name for p in (tmp_path / "a" / "checkpoints").iterdir())
+    assert kept == ["epoch0001.ckpt", "last.ckpt"]
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(bp5_data, tmp_path / "b", epochs=2, callbacks=[_CrashAt(1, 1)], **opts)
+    assert not (tmp_path / "b" / "model.pt").exists()
+    assert (tmp_path / "b" / "checkpoints" / "epoch0000.ckpt").is_file()
+    train(bp5_data, tmp_path / "b", epochs=2, resume=True, **opts)
+    a, b = _state(tmp_path / "a"), _state(tmp_path / "b")
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(b[k], a[k]), k
+    with open(tmp_path / "b" / "logs" / "metrics.csv") as fh:
+        epochs = [r["epoch"] for r in csv.DictReader(fh) if r["train/loss_epoch"]]
+    assert epochs == ["0", "1"]  # continuous log, the interrupted epoch once
+
+
+def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
+    """Learning rates per step, logged by a callback, follow the documented cosine."""
+    seen = []
+
+    class Record(pl.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            seen.append([g["lr"] for g in trainer.optimizers[0].param_groups])
+
+    train(bp5_data, tmp_path / "run", epochs=3, batch_size=4, lr=1e-3, physics_lr=0.02,
+          callbacks=[Record()], **SMALL)  # fmt: skip
+    steps = len(seen)
+    assert steps == 6  # 8 chunks, batch 4, 3 epochs
+    floor = COSINE_FLOOR
+    for k, (lr_net, lr_phys) in enumerate(seen):
+        # after step k (0-based) the scheduler has advanced k + 1 times
+        x = min((k + 1) / (steps - 1), 1.0)
+        factor = floor + (1 - floor) * 0.5 * (1 + np.cos(np.pi * x))
+        assert lr_net == pytest.approx(1e-3 * factor, rel=1e-12)
+        assert lr_phys == pytest.approx(0.02 * factor, rel=1e-12)
+    assert seen[-1][1] == pytest.approx(0.02 * floor)
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert (run["schedule"], run["physics_lr"]) == ("cosine", 0.02)
+    # a different schedule or physics_lr is a different run: resume refuses it
+    with pytest.raises(TrainingInputError, match="physics_lr"):
+        train(bp5_data, tmp_path / "run", epochs=4, batch_size=4, lr=1e-3, physics_lr=0.03,
+              resume=True, **SMALL)  # fmt: skip
+    # so is a run of an older model format (different parameters)
+    old = {**run, "model_format": 2}
+    (tmp_path / "run" / "run.json").write_text(json.dumps(old))
+    with pytest.raises(TrainingInputError, match="model_format: 2 -> 3"):
+        train(bp5_data, tmp_path / "run", epochs=4, batch_size=4, lr=1e-3, physics_lr=0.02,
+              resume=True, **SMALL)  # fmt: skip
+    with pytest.raises(TrainingInputError, match="schedule must be"):
+        train(bp5_data, tmp_path / "other", schedule="step", **SMALL)
+    with pytest.raises(TrainingInputError, match="physics_lr must be > 0"):
+        train(bp5_data, tmp_path / "other", physics_lr=-1.0, **SMALL)
