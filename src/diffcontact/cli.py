@@ -5,6 +5,16 @@ Subcommands:
 - ``diffcontact demo``: the solver, a simulation, and learning CP3 end to end.
 - ``diffcontact simulate TASK_OR_CONFIG``: simulate a built-in task or a config
   file, save the trajectories as ``.npz`` and optionally a GIF.
+- ``diffcontact generate``: a train/val/test dataset, simulated or from recorded
+  arrays (:mod:`diffcontact.learning.data.cli`);
+- ``diffcontact train``: train a registered model on a dataset
+  (:mod:`diffcontact.learning.training.cli`);
+- ``diffcontact evaluate``: metrics, plots and a GIF of a trained run
+  (:mod:`diffcontact.learning.evaluation.cli`).
+
+Contact-model and model names come from the registries
+(:mod:`diffcontact.contact.registry`, :mod:`diffcontact.learning.models.registry`);
+building the parser imports neither torch nor Lightning.
 
 Bad input (unknown task, missing file, bad numbers, unwritable output, CUDA
 not available) gives a one-line error on stderr and exit status 2. Heavy

@@ -43,21 +43,6 @@ class InteriorPointResult:
     iterations: Tensor  # (B,) int64
 
 
-def block_diag(blocks: Tensor) -> Tensor:
-    """Dense block-diagonal matrix of per-contact blocks.
-
-    Args:
-        blocks: (B, K, d, d).
-
-    Returns:
-        (B, K*d, K*d) with ``blocks[:, k]`` on the k-th diagonal block.
-    """
-    B, K, d, _ = blocks.shape
-    out = torch.zeros(B, K, d, K, d, dtype=blocks.dtype, device=blocks.device)
-    torch.diagonal(out, dim1=1, dim2=3).copy_(blocks.permute(0, 2, 3, 1))
-    return out.reshape(B, K * d, K * d)
-
-
 def add_block_diag(M: Tensor, blocks: Tensor) -> Tensor:
     """``M + block_diag(blocks)`` without forming the block-diagonal matrix.
 

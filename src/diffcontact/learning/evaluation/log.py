@@ -10,7 +10,6 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -72,19 +71,20 @@ def read_training_log(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     return out
 
 
-_PARAM_RE = re.compile(
-    r"(?:^|[/_.\s-])(mass_ratios?|mass|mu|cor|e_p|restitution|eps)(?:[_\[\s.:/-]*(\d+)\]?)?$"
-)
-_CATEGORY = {
-    "mass_ratio": "mass_ratios",
-    "mass_ratios": "mass_ratios",
-    "mass": "mass",
-    "mu": "mu",
-    "cor": "cor",
-    "e_p": "cor",
-    "restitution": "cor",
-    "eps": "eps",
-}
+# learned-parameter columns are the models' metrics(): "param/<quantity>" or
+# "param/<quantity>_<index>" (the DynamicsModel protocol); these quantities get panels
+_CATEGORY = {"mass_ratio": "mass_ratios", "mass": "mass", "mu": "mu", "cor": "cor", "eps": "eps"}
+
+
+def _parameter(base: str) -> tuple[str, int | None] | None:
+    """``"param/mu_3"`` -> ``("mu", 3)``, ``"param/cor"`` -> ``("cor", None)``; else None."""
+    if not base.startswith("param/"):
+        return None
+    name = base[len("param/") :]
+    head, _, tail = name.rpartition("_")
+    if head and tail.isdigit():
+        return head, int(tail)
+    return name, None
 
 
 def classify_columns(log: Mapping[str, np.ndarray]) -> dict[str, dict[Any, str]]:
@@ -101,10 +101,8 @@ def classify_columns(log: Mapping[str, np.ndarray]) -> dict[str, dict[Any, str]]
         if "loss" in base:
             groups.setdefault("loss", {})[col] = col
             continue
-        m = _PARAM_RE.search(base)
-        if m is None:
+        parsed = _parameter(base)
+        if parsed is None or parsed[0] not in _CATEGORY:
             continue
-        cat = _CATEGORY[m.group(1)]
-        idx = None if m.group(2) is None else int(m.group(2))
-        groups.setdefault(cat, {})[idx] = col
+        groups.setdefault(_CATEGORY[parsed[0]], {})[parsed[1]] = col
     return groups
