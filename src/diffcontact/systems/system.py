@@ -787,7 +787,7 @@ class System:
             mask,
             d,
             v_C_star=v_star if fraction > 0 else None,
-            settings=settings,
+            settings=self._inner_settings(settings),
         )
         v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
         return ContactResult(
@@ -801,6 +801,18 @@ class System:
             J_C=J,
             v_C_star=v_star,
         )
+
+    @staticmethod
+    def _inner_settings(settings: SolverSettings | None) -> SolverSettings:
+        """Solver settings without the per-call sign/symmetry checks (host syncs).
+
+        Inside a step they hold by construction: ``mu`` and ``cor`` are validated
+        once at :meth:`simulate`'s boundary, ``A`` is symmetrised and PSD and the
+        restitution bound ``e_P f_c,n`` is clamped at zero. The finiteness check
+        stays (a rollout that blew up is reported as NaN input).
+        """
+        settings = settings or SolverSettings()
+        return settings if not settings.check_inputs else replace(settings, check_inputs=False)
 
     def _options(
         self,
