@@ -161,8 +161,12 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_outputs(args)
     import torch
 
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise UsageError("--device cuda requested but CUDA is not available (use --device cpu)")
+    from diffcontact.io import parse_device
+
+    try:
+        parse_device(args.device)
+    except ValueError as err:
+        raise UsageError(f"--device: {err}") from None
 
     import json
 

@@ -20,18 +20,30 @@ import torch
 from diffcontact.io import atomic_write_bytes
 from diffcontact.learning.models.registry import create_model, is_physical_model
 
-__all__ = ["load_model", "model_checkpoint", "model_from_checkpoint", "save_model"]
+__all__ = ["load_model", "model_checkpoint", "model_from_checkpoint", "model_spec", "save_model"]
 
 FORMAT_VERSION = 3  # the physical models' format history is in physical.py
+
+
+def model_spec(model: Any) -> dict[str, Any]:
+    """``{"model_name", "config", "options"}``: what rebuilds ``model`` without its weights.
+
+    The one writer of a model's description: ``model.pt`` files and the
+    training checkpoints' hyper-parameters both hold this dict, and
+    :func:`model_from_checkpoint` is its one reader.
+    """
+    return {
+        "model_name": model.model_name,
+        "config": model.config.model_dump(mode="json"),
+        "options": model.options(),
+    }
 
 
 def model_checkpoint(model: Any, format_version: int = FORMAT_VERSION) -> dict[str, Any]:
     """Everything :func:`model_from_checkpoint` needs, as plain data and tensors."""
     return {
         "format_version": format_version,
-        "model_name": model.model_name,
-        "config": model.config.model_dump(mode="json"),
-        "options": model.options(),
+        **model_spec(model),
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
     }
 

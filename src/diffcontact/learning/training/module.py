@@ -41,6 +41,7 @@ from diffcontact.io import atomic_write_json
 from diffcontact.learning.models.physical import FORMAT_VERSION as MODEL_FORMAT_VERSION
 from diffcontact.learning.models.protocol import DynamicsModel, OptimizerSettings
 from diffcontact.learning.models.registry import create_model
+from diffcontact.learning.models.storage import model_spec
 from diffcontact.learning.training.options import (
     COSINE_FLOOR,
     DEFAULT_DTYPE,
@@ -170,9 +171,7 @@ class RolloutModule(pl.LightningModule):
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.save_hyperparameters(
             {
-                "model_name": model.model_name,
-                "config": model.config.model_dump(mode="json"),
-                "options": model.options(),
+                **model_spec(model),
                 "lr": float(lr),
                 "weight_decay": float(weight_decay),
                 "physics_lr": float(lr if physics_lr is None else physics_lr),

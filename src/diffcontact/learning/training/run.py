@@ -2,7 +2,8 @@
 
 :func:`train` writes a run directory::
 
-    run.json            options, data directory, config, seed, versions (first)
+    run.json            options, data directory, seed, versions (first); the system
+                        config is the dataset's and is stored in the model files only
     checkpoints/        last.ckpt and epoch0000.ckpt, epoch0001.ckpt, ... (every epoch)
     logs/metrics.csv    Lightning CSVLogger: losses and learned parameters per epoch
     logs/tensorboard/   TensorBoard events, when tensorboard is installed
@@ -415,7 +416,6 @@ def train(
         "options": jsonable(learned.options()),
         "data_dir": str(data_path),
         "task": meta.get("task"),
-        "config": meta["config"],
         "seed": int(seed),
         "epochs": int(epochs),
         "batch_size": int(batch_size),
