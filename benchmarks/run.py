@@ -4,6 +4,7 @@
     python benchmarks/run.py solver [...]    # friction-cone QP vs cvxpylayers (solver.py)
     python benchmarks/run.py simulate [...]  # ground-truth simulation (simulate.py)
     python benchmarks/run.py train [...]     # seconds per training step per task (train.py)
+    python benchmarks/run.py control [...]   # one planning iteration, 1 and 64 starts (control.py)
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -16,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SUITES = ("solver", "simulate", "train")
+SUITES = ("solver", "simulate", "train", "control")
 
 
 def main(argv: list[str] | None = None) -> int:

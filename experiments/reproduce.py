@@ -513,6 +513,25 @@ def _report_only(out: Path, doc: str | None) -> int:
     return 0
 
 
+# sections of the report file written by other experiment scripts, kept on rewrite
+KEPT_SECTIONS = [
+    (  # experiments/control.py
+        "<!-- control results (experiments/control.py): begin -->",
+        "<!-- control results: end -->",
+    ),
+]
+
+
+def _kept_sections(doc: Path) -> str:
+    """The marked sections of other scripts in ``doc`` (with their markers), or ``""``."""
+    text = doc.read_text() if doc.is_file() else ""
+    kept = []
+    for begin, end in KEPT_SECTIONS:
+        if begin in text and end in text.split(begin, 1)[1]:
+            kept.append(begin + text.split(begin, 1)[1].split(end, 1)[0] + end)
+    return "".join("\n" + k + "\n" for k in kept)
+
+
 def _write_report(
     out: Path, doc: str | None, results: dict[str, Any], meta: dict[str, Any]
 ) -> None:
@@ -520,7 +539,7 @@ def _write_report(
     report = render(results, meta) + "\n"
     _atomic_write(out / "results.md", report)
     if doc:
-        _atomic_write(Path(doc), report)
+        _atomic_write(Path(doc), report + _kept_sections(Path(doc)))
     print(f"wrote {out / 'results.md'}" + (f" and {doc}" if doc else ""))
 
 

@@ -13,24 +13,10 @@ import torch
 from PIL import Image
 
 from diffcontact import __version__
-from diffcontact.cli import main
 from diffcontact.io import atomic_path, atomic_save_npz, atomic_write_bytes, check_writable
+from diffcontact.testing import assert_usage_error, run_cli
 
-
-def run(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def assert_usage_error(code: int, err: str, *needles: str) -> None:
-    assert code == 2
-    assert "Traceback" not in err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1, err
-    assert lines[0].startswith("diffcontact")
-    for needle in needles:
-        assert needle in lines[0], lines[0]
+run = run_cli
 
 
 # ----------------------------------------------------------------------- help

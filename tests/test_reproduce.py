@@ -109,3 +109,19 @@ def test_cmr_mass_scale_script(tmp_path, capsys):
     assert exc.value.code == 2 and "has a true potential" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         script.main([str(data), "--scales", "0"])
+
+
+def test_report_rewrite_keeps_the_control_section(repro, tmp_path):
+    """reproduce.py rewrites results.md; the section of experiments/control.py survives,
+    and control.py replaces its own section without touching the rest."""
+    control = _load("control")
+    assert (control.BEGIN, control.END) in repro.KEPT_SECTIONS
+    doc = tmp_path / "results.md"
+    doc.write_text("# old report\n")
+    control.write_doc(doc, f"{control.BEGIN}\ncontrol table v1\n{control.END}")
+    control.write_doc(doc, f"{control.BEGIN}\ncontrol table v2\n{control.END}")
+    text = doc.read_text()
+    assert "# old report" in text and "v2" in text and "v1" not in text
+    kept = repro._kept_sections(doc)
+    assert "control table v2" in kept and "# old report" not in kept
+    assert repro._kept_sections(tmp_path / "missing.md") == ""

@@ -13,9 +13,12 @@ try:
 except PackageNotFoundError:  # running from a source tree without installation
     __version__ = "0.0.0+unknown"
 
-__all__ = ["PhysicalParams", "System", "__version__", "contact", "learning", "load_system"]
+__all__ = [
+    "PhysicalParams", "System", "__version__", "contact", "control", "learning", "load_system",
+    "optimize",
+]  # fmt: skip
 
-_SUBPACKAGES = ("contact", "geometry", "learning", "mechanics", "systems", "viz")
+_SUBPACKAGES = ("contact", "control", "geometry", "learning", "mechanics", "systems", "viz")
 
 
 def __getattr__(name: str):
@@ -24,6 +27,10 @@ def __getattr__(name: str):
         from diffcontact import systems
 
         return getattr(systems, name)
+    if name == "optimize":
+        from diffcontact.control.optimize import optimize
+
+        return optimize
     if name in _SUBPACKAGES:
         import importlib
 

@@ -11,6 +11,8 @@ Subcommands:
   (:mod:`diffcontact.learning.training.cli`);
 - ``diffcontact evaluate``: metrics, plots and a GIF of a trained run
   (:mod:`diffcontact.learning.evaluation.cli`).
+- ``diffcontact billiards`` / ``diffcontact throw``: plan a shot through a
+  trained model or the true system (:mod:`diffcontact.control.cli`).
 
 Contact-model and model names come from the registries
 (:mod:`diffcontact.contact.registry`, :mod:`diffcontact.learning.models.registry`);
@@ -130,6 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
     learning_data.register_cli(sub)
     learning_train.register_cli(sub)
     learning_evaluate.register_cli(sub)
+
+    from diffcontact.control import cli as control
+
+    control.register_cli(sub)
     return parser
 
 

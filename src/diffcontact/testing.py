@@ -115,3 +115,23 @@ def assert_gradients_close(
         ]
         raise AssertionError("gradient check failed:\n" + "\n".join(lines))
     return results
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    """``(exit status, stdout, stderr)`` of ``diffcontact ARGV`` run in-process (with capsys)."""
+    from diffcontact.cli import main
+
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_usage_error(code: int, err: str, *needles: str) -> None:
+    """Exit status 2 and ONE line on stderr, no traceback, containing every needle."""
+    assert code == 2, (code, err)
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("diffcontact")
+    for needle in needles:
+        assert needle in lines[0], lines[0]

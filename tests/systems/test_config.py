@@ -13,6 +13,7 @@ from diffcontact.systems import list_tasks, load_config
 TASKS = [
     "BP5-e", "BP5", "BD5", "CP3-e", "CP3", "Gyro-e", "Gyro",
     "Rope", "Rope-D100", "Rope-D200", "Rope-D400",
+    "BD1-ground",  # not a paper task: the throwing task of docs/control.md
 ]  # fmt: skip
 
 BOX = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 1.0], [0.0, -1.0, 1.0]]
@@ -35,6 +36,13 @@ def test_every_task_loads(task):
 
 def _vals(t):
     return [round(v, 12) for v in t.tolist()]
+
+
+def test_throwing_task_is_one_disk_on_a_ground_under_gravity():
+    system = dc.load_system("BD1-ground")
+    assert system.type == "bouncing_disks" and system.n_bodies == 1 and system.n_contacts == 1
+    assert system.config.walls == [(0.0, 1.0, 0.0)] and system.config.gravity == 9.8
+    assert _vals(system.mu) == [0.3] and _vals(system.cor) == [0.6]
 
 
 def test_bouncing_tasks_hold_paper_numbers():

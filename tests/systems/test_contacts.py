@@ -40,6 +40,9 @@ def contact_states(system, n=32, seed=0):
         return z[hit]
     gen = torch.Generator().manual_seed(seed)
     z = DRAWERS[system.type](system.config, 4000, gen)
+    if not (system.gaps(z[:, 0]) < 0).any():  # BD1-ground: drawn in the air; take the landings
+        traj = system.simulate(system.sample_initial_conditions(16, seed=seed), steps=60)
+        z = system.integrate(traj[:, 1:].reshape(-1, *traj.shape[2:]))
     gaps = system.gaps(z[:, 0])
     n_active = (gaps < 0).sum(-1)
     hit = (n_active > 0) & (n_active <= 3) & (gaps > -0.1).all(-1)

@@ -76,6 +76,21 @@ def test_batched_parameters_equal_the_per_trajectory_loop(task, contact_model, s
     assert (system.gaps(batched[:, :, 0]) < 0).any()
 
 
+@pytest.mark.parametrize("field", ["mu", "cor"])
+def test_one_contact_field_batched_alone(field):
+    """A per-trajectory mu with a shared e_P (and vice versa) equals the per-trajectory loop."""
+    system = dc.load_system(TWO_BALLS)
+    z0 = Z_TWO_BALLS.expand(3, -1, -1, -1).clone()
+    values = torch.tensor([[0.1], [0.5], [0.9]], dtype=F64)  # (N, 1): one shared value each
+    batched = system.simulate(z0, 20, params=system.parameters().replace(**{field: values}))
+    for i in range(3):
+        alone = system.simulate(
+            z0[i : i + 1], 20, params=system.parameters().replace(**{field: values[i]})
+        )
+        torch.testing.assert_close(batched[i : i + 1], alone, rtol=0, atol=1e-12)
+    assert (batched[0, -1] - batched[2, -1]).abs().max() > 1e-3
+
+
 def test_batched_energy_matches_rows():
     system = dc.load_system("BD5")
     z0 = system.sample_initial_conditions(2, seed=0)

@@ -773,11 +773,11 @@ class System:
             v_star = penetration_target(J, depth, mask, self.dt, d, fraction, J_E)
         else:
             v_star = J.new_zeros(n, Ka * d)
-        mu, cor = ctx.mu, ctx.cor
-        if mu.dim() == 2:
-            mu, cor = mu[b].gather(-1, idx), cor[b].gather(-1, idx)
-        else:
-            mu, cor = mu[idx], cor[idx]
+
+        def pick(t: Tensor) -> Tensor:  # (n, Ka): each field batched or not on its own
+            return t[b].gather(-1, idx) if t.dim() == 2 else t[idx]
+
+        mu, cor = pick(ctx.mu), pick(ctx.cor)
         contact_params = ContactParams(mu=mu, cor=cor, eps=ctx.select(ctx.eps, 0, b))
         res = model.resolve(
             J,

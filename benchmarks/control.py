@@ -1,0 +1,98 @@
+"""Benchmark: one planning iteration (forward + backward of a 100-step rollout) through simulate.
+
+    python benchmarks/run.py control [--quick] [--device cpu|cuda] [--iterations 3]
+
+Times ``diffcontact.optimize`` on the billiards problem (BP5-e, cue ball 0's velocity,
+ball 2's final distance to a target) and the throwing problem (BD1-ground, a disk's
+velocity and spin) with the true system as the planner, at 1 and 64 starts in one
+batched call. An iteration is one rollout of every start, the objective, its
+backward pass and an Adam step; the first iteration (overlap check, warm-up) is
+left out of the mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+import diffcontact as dc
+from common import machine_header, sync
+from diffcontact.control import Spin, Velocity, as_planner
+from diffcontact.control.tasks import billiards_scene, throw_scene
+
+
+def _problem(task: str, device: str, dtype: torch.dtype):
+    planner = as_planner("BP5-e" if task == "billiards" else "BD1-ground")
+    if task == "billiards":
+        z0 = billiards_scene(planner, 1, seed=0)[0]
+        z0[1, 0] = torch.tensor([1.0, 1.0], dtype=torch.float64)
+        target = torch.tensor([0.5, 0.5], dtype=dtype, device=device)
+        variables = [Velocity(0, bounds=(-4, 4))]
+
+        def objective(traj):
+            return (traj[..., -1, 0, 2, :] - target).norm(dim=-1)
+
+    else:
+        z0 = throw_scene(planner)
+        z0[1] = 0
+        variables = [Velocity(0, bounds=(-4, 4)), Spin(0, bounds=(-30, 30))]
+
+        def objective(traj):
+            return (traj[..., -1, 0, 0, 0] - 1.0).abs()
+
+    return planner, z0.to(device=device, dtype=dtype), objective, variables
+
+
+def time_case(task: str, starts: int, steps: int, iterations: int, device: str, dtype) -> dict:
+    planner, z0, objective, variables = _problem(task, device, dtype)
+    stamps: list[float] = []
+
+    def timed(traj):
+        sync(device)
+        stamps.append(time.perf_counter())
+        return objective(traj)
+
+    sync(device)
+    t0 = time.perf_counter()
+    res = dc.optimize(
+        planner, z0, timed, variables=variables, steps=steps, starts=starts,
+        iterations=iterations + 1, progress=False,
+    )  # fmt: skip
+    sync(device)
+    wall = time.perf_counter() - t0
+    per_it = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+    return {"task": task, "starts": starts, "steps": steps, "s_per_it": per_it, "wall": wall,
+            "its": res.iterations}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="20-step rollouts, 2 iterations")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--iterations", type=int, default=3, help="timed iterations per case")
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device available")
+    dtype = torch.float64
+    steps, iterations = (20, 2) if args.quick else (100, args.iterations)
+    print("planning: one optimize iteration (rollout of every start + backward + Adam step)")
+    for line in machine_header(args.device, dtype):
+        print(line)
+    head = f"{'task':>10} {'starts':>6} {'steps':>6} | {'s / iteration':>13} {'ms / start':>11}"
+    print(head)
+    print("-" * len(head))
+    for task in ("billiards", "throw"):
+        for starts in (1, 64):
+            r = time_case(task, starts, steps, iterations, args.device, dtype)
+            print(
+                f"{task:>10} {starts:>6} {steps:>6} | {r['s_per_it']:>13.2f} "
+                f"{1e3 * r['s_per_it'] / starts:>11.1f}",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,230 @@
+"""Planning through learned simulators: success rates of billiards and throwing shots.
+
+    python experiments/control.py --out runs/control --doc docs/results.md
+
+For each task (billiards on BP5-e, throwing on BD1-ground):
+
+1. ``diffcontact generate TASK`` (800/100/100 trajectories, seed 0) and
+   ``diffcontact train`` of CM-CD-CLNN with the package defaults for
+   ``--epochs`` epochs (reused when finished; resumed when interrupted);
+2. ``--targets`` random targets (seed 0; billiards: points on the table where
+   the target ball fits, throw: x in [0.3, 2.0] m), planned in ONE batched
+   ``optimize`` call per planner: (a) the true system, (b) the trained
+   CM-CD-CLNN model; (c) the MLP-CD-CLNN baseline is not in diffcontact yet
+   (issue 12), so its row says so;
+3. every plan is judged by the ground-truth simulator: a success is a final
+   distance to the target of at most ``--radius`` (default 0.05 m; the balls of
+   BP5-e have radius 0.1).
+
+Each finished row is kept in ``OUT/results.json`` (written atomically), so an
+interrupted run continues where it stopped. The table lands in ``OUT/control.md``
+and, with ``--doc``, in a marked section of that file (the rest is kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+TASKS = {"billiards": "BP5-e", "throw": "BD1-ground"}
+MODEL = "CM-CD-CLNN"
+BEGIN = "<!-- control results (experiments/control.py): begin -->"
+END = "<!-- control results: end -->"
+
+
+def _write(path: Path, text: str) -> None:
+    from diffcontact.io import atomic_write_bytes
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, text.encode())
+
+
+def train_model(task: str, out: Path, epochs: int) -> tuple[Path, float]:
+    """Generate the task's data and train CM-CD-CLNN (reused/resumed); ``(run dir, seconds)``."""
+    import shutil
+
+    from diffcontact.learning.data.generate import generate_dataset
+    from diffcontact.learning.training.run import train
+
+    data = out / "data" / task
+    run = out / "runs" / task / MODEL
+    learned = run / "learned.json"
+    if not (data / "metadata.json").is_file():
+        generate_dataset(task, data, n_train=800, n_val=100, n_test=100, progress=False)
+    done = learned.is_file() and json.loads(learned.read_text()).get("finished")
+    if not (done and (run / "model.pt").is_file()):
+        resume = (run / "checkpoints" / "last.ckpt").is_file()
+        if not resume and run.exists():
+            shutil.rmtree(run)
+        train(data, run, model=MODEL, epochs=epochs, resume=resume, progress=False,
+              keep_checkpoints=2)  # fmt: skip
+    return run, _training_seconds(run)
+
+
+def _training_seconds(run: Path) -> float:
+    """Sum of the per-epoch wall times logged in ``logs/metrics.csv``."""
+    import numpy as np
+
+    from diffcontact.learning.evaluation.log import read_training_log
+
+    seconds = read_training_log(run / "logs" / "metrics.csv").get("time/epoch_s")
+    return 0.0 if seconds is None else float(np.nansum(seconds))
+
+
+def plan_row(task: str, planner_spec: str, targets: int, radius: float, iters: int) -> dict:
+    """Plan ``targets`` random targets with one planner; the success rate under the truth."""
+    import torch
+
+    from diffcontact.control import as_planner
+    from diffcontact.control.tasks import plan_billiards, plan_throw, random_targets
+
+    planner = as_planner(planner_spec)
+    tg = random_targets(planner, task, targets, seed=0)
+    t0 = time.perf_counter()
+    if task == "billiards":
+        z0 = planner.truth.sample_initial_conditions(targets, seed=1)
+        plan = plan_billiards(planner, tg, z0=z0, starts=8, iterations=iters, progress=True)
+    else:
+        plan = plan_throw(planner, tg, starts=8, iterations=iters, progress=True)
+    seconds = time.perf_counter() - t0
+    ok = plan.distance_true <= radius
+    return {
+        "planner": planner.name,
+        "targets": targets,
+        "success": int(ok.sum()),
+        "rate": float(ok.double().mean()),
+        "median_distance_true": float(plan.distance_true.median()),
+        "median_distance_model": float(plan.distance_model.median()),
+        "iterations": plan.result.iterations,
+        "seconds": seconds,
+        "per_target_true": plan.distance_true.tolist(),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
+    lines = [
+        BEGIN,
+        "## Planning through learned simulators (billiards, throwing)",
+        "",
+        f"Produced by `python experiments/control.py --out runs/control --doc docs/results.md` "
+        f"({meta['date']}; torch {meta['torch']}, {meta['cpu']}, one torch thread; other work "
+        "shared the CPU at times, so times are upper bounds). Targets: "
+        f"{meta['targets']} random ones per task (seed 0); each planner plans all of them in "
+        "one batched `diffcontact.optimize` call (8 starts per target, Adam, at most "
+        f"{meta['iterations']} iterations); every plan is judged by the ground-truth "
+        f"simulator: success = final distance to the target <= {meta['radius']:g} m. "
+        "Billiards: BP5-e (5 identical balls of radius 0.1 in the unit box), a random layout "
+        "per target, cue ball 0, target ball 2, 1 s. Throwing: BD1-ground (a disk of radius "
+        "0.1 thrown from rest at (0, 0.5) onto a ground), the disk's centre at x = target "
+        "after 1 s. The learned planners are CM-CD-CLNN models trained by "
+        f"`diffcontact train` for {meta['epochs']} epochs on 800 generated trajectories.",
+        "",
+        "| task | planner | success | median distance (truth) | median distance "
+        "(planner's own model) | iterations | planning time | training time |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for task, task_name in TASKS.items():
+        for key in ("true", MODEL):
+            row = results.get(f"{task}/{key}")
+            if row is None:
+                continue
+            train_s = results.get(f"{task}/train_seconds")
+            lines.append(
+                f"| {task} ({task_name}) | {row['planner']} | {row['success']}/{row['targets']} "
+                f"({100 * row['rate']:.0f} %) | {row['median_distance_true']:.4f} | "
+                f"{row['median_distance_model']:.4f} | {row['iterations']} | "
+                f"{row['seconds'] / 60:.1f} min | "
+                + (f"{train_s / 60:.1f} min |" if key == MODEL and train_s else "- |")
+            )
+        lines.append(
+            f"| {task} ({task_name}) | MLP-CD-CLNN | not run: the baselines (issue 12) are "
+            "not in diffcontact yet | | | | | |"
+        )
+    lines += [
+        "",
+        "The true system is the upper bound: a miss there means no shot of the allowed "
+        "speeds reaches that target in time from that layout (or the optimiser's starts "
+        "did not find one).",
+        END,
+    ]
+    return "\n".join(lines)
+
+
+def write_doc(doc: Path, section: str) -> None:
+    """Replace the marked section of ``doc`` (or append it), keeping the rest."""
+    text = doc.read_text() if doc.is_file() else ""
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        tail = rest.split(END, 1)[1]
+        text = head + section + tail
+    else:
+        text = text.rstrip() + "\n\n" + section + "\n"
+    _write(doc, text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="runs/control", help="output folder")
+    parser.add_argument("--doc", default=None, help="Markdown file to put the table into")
+    parser.add_argument("--targets", type=int, default=50, help="random targets per task")
+    parser.add_argument("--epochs", type=int, default=60, help="training epochs of CM-CD-CLNN")
+    parser.add_argument("--iterations", type=int, default=60, help="optimiser iterations")
+    parser.add_argument("--radius", type=float, default=0.05, help="success radius, m")
+    parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    results_file = out / "results.json"
+    results: dict[str, Any] = {}
+    if results_file.is_file():
+        results = json.loads(results_file.read_text())
+    settings = {k: getattr(args, k) for k in ("targets", "epochs", "iterations", "radius")}
+    if results.get("settings", settings) != settings:
+        print(f"control.py: {results_file} holds other settings; use another --out",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    results["settings"] = settings
+
+    def save() -> None:  # merged with rows another invocation (other --tasks) saved meanwhile
+        on_disk = json.loads(results_file.read_text()) if results_file.is_file() else {}
+        results.update({k: v for k, v in on_disk.items() if k not in results})
+        _write(results_file, json.dumps(results, indent=1))
+
+    for task in args.tasks:
+        name = TASKS[task]
+        run, seconds = train_model(name, out, args.epochs)
+        results[f"{task}/train_seconds"] = seconds
+        save()
+        for key, spec in (("true", name), (MODEL, str(run))):
+            if f"{task}/{key}" in results:
+                continue
+            print(f"{task}: planning {args.targets} targets with {key}", flush=True)
+            results[f"{task}/{key}"] = plan_row(task, spec, args.targets, args.radius,
+                                                args.iterations)  # fmt: skip
+            save()
+    meta = {
+        **settings,
+        "date": datetime.now(timezone.utc).date().isoformat(),
+        "torch": torch.__version__,
+        "cpu": f"{platform.machine()} CPU",
+    }
+    section = render(results, meta)
+    _write(out / "control.md", section + "\n")
+    if args.doc:
+        write_doc(Path(args.doc), section)
+    print(section)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

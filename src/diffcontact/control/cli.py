@@ -1,0 +1,210 @@
+"""``diffcontact billiards`` and ``diffcontact throw``: plan a shot, judge it by the truth.
+
+Building the parser imports no torch; the handlers import
+:mod:`diffcontact.control.tasks` when they run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+from diffcontact.cli_args import float_in, int_at_least, positive_float, report_errors
+
+__all__ = ["register_cli"]
+
+_MODEL_HELP = (
+    "a run directory or model.pt (plan with the trained model), or a built-in task name "
+    "or config file (plan with the true system)"
+)
+
+
+def _common(p: argparse.ArgumentParser, task: str, starts: int, lr: float) -> None:
+    p.add_argument("--time", type=positive_float, default=1.0, help="seconds (default 1.0)")
+    p.add_argument(
+        "--starts",
+        type=int_at_least(1),
+        default=starts,
+        help=f"candidate shots optimised together in one batch (default {starts})",
+    )
+    p.add_argument("--iterations", type=int_at_least(1), default=60, help="at most (default 60)")
+    p.add_argument(
+        "--lr", type=positive_float, default=lr, help=f"Adam learning rate (default {lr:g})"
+    )
+    p.add_argument(
+        "--tolerance",
+        type=float_in(0.0),
+        default=0.005,
+        help="stop when the planning model puts the target this close (default 0.005)",
+    )
+    p.add_argument(
+        "--max-speed",
+        type=positive_float,
+        default=4.0,
+        help="bound of each initial velocity component, m/s (default 4)",
+    )
+    p.add_argument("--json", default=None, metavar="OUT", help="write the plan as JSON")
+    p.add_argument(
+        "--gif",
+        default=f"{task}.gif",
+        metavar="PATH",
+        help=f"the shot under the truth (solid) and the planning model (dashed) "
+        f"(default {task}.gif)",
+    )
+    p.add_argument("--no-gif", action="store_true", help="write no GIF")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def register_cli(subparsers: Any) -> None:
+    """Add ``billiards`` and ``throw`` to a CLI (``subparsers`` from ``add_subparsers()``)."""
+    b = subparsers.add_parser(
+        "billiards",
+        help="choose the cue ball's velocity so that a ball reaches a target (docs/control.md)",
+        description=(
+            "Plan a billiards shot by gradient descent through MODEL: all balls at rest "
+            "(layout --seed); choose the cue ball's initial velocity so that --ball is at "
+            "--target after --time seconds. Prints the shot and the final distance under "
+            "the planning model and under the ground-truth simulator."
+        ),
+    )
+    b.add_argument("model", metavar="MODEL", help=_MODEL_HELP)
+    b.add_argument(
+        "--target", type=float, nargs=2, required=True, metavar=("X", "Y"), help="target point"
+    )
+    b.add_argument("--cue", type=int_at_least(0), default=0, help="cue ball (default 0)")
+    b.add_argument("--ball", type=int_at_least(0), default=2, help="target ball (default 2)")
+    b.add_argument("--seed", type=int_at_least(0), default=0, help="layout of the balls")
+    _common(b, "billiards", 16, 0.05)
+    b.set_defaults(func=_cmd_billiards)
+
+    t = subparsers.add_parser(
+        "throw",
+        help="choose a disk's velocity and spin so that it passes a target (docs/control.md)",
+        description=(
+            "Plan a throw by gradient descent through MODEL (a bouncing-disk system with "
+            "gravity and a ground, e.g. BD1-ground, or a model trained on its data): the "
+            "disk starts at rest at --start; choose its initial velocity and spin so that "
+            "its centre is at x = --target after --time seconds."
+        ),
+    )
+    t.add_argument("model", metavar="MODEL", help=_MODEL_HELP)
+    t.add_argument("--target", type=float, required=True, metavar="X", help="target x")
+    t.add_argument(
+        "--start",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.5),
+        metavar=("X", "Y"),
+        help="the disk's centre before the throw (default 0 0.5)",
+    )
+    t.add_argument(
+        "--max-spin", type=positive_float, default=30.0, help="spin bound, rad/s (default 30)"
+    )
+    _common(t, "throw", 16, 0.1)
+    t.set_defaults(func=_cmd_throw)
+
+
+class _InputError(ValueError):
+    pass
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    from diffcontact.io import check_writable
+
+    for flag, path in (("--json", args.json), ("--gif", None if args.no_gif else args.gif)):
+        if path is None:
+            continue
+        try:
+            check_writable(path)
+        except OSError as err:
+            raise _InputError(f"cannot write {flag} {path!r}: {err}") from None
+
+
+def _planner(spec: str) -> Any:
+    from diffcontact.control.planner import as_planner
+
+    try:
+        return as_planner(spec)
+    except (ValueError, FileNotFoundError) as err:
+        raise _InputError(f"MODEL {spec!r}: {err}") from None
+
+
+def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -> int:
+    from diffcontact.io import atomic_write_json
+
+    info = plan.as_json(0)
+    shot = ", ".join(f"{k} = {_fmt(v)}" for k, v in info["variables"].items())
+    res = plan.result
+    print(f"{plan.task} with {planner.name}: {shot}")
+    print(
+        f"  final distance to the target: {info['distance_model']:.4g} under the planning "
+        f"model, {info['distance_true']:.4g} under the ground truth ({planner.truth.name})"
+    )
+    print(f"  {res.iterations} iterations ({res.stopped}), {args.starts} starts, {seconds:.1f} s")
+    if args.json:
+        info.update(planner=planner.name, iterations=res.iterations, seconds=round(seconds, 3))
+        atomic_write_json(args.json, info)
+        print(f"  wrote {args.json}")
+    if not args.no_gif:
+        from diffcontact.viz import animate, scene_from_system
+
+        scene = scene_from_system(planner.truth, title=f"{plan.task}: {planner.name}")
+        animate(
+            plan.traj_true[:1],
+            scene,
+            args.gif,
+            overlay=plan.traj_model[:1],
+            labels=("ground truth", "planning model"),
+            dt=planner.dt,
+        )
+        print(f"  wrote {args.gif}")
+    return 0
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, list):
+        return "(" + ", ".join(f"{x:.4g}" for x in v) + ")" if len(v) > 1 else f"{v[0]:.4g}"
+    return f"{v:.4g}"
+
+
+def _run(args: argparse.Namespace, plan_fn: Any, **kwargs: Any) -> int:
+    _check_paths(args)
+    planner = _planner(args.model)
+    start = time.perf_counter()
+    from diffcontact.control.optimize import ControlError
+
+    try:
+        plan = plan_fn(
+            planner,
+            args.target,
+            time=args.time,
+            starts=args.starts,
+            iterations=args.iterations,
+            lr=args.lr,
+            tolerance=args.tolerance,
+            max_speed=args.max_speed,
+            progress=not args.quiet,
+            **kwargs,
+        )
+    except ControlError as err:
+        raise _InputError(str(err)) from None
+    return _report(args, planner, plan, time.perf_counter() - start)
+
+
+def _cmd_billiards(args: argparse.Namespace) -> int:
+    def run() -> int:
+        from diffcontact.control.tasks import plan_billiards
+
+        return _run(args, plan_billiards, cue=args.cue, ball=args.ball, seed=args.seed)
+
+    return report_errors("diffcontact billiards", run, bad_input=_InputError)
+
+
+def _cmd_throw(args: argparse.Namespace) -> int:
+    def run() -> int:
+        from diffcontact.control.tasks import plan_throw
+
+        return _run(args, plan_throw, start=tuple(args.start), max_spin=args.max_spin)
+
+    return report_errors("diffcontact throw", run, bad_input=_InputError)

@@ -1,0 +1,241 @@
+"""diffcontact.optimize: gradients through impacts, convergence, batching, bounds, errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.control import ControlError, Parameter, Position, Spin, Velocity, as_planner
+
+# two balls in a box; ball 0 is shot at ball 1 (friction and restitution < 1: the QP is exercised)
+TWO_BALLS = {
+    "name": "two-balls",
+    "type": "bouncing_masses",
+    "masses": [0.1, 0.2],
+    "radii": [0.1, 0.1],
+    "walls": [[1, 0, 0], [0, 1, 0], [-1, 0, 1], [0, -1, 1]],
+    "mu": 0.3,
+    "cor": 0.5,
+    "dt": 0.01,
+    "horizon": 0.3,
+}
+
+
+@pytest.fixture(scope="module")
+def two_balls():
+    system = dc.load_system(TWO_BALLS)
+    z0 = torch.zeros(2, 2, 2, dtype=torch.float64)
+    z0[0, 0] = torch.tensor([0.25, 0.45])
+    z0[0, 1] = torch.tensor([0.55, 0.5])
+    return system, z0
+
+
+def _final(point: int, target: torch.Tensor):
+    def objective(traj: torch.Tensor) -> torch.Tensor:
+        return (traj[..., -1, 0, point, :] - target).norm(dim=-1)
+
+    return objective
+
+
+def test_gradient_through_an_impact_matches_finite_differences(two_balls):
+    system, z0 = two_balls
+    steps = 25
+
+    def loss(v: torch.Tensor) -> torch.Tensor:
+        z = z0.clone().unsqueeze(0)
+        z[0, 1, 0] = v
+        traj = system.simulate(z, steps)
+        assert system.gaps(traj[0, 8:12, 0]).min() < 0.05  # ball 1 is hit mid-rollout
+        return traj[0, -1, 0, 1] @ torch.tensor([1.0, 0.7], dtype=torch.float64)
+
+    v = torch.tensor([1.5, 0.2], dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(loss(v), v)
+    h = 1e-6
+    fd = torch.stack(
+        [(loss(v.detach() + h * e) - loss(v.detach() - h * e)) / (2 * h) for e in torch.eye(2)]
+    )
+    assert grad.abs().max() > 0.05  # the impact transmits momentum to ball 1
+    torch.testing.assert_close(grad, fd, rtol=1e-5, atol=1e-7)
+
+
+def _reachable_target(system, z0, v_star, steps):
+    z = z0.clone().unsqueeze(0)
+    z[0, 1, 0] = torch.tensor(v_star, dtype=torch.float64)
+    return system.simulate(z, steps)[0, -1, 0, 1]
+
+
+@pytest.mark.parametrize("optimizer,iterations,tol", [("lbfgs", 15, 1e-4), ("adam", 40, 5e-3)])
+def test_optimizer_reaches_a_reachable_target(two_balls, optimizer, iterations, tol):
+    system, z0 = two_balls
+    steps = 25
+    target = _reachable_target(system, z0, (1.6, 0.35), steps)
+    z_start = z0.clone()
+    z_start[1, 0] = torch.tensor([1.4, 0.25], dtype=torch.float64)  # also hits ball 1
+
+    def squared(traj):
+        return (traj[..., -1, 0, 1, :] - target).square().sum(-1)
+
+    res = dc.optimize(
+        system, z_start, squared, variables=[Velocity(0, bounds=(-3, 3))], steps=steps,
+        optimizer=optimizer, iterations=iterations, lr=1.0 if optimizer == "lbfgs" else 0.05,
+        progress=False,
+    )  # fmt: skip
+    assert res.objective.sqrt() < tol
+    assert res.history.shape == (res.iterations, 1)  # (iterations, starts)
+    assert res.history[0, 0] > 100 * res.objective
+    z = res.z0.unsqueeze(0)
+    final = system.simulate(z, steps)[0, -1, 0, 1]  # the returned state reproduces the value
+    assert (final - target).square().sum() == pytest.approx(float(res.objective), abs=1e-12)
+
+
+def test_multistart_is_one_batched_call_per_iteration(two_balls):
+    system, z0 = two_balls
+    planner = as_planner(system)
+    calls = []
+    inner = planner._simulate
+
+    def counting(z, steps, params, check):
+        calls.append(z.shape[0])
+        return inner(z, steps, params, check)
+
+    planner._simulate = counting
+    target = torch.tensor([0.8, 0.6], dtype=torch.float64)
+    res = dc.optimize(
+        planner, z0, _final(1, target), variables=[Velocity(0, bounds=(-2, 2))], steps=10,
+        starts=64, iterations=3, progress=False,
+    )  # fmt: skip
+    assert calls == [64, 64, 64]
+    assert res.start_objective.shape == (64,) and res.start_variables["velocity[0]"].shape == (
+        64,
+        2,
+    )
+    assert res.objective == res.start_objective.min()
+    assert int(res.best_start) == int(res.start_objective.argmin())
+    v = res.start_variables["velocity[0]"]
+    assert v.min() >= -2 and v.max() <= 2  # random starts and steps stay in the box
+    assert len(torch.unique(v[:, 0])) > 60  # the starts differ
+
+
+def test_problems_batch_matches_single_problems(two_balls):
+    system, z0 = two_balls
+    targets = torch.tensor([[0.8, 0.6], [0.7, 0.3]], dtype=torch.float64)
+    kwargs = dict(variables=[Velocity(0, bounds=(-2, 2))], steps=10, starts=3, iterations=4,
+                  progress=False)  # fmt: skip
+
+    def objective(traj):  # traj (N, S, T, 2, P, 2)
+        return (traj[:, :, -1, 0, 1] - targets[:, None]).norm(dim=-1)
+
+    both = dc.optimize(system, z0.expand(2, -1, -1, -1), objective, **kwargs)
+    for i in range(2):
+        one = dc.optimize(system, z0, _final(1, targets[i]), **kwargs)
+        torch.testing.assert_close(both.history[:, i], one.history, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(both.variables["velocity[0]"][i], one.variables["velocity[0]"])
+
+
+def test_physical_parameter_is_recovered(two_balls):
+    system, z0 = two_balls
+    steps = 25
+    z = z0.clone()
+    z[1, 0] = torch.tensor([1.5, 0.2], dtype=torch.float64)
+    cor = system.parameters().cor.clone()
+    cor[0] = 0.8  # contact 0: ball 0 - ball 1 (0.5 in the config)
+    truth = system.simulate(z.unsqueeze(0), steps, params=system.parameters().replace(cor=cor))
+    truth = truth[0, -1, 0]
+
+    def objective(traj):
+        return (traj[..., -1, 0, :, :] - truth).square().sum((-1, -2))
+
+    res = dc.optimize(
+        system, z, objective, variables=[Parameter("cor", index=0, bounds=(0.0, 2.0))], steps=steps,
+        optimizer="lbfgs", lr=1.0, iterations=20, progress=False,
+    )  # fmt: skip
+    assert float(res.variables["cor[0]"]) == pytest.approx(0.8, abs=1e-5)
+    assert res.params.cor.shape == (1, 9)  # one set per problem
+    torch.testing.assert_close(res.params.cor[0, 1:], cor[1:])
+
+
+def test_spin_and_velocity_write_and_read_back_on_a_disk():
+    system = dc.load_system("BD1-ground")
+    planner = as_planner(system)
+    z0 = system.sample_initial_conditions(3, seed=0)
+    spin, vel, pos = Spin(0), Velocity(0), Position(0)
+    for var in (spin, vel, pos):
+        var.bind(planner)
+    w = torch.tensor([[2.0], [-5.0], [0.5]], dtype=torch.float64)
+    v = torch.tensor([[1.0, 0.0], [0.0, -2.0], [0.3, 0.4]], dtype=torch.float64)
+    z, _ = spin.write(z0, None, w, planner)
+    z, _ = vel.write(z, None, v, planner)
+    for i in range(3):
+        torch.testing.assert_close(spin.read(z[i], None, planner), w[i])
+        torch.testing.assert_close(vel.read(z[i], None, planner), v[i])
+    # rigid: point velocities are v + w x r, so the body's constraints hold at the new state
+    r = z[:, 0, 1:] - z[:, 0, :1]
+    u = z[:, 1, 1:] - z[:, 1, :1]
+    torch.testing.assert_close((r * u).sum(-1), torch.zeros(3, 2, dtype=torch.float64))
+    moved, _ = pos.write(z, None, torch.zeros(3, 2, dtype=torch.float64), planner)
+    torch.testing.assert_close(moved[:, 0, 1:] - moved[:, 0, :1], r)  # orientation kept
+
+
+def test_learned_model_plans_with_frozen_weights():
+    from diffcontact.learning.models.registry import create_model
+
+    model = create_model("CM-CD-CLNN", dc.load_system("BD1-ground").config, hidden=[16])
+    planner = as_planner(model)
+    assert planner.learned and planner.truth.name == "BD1-ground"
+    from diffcontact.control.tasks import throw_scene
+
+    z0 = throw_scene(planner)
+    res = dc.optimize(
+        model, z0, lambda tr: tr[..., -1, 0, 0, 0], variables=[Velocity(0, bounds=(-1, 1)),
+        Parameter("mu", bounds=(0, 1))], steps=5, iterations=2, progress=False,
+    )  # fmt: skip
+    assert res.iterations == 2 and torch.isfinite(res.objective)
+    assert all(p.grad is None and p.requires_grad for p in model.parameters())
+
+
+def test_non_finite_gradient_names_the_variable(two_balls):
+    system, z0 = two_balls
+
+    def objective(traj):  # sqrt at 0: a finite value with an infinite gradient
+        return (traj[..., -1, 0, 0, 0] - traj[..., -1, 0, 0, 0].detach()).sqrt()
+
+    with pytest.raises(ControlError, match=r"gradient of velocity\[0\] is not finite"):
+        dc.optimize(system, z0, objective, variables=[Velocity(0)], steps=3, iterations=2,
+                    progress=False)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(variables=[]), "one or more"),
+        (dict(variables=[Velocity(0), Velocity(0)]), "distinct"),
+        (dict(variables=[Velocity(5)]), r"velocity\[5\]: body must be one of 0..1"),
+        (dict(variables=[Spin(0)]), "point .*has no spin"),
+        (dict(variables=[Parameter("charge")]), "unknown parameter 'charge'"),
+        (dict(variables=[Parameter("mass", index=7)]), "does not fit mass"),
+        (dict(variables=[Velocity(0, bounds=(1, -1))]), "low bound above high bound"),
+        (dict(variables=[Velocity(0)], optimizer="sgd"), "optimizer must be one of"),
+        (dict(variables=[Velocity(0)], iterations=0), "iterations must be an integer >= 1"),
+        (dict(variables=[Velocity(0)], starts={"velocity[0]": [1.0, 2.0]}), "shape"),
+        (dict(variables=[Velocity(0)], starts={"spin": [[1.0]]}), "unknown variable"),
+    ],
+)
+def test_bad_arguments_are_named(two_balls, kwargs, match):
+    system, z0 = two_balls
+    with pytest.raises(ControlError, match=match):
+        dc.optimize(system, z0, _final(1, torch.zeros(2)), steps=2, progress=False, **kwargs)
+
+
+def test_bad_state_and_objective_shapes(two_balls):
+    system, z0 = two_balls
+    var = [Velocity(0)]
+    with pytest.raises(ControlError, match=r"z0 must have shape \(2, 2, 2\)"):
+        dc.optimize(system, z0[:, :1], _final(1, torch.zeros(2)), variables=var, progress=False)
+    bad = z0.clone()
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(ControlError, match="NaN"):
+        dc.optimize(system, bad, _final(1, torch.zeros(2)), variables=var, progress=False)
+    with pytest.raises(ControlError, match=r"objective must return shape \(2,\)"):
+        dc.optimize(system, z0, lambda tr: tr.sum(), variables=var, starts=2, steps=2,
+                    progress=False)  # fmt: skip
