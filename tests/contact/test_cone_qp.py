@@ -7,9 +7,12 @@ optimality conditions and closed-form cases, which need no other solver.
 
 from __future__ import annotations
 
+import gc
+
 import pytest
 import torch
 
+import diffcontact as dc
 from diffcontact.contact import ConeQPError, SolverSettings, solve_cone_qp
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.testing import assert_gradients_close
@@ -309,3 +312,46 @@ def test_recorded_simulator_problems(name, d, tol):
     A = torch.where(active_c[..., None] & active_c[..., None, :], data["A"], 0)
     res = natural_residual(A, torch.where(active_c, data["b"], 1.0), data["mu"], lower, f, d)
     assert res.max() < tol
+
+
+def _live_solver_nodes() -> int:
+    return sum(type(o).__name__ == "_ConeQPFunctionBackward" for o in gc.get_objects())
+
+
+def test_no_solver_node_survives_a_training_step_without_gc():
+    """The autograd node of a solve (and its saved factorisations) is freed by reference
+    counting alone once the graph is dropped: no cycle waits for the garbage collector."""
+    from diffcontact.learning.models.physical import LearnedModel
+    from diffcontact.learning.training.module import rollout_loss
+
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(8, seed=3)
+    chunk = system.simulate(z0, 12)
+    torch.manual_seed(0)
+    model = LearnedModel("BP5", hidden=(8, 8)).double()
+    gc.collect()
+    gc.disable()
+    try:
+        before = _live_solver_nodes()
+        # a graph alive holds its nodes (the count sees them) ...
+        loss = rollout_loss(model, chunk)
+        assert _live_solver_nodes() > before
+        # ... a training step's backward and dropping the loss frees all of them
+        loss.backward()
+        del loss
+        assert _live_solver_nodes() == before
+        # the float32 path (solve in float64, result cast back) and a direct solve
+        A, b, mu, _ = random_problems(4, 3, 2, seed=5)
+        A32 = A.float().requires_grad_()
+        f = solve_cone_qp(A32, b.float(), mu.float(), 2)
+        assert _live_solver_nodes() == before + 1
+        f.sum().backward()
+        del f
+        assert _live_solver_nodes() == before
+        # a graph dropped without a backward is freed too
+        f = solve_cone_qp(A.requires_grad_(), b, mu, 2)
+        assert _live_solver_nodes() == before + 1
+        del f
+        assert _live_solver_nodes() == before
+    finally:
+        gc.enable()

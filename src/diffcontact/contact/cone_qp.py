@@ -305,13 +305,17 @@ class _ConeQPFunction(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output):
         ctx.d = inputs[5]
-        # intermediates of the solve (not inputs/outputs), kept on ctx
-        ctx.solution = output[5]
+        # The solve's intermediates go through save_for_backward, never as attributes of
+        # ctx: ``f`` may be the very tensor returned (same dtype), and a tensor attribute
+        # that is an output makes a cycle (output -> grad_fn -> ctx -> output) through
+        # C++ references that the garbage collector cannot see, keeping every solve's
+        # factorisations alive (tests/contact/test_cone_qp.py checks no node survives).
+        ctx.save_for_backward(*output[5])
         ctx.mark_non_differentiable(*output[1:5])
 
     @staticmethod
     def backward(ctx, grad_f, *_):
-        f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.solution
+        f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.saved_tensors
         d = ctx.d
         B = f.shape[0]
         out_dtype = grad_f.dtype
