@@ -24,7 +24,14 @@ problems or contacts):
    (:mod:`diffcontact.contact.cone`), whose zeros are exactly the minimisers,
    identifies the active constraints and drives ``F`` to rounding level
    (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
-4. The backward pass differentiates ``F(f; A, b, mu, l) = 0`` implicitly, reusing
+4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
+   on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
+   ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),
+   found from the solver's runaway iterate or, failing that, from one re-solve with a
+   small Tikhonov term. It is never inferred from the residual, which is relative to
+   ``|f|`` and which a runaway iterate passes: such a problem is reported unbounded
+   (with a certificate) or unconverged, never converged.
+5. The backward pass differentiates ``F(f; A, b, mu, l) = 0`` implicitly, reusing
    the LU factorisation of ``dF/df = I - P + rho P (A + delta I)`` from the
    polish: one transposed solve per batch. ``delta`` (``SolverSettings.kkt_reg``,
    relative to diag(A)) keeps it invertible when the minimiser is not unique
@@ -113,7 +120,11 @@ class SolverStatus:
 
     Attributes:
         converged: bool, the residual is within ``tol``.
-        unbounded: bool, the objective is unbounded below (no minimiser).
+        unbounded: bool, the objective is unbounded below (no minimiser): a
+            certificate, a descent direction of zero curvature inside the friction
+            cones, was found (to relative accuracy ``sqrt(eps)``: a minimiser farther
+            than ``1 / sqrt(eps)`` natural impulse scales counts as none). An
+            unbounded problem is never ``converged``.
         iterations: int64, interior-point iterations used.
         residual: scaled natural-map residual ``||F||_inf / max(1, ||f||_inf)``.
     """
@@ -158,8 +169,11 @@ def _jacobian(A: Tensor, P: Tensor, rho: Tensor, reg: Tensor) -> Tensor:
     return add_block_diag(eye + rho[:, None, None] * _blockwise(P, A_reg), -P)
 
 
-def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
-    """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K)."""
+def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify: bool = True):
+    """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K).
+
+    ``certify=False`` skips the test for unboundedness (used by that test itself, on
+    problems that are bounded by construction)."""
     C = b.shape[-1]
     dtype, device = A.dtype, A.device
     act_c = active.repeat_interleave(d, dim=-1)  # (B, C)
@@ -219,11 +233,10 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
         if attempt == 0:
             f, res, P, dmu, dl, LU, piv = polished
-            unbounded, iterations = ipm.unbounded, ipm.iterations
+            iterations = ipm.iterations
         else:
             for full, part in zip((f, res, P, dmu, dl, LU, piv), polished, strict=True):
                 full[rows] = part
-            unbounded[rows] = ipm.unbounded
             iterations[rows] += ipm.iterations
         retry = (polished[1] > settings.tol) & ~ipm.unbounded
         if not bool(retry.any()):
@@ -231,22 +244,98 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         rows, gap = rows[retry], gap * 1e-2
 
     f = torch.where(act_c, f, 0)
-    # an iterate that ran off along a direction of zero curvature and descent is a
-    # certificate of unboundedness, whichever phase noticed it
-    g = f / c[:, None]
-    size = g.abs().amax(-1)
-    dirn = g / size.clamp_min(1)[:, None]
-    curv = (dirn * torch.einsum("bij,bj->bi", A_m / a_s[:, None, None], dirn)).sum(-1)
-    descent = (dirn * b_m / b_s[:, None]).sum(-1)
-    finished = res <= settings.tol
-    runaway = (size > 1e3) & (curv <= 1e-6) & (descent < 0) & ~finished
-    unbounded = unbounded | runaway
-    converged = finished & ~unbounded
+    # Unboundedness is decided by a certificate checked on the data, never by the
+    # residual (it is scaled by |f|, so a runaway iterate passes it); the interior
+    # point's divergence test (``ipm.unbounded``) only stops it and skips the retries.
+    unbounded = torch.zeros_like(res, dtype=torch.bool)
+    if certify:
+        A_hat, b_hat = A_m / a_s[:, None, None], b_m / b_s[:, None]
+        unbounded = _unbounded(A_hat, b_hat, mu_m, active, d, f / c[:, None], res, settings)
+    converged = (res <= settings.tol) & ~unbounded
     status = SolverStatus(
         converged=converged, unbounded=unbounded, iterations=iterations, residual=res
     )
     saved = (f, P, dmu, dl, rho, LU, piv, act_c, active)
     return f, status, saved
+
+
+def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):
+    """Whether the direction of ``g`` is a certificate of unboundedness, (B,) bool.
+
+    The objective is unbounded below exactly when a recession direction of the feasible
+    set (``u`` in the friction cones, ``||u_t,k|| <= mu_k u_n,k``; the lower bounds do
+    not change them) has zero curvature and descends: ``A u = 0`` and ``b^T u < 0``
+    (then ``f + t u`` lowers the objective by ``t |b^T u|`` for every ``t``). ``u`` is
+    ``g`` projected onto the cones (exactly, so it is a recession direction) and
+    normalised to ``||u||_inf = 1``; it is accepted when
+
+        b^T u <= -1e3 eps C     and     u^T A u <= sqrt(eps) (b^T u)^2
+
+    (``eps`` of the dtype, data scaled so that diag(A) ~ 1 and ``|b|_inf <= 1``): along
+    ``u`` the objective then falls by at least ``(b^T u)^2 / (2 u^T A u) >=
+    1 / (2 sqrt(eps))`` natural units, so a minimiser, if any, lies beyond
+    ``1 / sqrt(eps)`` (1.5e8 in float64) natural impulse scales, farther than the answer
+    can be resolved (a bounded problem that badly scaled is reported unbounded too).
+
+    Args:
+        A: (B, C, C) scaled ``A`` with inactive contacts decoupled.
+        b: (B, C) scaled ``b``.
+        mu: (B, K) friction coefficients (inactive entries arbitrary).
+        active: (B, K) bool.
+        d: contact dimension.
+        g: (B, C) candidate direction, any length.
+    """
+    B, C = g.shape
+    eps = torch.finfo(g.dtype).eps
+    act_c = active.repeat_interleave(d, dim=-1)
+    u = project_contact_set(g.reshape(B, -1, d), mu, torch.zeros_like(mu))[0].reshape(B, C)
+    u = torch.where(act_c, u, 0)
+    scale = u.abs().amax(-1, keepdim=True)
+    u = u / torch.where(scale > 0, scale, 1)
+    slope = (b * u).sum(-1)
+    curv = (u * torch.einsum("bij,bj->bi", A, u)).sum(-1)
+    return (slope <= -1e3 * eps * C) & (curv <= eps**0.5 * slope * slope)
+
+
+def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
+    """Problems with a certificate of unboundedness (:func:`_certifies_unbounded`), (B,).
+
+    Scaled data as there; ``g`` is the solver's iterate and ``res`` its residual.
+
+    Only problems that may be unbounded are examined: unconverged ones, and those whose
+    iterate lies beyond 100 natural impulse scales (the residual is relative to
+    ``max(1, ||g||)``, so a runaway iterate can pass it; a converged bounded problem
+    nearer than that cannot pass the certificate). The iterate's own direction is tried
+    first: on an unbounded problem it runs off along a certificate, exactly when
+    ``A = 0``. Where it is not one yet (a runaway along a null direction of a singular
+    ``A`` still carries its bounded offset) and the problem is unconverged or beyond
+    ``1e-2 / tol`` scales, the problem is solved once more with a Tikhonov term,
+    ``A + delta I`` (``delta = eps^(3/8)``, 1.4e-6 in float64), which is bounded: its
+    minimiser is ``w / delta + O(1)`` with ``w`` the projection of ``-b`` onto the
+    directions of the cones in the null space of ``A``, a certificate whenever one
+    exists with ``||w|| >~ eps^(1/8)`` (0.01 in float64). The default path (every
+    problem converged within 100 scales) costs one host synchronisation.
+    """
+    found = torch.zeros_like(res, dtype=torch.bool)
+    size = g.abs().amax(-1)
+    unconverged = res > settings.tol
+    todo = active.any(-1) & (unconverged | (size > 1e2))
+    if not bool(todo.any()):
+        return found
+    rows = todo.nonzero().squeeze(-1)
+    A, b, mu, active, g = A[rows], b[rows], mu[rows], active[rows], g[rows]
+    cert = _certifies_unbounded(A, b, mu, active, d, g)
+    again = ~cert & (unconverged[rows] | (size[rows] > 1e-2 / settings.tol))
+    if bool(again.any()):
+        sub = again.nonzero().squeeze(-1)
+        A_s, b_s, mu_s, act_s = A[sub], b[sub], mu[sub], active[sub]
+        delta = torch.finfo(A.dtype).eps ** 0.375
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        g_s, _, _ = _forward(
+            A_s + delta * eye, b_s, mu_s, torch.zeros_like(mu_s), act_s, d, settings, certify=False
+        )
+        cert = cert.index_put((sub,), _certifies_unbounded(A_s, b_s, mu_s, act_s, d, g_s))
+    return found.index_put((rows,), cert)
 
 
 def _polish(f: Tensor, data, settings: SolverSettings):
