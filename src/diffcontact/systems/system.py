@@ -10,8 +10,9 @@ them and to the initial state.
 
 One step of :meth:`System.simulate` (paper-facts.md, "Time stepping"):
 
-1. RK4 over ``dt`` of the smooth constrained dynamics: the Lagrangian vector
-   field (S.2) by default, or the Hamiltonian one (S.4-S.7);
+1. RK4 over ``dt`` of the smooth constrained dynamics (the config's ``integrator``:
+   classic ``rk4`` or the 3/8 rule ``rk4_38``): the Lagrangian vector field (S.2)
+   by default, or the Hamiltonian one (S.4-S.7);
 2. collision detection on the new positions: the gaps of all candidates;
 3. for the states with an active candidate (gap < 0) only: the active
    candidates are gathered and padded to the largest count in the batch (a
@@ -40,6 +41,7 @@ from diffcontact.contact.models import ContactModel, ContactParams
 from diffcontact.contact.registry import create_contact_model
 from diffcontact.geometry import RimPlane, circles_2d, rope_limits
 from diffcontact.mechanics import (
+    INTEGRATORS,
     EqualityConstraints,
     Mhat_inv,
     assemble_mass_matrix,
@@ -53,7 +55,6 @@ from diffcontact.mechanics import (
     lagrangian_vector_field,
     potential_gradient,
     rigid_body_constraints,
-    rk4_step,
 )
 from diffcontact.systems import initial_conditions as ics
 from diffcontact.systems.config import (
@@ -232,7 +233,8 @@ class System:
       ``n_bodies``, ``body_points`` (first point of each body), ``n_contacts``
       (candidates K), ``d`` (contact-space dimension), ``contact_names``,
       ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
-      ``penetration_fraction``, ``dynamics``;
+      ``penetration_fraction``, ``dynamics``, ``integrator`` (``"rk4"`` or
+      ``"rk4_38"``, the config's Runge-Kutta rule);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
       ``cor (K,)`` (a 0-d tensor broadcasts to all contacts), ``gravity ()``
@@ -249,6 +251,7 @@ class System:
         self.horizon: float = float(cfg.horizon)
         self.penetration_fraction: float = float(cfg.penetration_fraction)
         self.dynamics: str = cfg.dynamics
+        self.integrator: str = cfg.integrator
         self.second_moments: Tensor | None = None
         self.stiffness: Tensor | None = None
         self.rest_length: Tensor | None = None
@@ -727,7 +730,8 @@ class System:
 
     def _integrate(self, z: Tensor, ctx: _Context, dynamics: str) -> Tensor:
         x, v = z[..., 0, :, :], z[..., 1, :, :]
-        x1, v1 = rk4_step(self._vector_field(ctx, dynamics), x, v, self.dt)
+        step = INTEGRATORS[self.integrator]
+        x1, v1 = step(self._vector_field(ctx, dynamics), x, v, self.dt)
         return torch.stack([x1, v1], dim=-3)
 
     def _resolve(
