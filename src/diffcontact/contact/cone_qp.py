@@ -229,7 +229,9 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify:
     gap = settings.gap
     for attempt in range(settings.retries + 1):
         sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
-        ipm = interior_point_solve(*sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows])
+        ipm = interior_point_solve(
+            *sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows], active=active[rows]
+        )
         polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
         if attempt == 0:
             f, res, P, dmu, dl, LU, piv = polished
