@@ -35,10 +35,22 @@ problems or contacts):
    the LU factorisation of ``dF/df = I - P + rho P (A + delta I)`` from the
    polish: one transposed solve per batch. ``delta`` (``SolverSettings.kkt_reg``,
    relative to diag(A)) keeps it invertible when the minimiser is not unique
-   (singular ``A`` with a free direction inside the cones); the returned
-   minimiser is then the one the interior-point path reached, and gradients
+   (singular ``A`` with a free direction inside the cones), and gradients
    along the free directions are not meaningful (the velocity change
-   ``Mhat^-1 J_C^T f`` and therefore any physical loss does not depend on them).
+   ``Mhat^-1 J_C^T f`` does not depend on them).
+
+Which minimiser when it is not unique (several contacts on one body; it matters:
+the compression impulse feeds Poisson's bound of the restitution phase): the limit
+of the interior point's central path, which lies near the analytic centre of the
+optimal set (the relative interior point that maximises the barrier), reached to
+the interior-point gap. It is a function of the problem alone: padded contacts take
+no part in the iterations (:func:`interior_point_solve`'s ``active``) and the polish
+does not move along null directions of ``A`` (:func:`_polish`), so a state gets the
+same impulse whichever states share its batch (to rounding: LAPACK factorises a
+padded matrix with another blocking; ``tests/systems/test_batch_invariance.py``).
+A minimum-norm choice (a Tikhonov term ``tau I``) was not taken: in floating point it
+fixes the free components only to ``eps / tau`` and would bias every solution by
+``tau``.
 
 Gradients at degenerate points follow the one-sided choices documented in
 :mod:`diffcontact.contact.cone` (right derivatives at ``mu = 0`` and ``l = 0``).
@@ -340,35 +352,71 @@ def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
     return found.index_put((rows,), cert)
 
 
+def _flat_projector(A: Tensor, LU: Tensor) -> Tensor | None:
+    """Projector onto the null space of ``A`` (B, C, C) for problems whose Jacobian is
+    (nearly) singular, i.e. that may have directions of zero curvature; zeros for the
+    others; ``None`` when no problem has one (no eigendecomposition is made)."""
+    B, C, _ = A.shape
+    flat = LU.diagonal(dim1=-2, dim2=-1).abs().amin(-1) <= 1e-6
+    if not bool(flat.any()):
+        return None
+    rows = flat.nonzero().squeeze(-1)
+    evals, V = torch.linalg.eigh(A[rows])
+    top = evals.abs().amax(-1, keepdim=True)
+    keep = evals <= 1e3 * torch.finfo(A.dtype).eps * C * top
+    N = V * keep[:, None, :]
+    return A.new_zeros(B, C, C).index_put((rows,), N @ N.transpose(-1, -2))
+
+
 def _polish(f: Tensor, data, settings: SolverSettings):
     """Newton steps on the natural map from ``f`` (B, C), with a backtracking line
     search on the residual (full, 1/2, 1/4 and 1/8 steps; a problem keeps its point if
     none lowers the residual: near-degenerate contacts can make full steps switch
     branches back and forth). Returns the point, its residual, the projection's
-    derivatives and the LU factorisation of dF/df there (reused by the backward pass)."""
+    derivatives and the LU factorisation of dF/df there (reused by the backward pass).
+
+    Where ``A`` is singular, the minimiser may not be unique: the natural map is flat
+    along null directions of ``A`` inside the cones, and the Newton step (regularised
+    by ``kkt_reg`` there) would move along them by rounding noise / ``kkt_reg`` (1e-4
+    relative in float64), i.e. pick a minimiser by rounding. So the step with its
+    null-space component removed is tried first, and the full step only where that one
+    does not lower the residual (a null direction that the constraints need): the
+    minimiser returned is then the interior point's, the limit of its central path
+    (near the analytic centre of the optimal set), which depends on the problem alone,
+    not on the batch it is solved in.
+    """
     A, b, mu, lower, rho, reg, c = data
     F, P, dmu, dl = _natural_map(A, b, mu, lower, f, rho)
     res = _scaled_residual(F, f, c)
     target = min(settings.polish_tol, settings.tol)  # ``tol`` is what is accepted
+    flat = None
     for step in range(settings.polish_steps + 1):
         LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
         if step == settings.polish_steps or bool((res <= target).all()):
             break
         delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
         delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        if step == 0:
+            flat = _flat_projector(A, LU)
+        steps = [delta]
+        if flat is not None:
+            steps.insert(0, delta - torch.einsum("bij,bj->bi", flat, delta))
         todo = res > target
-        for alpha in (1.0, 0.5, 0.25, 0.125):
-            f_new = f + alpha * delta
-            F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
-            res_new = _scaled_residual(F_new, f_new, c)
-            better = todo & (res_new < res)
-            f = torch.where(better[:, None], f_new, f)
-            F = torch.where(better[:, None], F_new, F)
-            P = torch.where(better[:, None, None, None], P_new, P)
-            dmu = torch.where(better[:, None, None], dmu_new, dmu)
-            dl = torch.where(better[:, None, None], dl_new, dl)
-            res = torch.where(better, res_new, res)
-            todo = todo & ~better
+        for direction in steps:
+            for alpha in (1.0, 0.5, 0.25, 0.125):
+                f_new = f + alpha * direction
+                F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
+                res_new = _scaled_residual(F_new, f_new, c)
+                better = todo & (res_new < res)
+                f = torch.where(better[:, None], f_new, f)
+                F = torch.where(better[:, None], F_new, F)
+                P = torch.where(better[:, None, None, None], P_new, P)
+                dmu = torch.where(better[:, None, None], dmu_new, dmu)
+                dl = torch.where(better[:, None, None], dl_new, dl)
+                res = torch.where(better, res_new, res)
+                todo = todo & ~better
+                if not bool(todo.any()):
+                    break
             if not bool(todo.any()):
                 break
     return f, res, P, dmu, dl, LU, piv

@@ -166,9 +166,7 @@ class _Cones:
         return hl, hq
 
 
-def _shift_interior(
-    xl: Tensor, xq: Tensor | None, valid: Tensor
-) -> tuple[Tensor, Tensor | None]:
+def _shift_interior(xl: Tensor, xq: Tensor | None, valid: Tensor) -> tuple[Tensor, Tensor | None]:
     """Shift (per problem) into the interior: x + (1 + alpha) e if needed; only the
     ``valid`` (B, K) contacts decide alpha."""
     low = torch.finfo(xl.dtype).min
