@@ -441,3 +441,33 @@ def test_singular_A_unbounded_and_bounded_problems_are_told_apart(d, K, rank):
     f, status = solve_cone_qp(A, b, mu, d, lower, return_status=True)
     assert status.converged.all() and not status.unbounded.any()
     assert natural_residual(A, b, mu, lower, f, d).max() < 1e-9
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_separating_problems_skip_the_interior_point(d):
+    """b in the dual cones and no lower bound: f = 0 without iterations, zero gradients;
+    the other problems of the batch are solved as they would be alone."""
+    A, b, mu, _ = random_problems(12, 4, d, seed=30 + d)
+    bk = b.reshape(12, 4, d).clone()
+    bk[:6, :, 0] = (mu[:6] * bk[:6, :, 1:].norm(dim=-1) if d > 1 else 0) + 0.1 + bk[:6, :, 0].abs()
+    b = bk.reshape(12, 4 * d)
+    A.requires_grad_()
+    b.requires_grad_()
+    mu.requires_grad_()
+    f, status = solve_cone_qp(A, b, mu, d, return_status=True)
+    assert torch.equal(f[:6], torch.zeros_like(f[:6])) and status.converged.all()
+    assert torch.equal(status.iterations == 0, _in_dual_cones(b.detach(), mu.detach(), d))
+    assert (status.iterations[:6] == 0).all() and (status.iterations[6:] > 0).any()
+    w = torch.randn(12, 4 * d, dtype=F64)
+    gA, gb, gmu = torch.autograd.grad((f * w).sum(), (A, b, mu))
+    assert (gA[:6] == 0).all() and (gb[:6] == 0).all() and (gmu[:6] == 0).all()
+    alone = solve_cone_qp(A[6:].detach(), b[6:].detach(), mu[6:].detach(), d)
+    torch.testing.assert_close(f[6:].detach(), alone, rtol=0, atol=1e-14)
+    # a lower bound makes f = 0 infeasible: solved as usual
+    lower = torch.zeros(12, 4, dtype=F64)
+    lower[0, 0] = 0.3
+    f2, status = solve_cone_qp(A.detach(), b.detach(), mu.detach(), d, lower, return_status=True)
+    assert status.iterations[0] > 0 and f2[0, 0] >= 0.3 - 1e-12
+    assert_gradients_close(
+        lambda b_: solve_cone_qp(A.detach()[:6], b_, mu.detach()[:6], d), (b.detach()[:6],)
+    )

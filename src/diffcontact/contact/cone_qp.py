@@ -58,7 +58,7 @@ Gradients at degenerate points follow the one-sided choices documented in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -238,16 +238,34 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify:
     # A problem the polish cannot finish (the interior point stopped too early to
     # identify its active set: rare, near-degenerate) is solved again with a tighter gap.
     rows = torch.arange(b.shape[0], device=device)
+    fresh = True  # no problem has a result yet
+    # Fast path: a problem with no lower bound whose every b_k lies in its dual cone
+    # (mu_k ||b_t,k|| <= b_n,k: every contact separates) has f = 0 as a minimiser; it
+    # skips the interior point, and its derivatives are those of the natural map at 0
+    # (zero inside the dual cone, the one-sided choices of cone.py on its boundary).
+    bk = b_m.reshape(-1, mu.shape[-1], d)
+    if d == 1:
+        separating = bk[..., 0] >= 0
+    else:
+        separating = mu_m * torch.linalg.vector_norm(bk[..., 1:], dim=-1) <= bk[..., 0]
+    trivial = (separating | ~active).all(-1) & (lower_m == 0).all(-1)
+    if bool(trivial.any()):
+        at_zero = replace(settings, polish_steps=0)
+        f, res, P, dmu, dl, LU, piv = _polish(torch.zeros_like(b_m), data, at_zero)
+        iterations = torch.zeros_like(res, dtype=torch.int64)
+        rows, fresh = rows[~trivial], False
     gap = settings.gap
-    for attempt in range(settings.retries + 1):
+    for _attempt in range(settings.retries + 1):
+        if rows.numel() == 0:
+            break
         sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
         ipm = interior_point_solve(
             *sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows], active=active[rows]
         )
         polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
-        if attempt == 0:
+        if fresh:
             f, res, P, dmu, dl, LU, piv = polished
-            iterations = ipm.iterations
+            iterations, fresh = ipm.iterations, False
         else:
             for full, part in zip((f, res, P, dmu, dl, LU, piv), polished, strict=True):
                 full[rows] = part
