@@ -217,3 +217,17 @@ def test_integrator_key_picks_the_runge_kutta_rule():
     ref = fine.simulate(z0, 50)[:, ::10]
     for traj in (a, b):
         assert (traj - ref).abs().max() < 1e-6
+
+
+def test_a_step_too_large_is_a_clear_error_naming_the_states():
+    """Gyro at dt = 0.5: RK4 stages leave the constraint manifold and J_E M^-1 J_E^T
+    stops being positive definite; no raw linalg traceback, the states are named."""
+    system = dc.load_system("Gyro", dt=0.5, horizon=5.0)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 4 .*state \d at step"):
+        system.simulate(z0, 9)
+    from diffcontact.mechanics.dynamics import _solve_spd
+
+    A = torch.stack([torch.eye(2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)])
+    X = _solve_spd(A, torch.ones(2, 2, 1, dtype=torch.float64))
+    assert torch.equal(X[0], torch.ones(2, 1, dtype=torch.float64)) and X[1].isnan().all()

@@ -969,8 +969,39 @@ class System:
             from tqdm.auto import tqdm
 
             iterator = tqdm(iterator, desc=f"simulate {self.name}", unit="step")
-        for _ in iterator:
+        for step in iterator:
             z1 = self._integrate(z, ctx, dynamics)
-            z = self._resolve(z1, ctx, model, fraction, solver_settings).z
+            try:
+                z = self._resolve(z1, ctx, model, fraction, solver_settings).z
+            except ValueError as err:
+                if "NaN or infinite" not in str(err):
+                    raise
+                states.append(z1)
+                raise ValueError(self._nonfinite_message(states, step + 1)) from err
             states.append(z)
-        return torch.stack(states, dim=1)
+        traj = torch.stack(states, dim=1)
+        if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
+            raise ValueError(self._nonfinite_message(states, steps))
+        return traj
+
+    def _nonfinite_message(self, states: list[Tensor], at: int) -> str:
+        """Which states became NaN or infinite, when, and the likely cause."""
+        with torch.no_grad():
+            traj = torch.stack([s.detach() for s in states], dim=1)
+            bad = ~torch.isfinite(traj).flatten(2).all(-1)  # (N, T)
+            rows = bad.any(-1).nonzero().flatten().tolist()
+            first = bad.to(torch.int8).argmax(-1).tolist()
+        where = ", ".join(f"state {r} at step {first[r]}" for r in rows[:8])
+        more = "" if len(rows) <= 8 else f" and {len(rows) - 8} more"
+        if self.constraints is not None:
+            cause = (
+                "the constraint system J_E M^-1 J_E^T became singular inside an RK4 step "
+                "(the state left its constraint manifold)"
+            )
+        else:
+            cause = "the motion blew up"
+        return (
+            f"simulate {self.name}: NaN or infinite values in {len(rows)} of "
+            f"{traj.shape[0]} trajectories ({where}{more}; step {at} was reached). Likely "
+            f"cause: {cause}; dt = {self.dt} may be too large for this system: try a smaller dt"
+        )
