@@ -27,6 +27,7 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -73,6 +74,9 @@ __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"
 _F = torch.float64
 _TASK_DIR = Path(__file__).parent / "tasks"
 DYNAMICS = ("lagrangian", "hamiltonian")
+TUNNELLING_FRACTION = 0.5
+"""Penetration deeper than this fraction of the smaller body's radius counts as tunnelling."""
+ON_TUNNELLING = ("warn", "raise", "ignore")
 
 
 def list_tasks() -> list[str]:
@@ -921,6 +925,7 @@ class System:
         penetration_fraction: float | None = None,
         check_overlap: bool = True,
         solver_settings: SolverSettings | None = None,
+        on_tunnelling: str = "warn",
     ) -> Tensor:
         """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
@@ -943,14 +948,26 @@ class System:
             penetration_fraction: override of the config's compensation fraction.
             check_overlap: reject initial states with a gap < 0.
             solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
+            on_tunnelling: what to do when a body ends up deeper inside another body
+                or a wall than :data:`TUNNELLING_FRACTION` (0.5) of the smaller radius
+                at any state of the trajectory (a step too large for the speeds, so a
+                collision was missed or half-resolved): ``"warn"`` (one
+                ``RuntimeWarning`` per call naming the states), ``"raise"``
+                (``ValueError``) or ``"ignore"``. Checked once, after the last step.
+                Contacts between bodies without a radius (the rope's limits) are not
+                checked.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
 
         Raises:
             ValueError: bad shape, NaN, overlapping bodies in ``z0``, bad
-                parameters or options, an unknown contact model.
+                parameters or options, an unknown contact model; NaN or infinite
+                states during the rollout (named, with the likely cause); tunnelling
+                with ``on_tunnelling="raise"``.
         """
+        if on_tunnelling not in ON_TUNNELLING:
+            raise ValueError(f"on_tunnelling must be one of {ON_TUNNELLING}, got {on_tunnelling!r}")
         self._check_state(z0, "z0")
         if steps is None:
             steps = self.default_steps
@@ -982,7 +999,50 @@ class System:
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
             raise ValueError(self._nonfinite_message(states, steps))
+        if on_tunnelling != "ignore":
+            self._check_tunnelling(traj, on_tunnelling == "raise")
         return traj
+
+    def _contact_sizes(self, like: Tensor) -> Tensor:
+        """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""
+        sizes = []
+        for edge in self._edges:
+            if edge.kind != "contact":
+                continue
+            radii = [
+                self._bodies[b].radius
+                for b in edge.bodies
+                if b != ENVIRONMENT and self._bodies[b].radius is not None
+            ]
+            sizes.append(min(radii) if radii else float("inf"))
+        return torch.tensor(sizes, dtype=like.dtype, device=like.device)
+
+    def _check_tunnelling(self, traj: Tensor, raise_error: bool) -> None:
+        """Warn (or raise) once if any state penetrates deeper than the fraction allows."""
+        with torch.no_grad():
+            gaps = self.gaps(traj[..., 0, :, :].detach())  # (N, T, K)
+            depth = -gaps / self._contact_sizes(gaps)
+            bad = depth > TUNNELLING_FRACTION
+            if not bool(bad.any()):
+                return
+            rows = bad.flatten(1).any(-1).nonzero().flatten().tolist()
+            worst = depth.flatten(1).amax(-1)
+            items = []
+            for r in rows[:5]:
+                t, k = divmod(int(depth[r].argmax()), depth.shape[-1])
+                items.append(
+                    f"state {r}: {self.contact_names[k]} by {float(worst[r]):.3g} radii at step {t}"
+                )
+        more = "" if len(rows) <= 5 else f"; and {len(rows) - 5} more"
+        message = (
+            f"simulate {self.name}: bodies tunnelled (penetration deeper than "
+            f"{TUNNELLING_FRACTION} of the smaller radius) in {len(rows)} of {traj.shape[0]} "
+            f"trajectories: {'; '.join(items)}{more}. The step dt = {self.dt} is too large "
+            "for these speeds: use a smaller dt (on_tunnelling='ignore' silences this)"
+        )
+        if raise_error:
+            raise ValueError(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
 
     def _nonfinite_message(self, states: list[Tensor], at: int) -> str:
         """Which states became NaN or infinite, when, and the likely cause."""
