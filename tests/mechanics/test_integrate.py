@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from diffcontact.mechanics import (
+    INTEGRATORS,
     chain_constraints,
     chain_points_2d,
     gravity_potential,
@@ -14,6 +15,7 @@ from diffcontact.mechanics import (
     kinetic_energy,
     lagrangian_vector_field,
     potential_gradient,
+    rk4_38_step,
     rk4_step,
 )
 
@@ -144,3 +146,55 @@ def test_rollout_gradients_match_finite_differences(field):
     out = rollout(*inputs)
     (g_mass,) = torch.autograd.grad(out[..., 1, :, :].pow(2).sum(), inputs[0])
     assert g_mass.abs().max() > 1e-3
+
+
+def _oscillator_error(step, dt, n):
+    def vf(x, v):
+        return v, -x
+
+    x, v = torch.ones(1, 1, dtype=DT), torch.zeros(1, 1, dtype=DT)
+    for _ in range(n):
+        x, v = step(vf, x, v, dt)
+    return abs(x.item() - math.cos(dt * n))
+
+
+def test_rk4_38_is_fourth_order_and_differs_from_classic_rk4():
+    ratio = _oscillator_error(rk4_38_step, 0.2, 10) / _oscillator_error(rk4_38_step, 0.1, 20)
+    assert 14.0 < ratio < 18.0
+    # the same order, another rule: the two differ by about their truncation errors
+    e_classic, e_38 = _oscillator_error(rk4_step, 0.1, 20), _oscillator_error(rk4_38_step, 0.1, 20)
+    assert e_classic != e_38 and 0.1 < e_38 / e_classic < 10
+
+    # one step on a nonlinear field, by hand: k1 = f(y), k2 = f(y + dt k1/3), ...
+    def vf(x, v):
+        return v, -torch.sin(x)
+
+    x0, v0, dt = torch.tensor([[0.7]], dtype=DT), torch.tensor([[0.3]], dtype=DT), 0.1
+    y0 = torch.stack([x0, v0])
+
+    def f(y):
+        return torch.stack(vf(y[0], y[1]))
+
+    k1 = f(y0)
+    k2 = f(y0 + dt * k1 / 3)
+    k3 = f(y0 + dt * (k2 - k1 / 3))
+    k4 = f(y0 + dt * (k1 - k2 + k3))
+    expected = y0 + dt * (k1 + 3 * k2 + 3 * k3 + k4) / 8
+    x1, v1 = rk4_38_step(vf, x0, v0, dt)
+    torch.testing.assert_close(torch.stack([x1, v1]), expected, rtol=1e-15, atol=1e-15)
+    assert INTEGRATORS == {"rk4": rk4_step, "rk4_38": rk4_38_step}
+
+
+def test_rk4_38_matches_torchdiffeq_rk4():
+    torchdiffeq = pytest.importorskip("torchdiffeq")
+
+    def vf(x, v):
+        return v, -torch.sin(x) - 0.1 * v
+
+    y0 = torch.tensor([[0.7, 0.3], [-1.2, 2.0]], dtype=DT)
+    t = torch.linspace(0, 1, 11, dtype=DT)
+    ref = torchdiffeq.odeint(lambda _, y: torch.stack(vf(y[0], y[1])), y0, t, method="rk4")
+    x, v = y0[0], y0[1]
+    for _ in range(10):
+        x, v = rk4_38_step(vf, x, v, 0.1)
+    torch.testing.assert_close(torch.stack([x, v]), ref[-1], rtol=0, atol=1e-15)

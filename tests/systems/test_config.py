@@ -132,6 +132,7 @@ def test_unknown_task_lists_known_ones():
         ({"gravity": -9.81}, r"gravity: .*greater than or equal to 0"),
         ({"penetration_fraction": 2}, r"penetration_fraction"),
         ({"dynamics": "newtonian"}, r"dynamics"),
+        ({"integrator": "euler"}, r"integrator: .*'rk4' or 'rk4_38'"),
     ],
 )
 def test_validation_errors_name_the_key(override, pattern):

@@ -1,5 +1,7 @@
 """Rollouts: shapes, energy conservation, momentum, inelastic contacts, dynamics options."""
 
+import warnings
+
 import pytest
 import torch
 
@@ -199,3 +201,63 @@ def test_float32_and_cmr_run():
     assert b.dtype == torch.float32
     c = system.simulate(z0, steps=15)
     assert float((b.double() - c).abs().max()) < 1e-3
+
+
+def test_integrator_key_picks_the_runge_kutta_rule():
+    """CP3 before its first contact: rk4_38 (the 3/8 rule) and classic rk4 agree to their
+    truncation error, and differ; the default is classic rk4."""
+    classic = dc.load_system("CP3")
+    rule38 = dc.load_system("CP3", integrator="rk4_38")
+    assert classic.integrator == "rk4" and rule38.integrator == "rk4_38"
+    z0 = classic.sample_initial_conditions(4, seed=0)
+    a, b = classic.simulate(z0, 5), rule38.simulate(z0, 5)
+    assert (classic.gaps(a[:, :, 0]) > 0).all()  # no contact yet: pure integration
+    diff = (a - b).abs().max()
+    assert 0 < diff < 1e-6
+    # against a reference of both: the 3/8 rule with 10x smaller steps
+    fine = dc.load_system("CP3", integrator="rk4_38", dt=0.001, horizon=1.0)
+    ref = fine.simulate(z0, 50)[:, ::10]
+    for traj in (a, b):
+        assert (traj - ref).abs().max() < 1e-6
+
+
+def test_a_step_too_large_is_a_clear_error_naming_the_states():
+    """Gyro at dt = 0.5: RK4 stages leave the constraint manifold and J_E M^-1 J_E^T
+    stops being positive definite; no raw linalg traceback, the states are named."""
+    system = dc.load_system("Gyro", dt=0.5, horizon=5.0)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 4 .*state \d at step"):
+        system.simulate(z0, 9)
+    from diffcontact.mechanics.dynamics import _solve_spd
+
+    A = torch.stack([torch.eye(2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)])
+    X = _solve_spd(A, torch.ones(2, 2, 1, dtype=torch.float64))
+    assert torch.equal(X[0], torch.ones(2, 1, dtype=torch.float64)) and X[1].isnan().all()
+
+
+def test_tunnelling_warns_once_or_raises_naming_the_states():
+    system = dc.load_system("BP5", dt=0.5, horizon=5.0)  # 50x the task's step
+    z0 = system.sample_initial_conditions(4, seed=0)
+    with pytest.warns(RuntimeWarning, match=r"tunnelled .* in \d of 4 .*state \d: body") as rec:
+        system.simulate(z0, 9)
+    assert len([r for r in rec if "tunnelled" in str(r.message)]) == 1
+    with pytest.raises(ValueError, match=r"tunnelled .*state \d: body \d penetrates"):
+        system.simulate(z0, 9, on_tunnelling="raise")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        system.simulate(z0, 9, on_tunnelling="ignore")
+    with pytest.raises(ValueError, match="on_tunnelling must be one of"):
+        system.simulate(z0, 9, on_tunnelling="loud")
+    # velocities x 1e3 at the task's own step
+    fast = dc.load_system("BP5")
+    z = fast.sample_initial_conditions(2, seed=1)
+    z[:, 1] *= 1e3
+    with pytest.raises(ValueError, match="tunnelled"):
+        fast.simulate(z, 5, on_tunnelling="raise")
+
+
+@pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro", "Rope"])
+def test_task_rollouts_do_not_tunnel(task):
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(4, seed=2)
+    system.simulate(z0, 40, on_tunnelling="raise")

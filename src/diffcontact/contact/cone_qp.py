@@ -24,14 +24,33 @@ problems or contacts):
    (:mod:`diffcontact.contact.cone`), whose zeros are exactly the minimisers,
    identifies the active constraints and drives ``F`` to rounding level
    (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
-4. The backward pass differentiates ``F(f; A, b, mu, l) = 0`` implicitly, reusing
+4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
+   on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
+   ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),
+   found from the solver's runaway iterate or, failing that, from one re-solve with a
+   small Tikhonov term. It is never inferred from the residual, which is relative to
+   ``|f|`` and which a runaway iterate passes: such a problem is reported unbounded
+   (with a certificate) or unconverged, never converged.
+5. The backward pass differentiates ``F(f; A, b, mu, l) = 0`` implicitly, reusing
    the LU factorisation of ``dF/df = I - P + rho P (A + delta I)`` from the
    polish: one transposed solve per batch. ``delta`` (``SolverSettings.kkt_reg``,
    relative to diag(A)) keeps it invertible when the minimiser is not unique
-   (singular ``A`` with a free direction inside the cones); the returned
-   minimiser is then the one the interior-point path reached, and gradients
+   (singular ``A`` with a free direction inside the cones), and gradients
    along the free directions are not meaningful (the velocity change
-   ``Mhat^-1 J_C^T f`` and therefore any physical loss does not depend on them).
+   ``Mhat^-1 J_C^T f`` does not depend on them).
+
+Which minimiser when it is not unique (several contacts on one body; it matters:
+the compression impulse feeds Poisson's bound of the restitution phase): the limit
+of the interior point's central path, which lies near the analytic centre of the
+optimal set (the relative interior point that maximises the barrier), reached to
+the interior-point gap. It is a function of the problem alone: padded contacts take
+no part in the iterations (:func:`interior_point_solve`'s ``active``) and the polish
+does not move along null directions of ``A`` (:func:`_polish`), so a state gets the
+same impulse whichever states share its batch (to rounding: LAPACK factorises a
+padded matrix with another blocking; ``tests/systems/test_batch_invariance.py``).
+A minimum-norm choice (a Tikhonov term ``tau I``) was not taken: in floating point it
+fixes the free components only to ``eps / tau`` and would bias every solution by
+``tau``.
 
 Gradients at degenerate points follow the one-sided choices documented in
 :mod:`diffcontact.contact.cone` (right derivatives at ``mu = 0`` and ``l = 0``).
@@ -39,7 +58,7 @@ Gradients at degenerate points follow the one-sided choices documented in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -113,7 +132,11 @@ class SolverStatus:
 
     Attributes:
         converged: bool, the residual is within ``tol``.
-        unbounded: bool, the objective is unbounded below (no minimiser).
+        unbounded: bool, the objective is unbounded below (no minimiser): a
+            certificate, a descent direction of zero curvature inside the friction
+            cones, was found (to relative accuracy ``sqrt(eps)``: a minimiser farther
+            than ``1 / sqrt(eps)`` natural impulse scales counts as none). An
+            unbounded problem is never ``converged``.
         iterations: int64, interior-point iterations used.
         residual: scaled natural-map residual ``||F||_inf / max(1, ||f||_inf)``.
     """
@@ -158,8 +181,11 @@ def _jacobian(A: Tensor, P: Tensor, rho: Tensor, reg: Tensor) -> Tensor:
     return add_block_diag(eye + rho[:, None, None] * _blockwise(P, A_reg), -P)
 
 
-def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
-    """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K)."""
+def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify: bool = True):
+    """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K).
+
+    ``certify=False`` skips the test for unboundedness (used by that test itself, on
+    problems that are bounded by construction)."""
     C = b.shape[-1]
     dtype, device = A.dtype, A.device
     act_c = active.repeat_interleave(d, dim=-1)  # (B, C)
@@ -212,18 +238,37 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     # A problem the polish cannot finish (the interior point stopped too early to
     # identify its active set: rare, near-degenerate) is solved again with a tighter gap.
     rows = torch.arange(b.shape[0], device=device)
+    fresh = True  # no problem has a result yet
+    # Fast path: a problem with no lower bound whose every b_k lies in its dual cone
+    # (mu_k ||b_t,k|| <= b_n,k: every contact separates) has f = 0 as a minimiser; it
+    # skips the interior point, and its derivatives are those of the natural map at 0
+    # (zero inside the dual cone, the one-sided choices of cone.py on its boundary).
+    bk = b_m.reshape(-1, mu.shape[-1], d)
+    if d == 1:
+        separating = bk[..., 0] >= 0
+    else:
+        separating = mu_m * torch.linalg.vector_norm(bk[..., 1:], dim=-1) <= bk[..., 0]
+    trivial = (separating | ~active).all(-1) & (lower_m == 0).all(-1)
+    if bool(trivial.any()):
+        at_zero = replace(settings, polish_steps=0)
+        f, res, P, dmu, dl, LU, piv = _polish(torch.zeros_like(b_m), data, at_zero)
+        iterations = torch.zeros_like(res, dtype=torch.int64)
+        rows, fresh = rows[~trivial], False
     gap = settings.gap
-    for attempt in range(settings.retries + 1):
+    for _attempt in range(settings.retries + 1):
+        if rows.numel() == 0:
+            break
         sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
-        ipm = interior_point_solve(*sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows])
+        ipm = interior_point_solve(
+            *sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows], active=active[rows]
+        )
         polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
-        if attempt == 0:
+        if fresh:
             f, res, P, dmu, dl, LU, piv = polished
-            unbounded, iterations = ipm.unbounded, ipm.iterations
+            iterations, fresh = ipm.iterations, False
         else:
             for full, part in zip((f, res, P, dmu, dl, LU, piv), polished, strict=True):
                 full[rows] = part
-            unbounded[rows] = ipm.unbounded
             iterations[rows] += ipm.iterations
         retry = (polished[1] > settings.tol) & ~ipm.unbounded
         if not bool(retry.any()):
@@ -231,17 +276,14 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
         rows, gap = rows[retry], gap * 1e-2
 
     f = torch.where(act_c, f, 0)
-    # an iterate that ran off along a direction of zero curvature and descent is a
-    # certificate of unboundedness, whichever phase noticed it
-    g = f / c[:, None]
-    size = g.abs().amax(-1)
-    dirn = g / size.clamp_min(1)[:, None]
-    curv = (dirn * torch.einsum("bij,bj->bi", A_m / a_s[:, None, None], dirn)).sum(-1)
-    descent = (dirn * b_m / b_s[:, None]).sum(-1)
-    finished = res <= settings.tol
-    runaway = (size > 1e3) & (curv <= 1e-6) & (descent < 0) & ~finished
-    unbounded = unbounded | runaway
-    converged = finished & ~unbounded
+    # Unboundedness is decided by a certificate checked on the data, never by the
+    # residual (it is scaled by |f|, so a runaway iterate passes it); the interior
+    # point's divergence test (``ipm.unbounded``) only stops it and skips the retries.
+    unbounded = torch.zeros_like(res, dtype=torch.bool)
+    if certify:
+        A_hat, b_hat = A_m / a_s[:, None, None], b_m / b_s[:, None]
+        unbounded = _unbounded(A_hat, b_hat, mu_m, active, d, f / c[:, None], res, settings)
+    converged = (res <= settings.tol) & ~unbounded
     status = SolverStatus(
         converged=converged, unbounded=unbounded, iterations=iterations, residual=res
     )
@@ -249,35 +291,150 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings):
     return f, status, saved
 
 
+def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):
+    """Whether the direction of ``g`` is a certificate of unboundedness, (B,) bool.
+
+    The objective is unbounded below exactly when a recession direction of the feasible
+    set (``u`` in the friction cones, ``||u_t,k|| <= mu_k u_n,k``; the lower bounds do
+    not change them) has zero curvature and descends: ``A u = 0`` and ``b^T u < 0``
+    (then ``f + t u`` lowers the objective by ``t |b^T u|`` for every ``t``). ``u`` is
+    ``g`` projected onto the cones (exactly, so it is a recession direction) and
+    normalised to ``||u||_inf = 1``; it is accepted when
+
+        b^T u <= -1e3 eps C     and     u^T A u <= sqrt(eps) (b^T u)^2
+
+    (``eps`` of the dtype, data scaled so that diag(A) ~ 1 and ``|b|_inf <= 1``): along
+    ``u`` the objective then falls by at least ``(b^T u)^2 / (2 u^T A u) >=
+    1 / (2 sqrt(eps))`` natural units, so a minimiser, if any, lies beyond
+    ``1 / sqrt(eps)`` (1.5e8 in float64) natural impulse scales, farther than the answer
+    can be resolved (a bounded problem that badly scaled is reported unbounded too).
+
+    Args:
+        A: (B, C, C) scaled ``A`` with inactive contacts decoupled.
+        b: (B, C) scaled ``b``.
+        mu: (B, K) friction coefficients (inactive entries arbitrary).
+        active: (B, K) bool.
+        d: contact dimension.
+        g: (B, C) candidate direction, any length.
+    """
+    B, C = g.shape
+    eps = torch.finfo(g.dtype).eps
+    act_c = active.repeat_interleave(d, dim=-1)
+    u = project_contact_set(g.reshape(B, -1, d), mu, torch.zeros_like(mu))[0].reshape(B, C)
+    u = torch.where(act_c, u, 0)
+    scale = u.abs().amax(-1, keepdim=True)
+    u = u / torch.where(scale > 0, scale, 1)
+    slope = (b * u).sum(-1)
+    curv = (u * torch.einsum("bij,bj->bi", A, u)).sum(-1)
+    return (slope <= -1e3 * eps * C) & (curv <= eps**0.5 * slope * slope)
+
+
+def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
+    """Problems with a certificate of unboundedness (:func:`_certifies_unbounded`), (B,).
+
+    Scaled data as there; ``g`` is the solver's iterate and ``res`` its residual.
+
+    Only problems that may be unbounded are examined: unconverged ones, and those whose
+    iterate lies beyond 100 natural impulse scales (the residual is relative to
+    ``max(1, ||g||)``, so a runaway iterate can pass it; a converged bounded problem
+    nearer than that cannot pass the certificate). The iterate's own direction is tried
+    first: on an unbounded problem it runs off along a certificate, exactly when
+    ``A = 0``. Where it is not one yet (a runaway along a null direction of a singular
+    ``A`` still carries its bounded offset) and the problem is unconverged or beyond
+    ``1e-2 / tol`` scales, the problem is solved once more with a Tikhonov term,
+    ``A + delta I`` (``delta = eps^(3/8)``, 1.4e-6 in float64), which is bounded: its
+    minimiser is ``w / delta + O(1)`` with ``w`` the projection of ``-b`` onto the
+    directions of the cones in the null space of ``A``, a certificate whenever one
+    exists with ``||w|| >~ eps^(1/8)`` (0.01 in float64). The default path (every
+    problem converged within 100 scales) costs one host synchronisation.
+    """
+    found = torch.zeros_like(res, dtype=torch.bool)
+    size = g.abs().amax(-1)
+    unconverged = res > settings.tol
+    todo = active.any(-1) & (unconverged | (size > 1e2))
+    if not bool(todo.any()):
+        return found
+    rows = todo.nonzero().squeeze(-1)
+    A, b, mu, active, g = A[rows], b[rows], mu[rows], active[rows], g[rows]
+    cert = _certifies_unbounded(A, b, mu, active, d, g)
+    again = ~cert & (unconverged[rows] | (size[rows] > 1e-2 / settings.tol))
+    if bool(again.any()):
+        sub = again.nonzero().squeeze(-1)
+        A_s, b_s, mu_s, act_s = A[sub], b[sub], mu[sub], active[sub]
+        delta = torch.finfo(A.dtype).eps ** 0.375
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+        g_s, _, _ = _forward(
+            A_s + delta * eye, b_s, mu_s, torch.zeros_like(mu_s), act_s, d, settings, certify=False
+        )
+        cert = cert.index_put((sub,), _certifies_unbounded(A_s, b_s, mu_s, act_s, d, g_s))
+    return found.index_put((rows,), cert)
+
+
+def _flat_projector(A: Tensor, LU: Tensor) -> Tensor | None:
+    """Projector onto the null space of ``A`` (B, C, C) for problems whose Jacobian is
+    (nearly) singular, i.e. that may have directions of zero curvature; zeros for the
+    others; ``None`` when no problem has one (no eigendecomposition is made)."""
+    B, C, _ = A.shape
+    flat = LU.diagonal(dim1=-2, dim2=-1).abs().amin(-1) <= 1e-6
+    if not bool(flat.any()):
+        return None
+    rows = flat.nonzero().squeeze(-1)
+    evals, V = torch.linalg.eigh(A[rows])
+    top = evals.abs().amax(-1, keepdim=True)
+    keep = evals <= 1e3 * torch.finfo(A.dtype).eps * C * top
+    N = V * keep[:, None, :]
+    return A.new_zeros(B, C, C).index_put((rows,), N @ N.transpose(-1, -2))
+
+
 def _polish(f: Tensor, data, settings: SolverSettings):
     """Newton steps on the natural map from ``f`` (B, C), with a backtracking line
     search on the residual (full, 1/2, 1/4 and 1/8 steps; a problem keeps its point if
     none lowers the residual: near-degenerate contacts can make full steps switch
     branches back and forth). Returns the point, its residual, the projection's
-    derivatives and the LU factorisation of dF/df there (reused by the backward pass)."""
+    derivatives and the LU factorisation of dF/df there (reused by the backward pass).
+
+    Where ``A`` is singular, the minimiser may not be unique: the natural map is flat
+    along null directions of ``A`` inside the cones, and the Newton step (regularised
+    by ``kkt_reg`` there) would move along them by rounding noise / ``kkt_reg`` (1e-4
+    relative in float64), i.e. pick a minimiser by rounding. So the step with its
+    null-space component removed is tried first, and the full step only where that one
+    does not lower the residual (a null direction that the constraints need): the
+    minimiser returned is then the interior point's, the limit of its central path
+    (near the analytic centre of the optimal set), which depends on the problem alone,
+    not on the batch it is solved in.
+    """
     A, b, mu, lower, rho, reg, c = data
     F, P, dmu, dl = _natural_map(A, b, mu, lower, f, rho)
     res = _scaled_residual(F, f, c)
     target = min(settings.polish_tol, settings.tol)  # ``tol`` is what is accepted
+    flat = None
     for step in range(settings.polish_steps + 1):
         LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
         if step == settings.polish_steps or bool((res <= target).all()):
             break
         delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)
         delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        if step == 0:
+            flat = _flat_projector(A, LU)
+        steps = [delta]
+        if flat is not None:
+            steps.insert(0, delta - torch.einsum("bij,bj->bi", flat, delta))
         todo = res > target
-        for alpha in (1.0, 0.5, 0.25, 0.125):
-            f_new = f + alpha * delta
-            F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
-            res_new = _scaled_residual(F_new, f_new, c)
-            better = todo & (res_new < res)
-            f = torch.where(better[:, None], f_new, f)
-            F = torch.where(better[:, None], F_new, F)
-            P = torch.where(better[:, None, None, None], P_new, P)
-            dmu = torch.where(better[:, None, None], dmu_new, dmu)
-            dl = torch.where(better[:, None, None], dl_new, dl)
-            res = torch.where(better, res_new, res)
-            todo = todo & ~better
+        for direction in steps:
+            for alpha in (1.0, 0.5, 0.25, 0.125):
+                f_new = f + alpha * direction
+                F_new, P_new, dmu_new, dl_new = _natural_map(A, b, mu, lower, f_new, rho)
+                res_new = _scaled_residual(F_new, f_new, c)
+                better = todo & (res_new < res)
+                f = torch.where(better[:, None], f_new, f)
+                F = torch.where(better[:, None], F_new, F)
+                P = torch.where(better[:, None, None, None], P_new, P)
+                dmu = torch.where(better[:, None, None], dmu_new, dmu)
+                dl = torch.where(better[:, None, None], dl_new, dl)
+                res = torch.where(better, res_new, res)
+                todo = todo & ~better
+                if not bool(todo.any()):
+                    break
             if not bool(todo.any()):
                 break
     return f, res, P, dmu, dl, LU, piv
@@ -305,13 +462,17 @@ class _ConeQPFunction(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx, inputs, output):
         ctx.d = inputs[5]
-        # intermediates of the solve (not inputs/outputs), kept on ctx
-        ctx.solution = output[5]
+        # The solve's intermediates go through save_for_backward, never as attributes of
+        # ctx: ``f`` may be the very tensor returned (same dtype), and a tensor attribute
+        # that is an output makes a cycle (output -> grad_fn -> ctx -> output) through
+        # C++ references that the garbage collector cannot see, keeping every solve's
+        # factorisations alive (tests/contact/test_cone_qp.py checks no node survives).
+        ctx.save_for_backward(*output[5])
         ctx.mark_non_differentiable(*output[1:5])
 
     @staticmethod
     def backward(ctx, grad_f, *_):
-        f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.solution
+        f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.saved_tensors
         d = ctx.d
         B = f.shape[0]
         out_dtype = grad_f.dtype

@@ -166,11 +166,14 @@ class _Cones:
         return hl, hq
 
 
-def _shift_interior(xl: Tensor, xq: Tensor | None) -> tuple[Tensor, Tensor | None]:
-    """Shift (per problem) into the interior: x + (1 + alpha) e if needed."""
-    alpha = (-xl).amax(-1)
+def _shift_interior(xl: Tensor, xq: Tensor | None, valid: Tensor) -> tuple[Tensor, Tensor | None]:
+    """Shift (per problem) into the interior: x + (1 + alpha) e if needed; only the
+    ``valid`` (B, K) contacts decide alpha."""
+    low = torch.finfo(xl.dtype).min
+    alpha = torch.where(valid, -xl, low).amax(-1)
     if xq is not None:
-        alpha = torch.maximum(alpha, (xq[..., 1:].norm(dim=-1) - xq[..., 0]).amax(-1))
+        out = xq[..., 1:].norm(dim=-1) - xq[..., 0]
+        alpha = torch.maximum(alpha, torch.where(valid, out, low).amax(-1))
     shift = torch.where(alpha >= 0, 1 + alpha, torch.zeros_like(alpha))
     xl = xl + shift[:, None]
     if xq is not None:
@@ -190,6 +193,7 @@ def interior_point_solve(
     max_iter: int,
     apex: Tensor | None = None,
     blowup: float = 1e10,
+    active: Tensor | None = None,
 ) -> InteriorPointResult:
     """Run the batched primal-dual method on scaled problems.
 
@@ -203,6 +207,11 @@ def interior_point_solve(
         tol: target for the complementarity gap (per cone) and residuals.
         max_iter: iteration cap.
         apex: (B, K) downward shift of each cone's apex (None: no shift).
+        active: (B, K) bool, the contacts that take part (None: all). The others are
+            held at ``f = 0`` with their slack and dual variables at the cones' identity
+            and enter no gap, residual, step length or stopping test, so that a
+            problem's iterates do not depend on how far it was padded (the padded
+            blocks of ``A`` must be decoupled from the rest).
 
     Returns:
         An :class:`InteriorPointResult`.
@@ -210,7 +219,20 @@ def interior_point_solve(
     B, C = b.shape
     K = C // d
     dtype, device = A.dtype, A.device
-    n_cones = K * (2 if d > 1 else 1)
+    valid = torch.ones(B, K, dtype=torch.bool, device=device) if active is None else active
+    per_contact = 2 if d > 1 else 1
+    n_cones = (valid.sum(-1) * per_contact).clamp_min(1).to(dtype)  # (B,)
+    e_q = torch.zeros(d, dtype=dtype, device=device)
+    e_q[0] = 1
+
+    def freeze(valid, f, sl, zl, sq, zq):
+        """Hold the contacts outside ``valid`` at f = 0, s = z = e."""
+        f = torch.where(valid[..., None], f, 0)
+        sl, zl = torch.where(valid, sl, 1), torch.where(valid, zl, 1)
+        if d > 1:
+            sq = torch.where(valid[..., None], sq, e_q)
+            zq = torch.where(valid[..., None], zq, e_q)
+        return f, sl, zl, sq, zq
 
     f_all = torch.zeros(B, K, d, dtype=dtype, device=device)
     solved_all = torch.zeros(B, dtype=torch.bool, device=device)
@@ -231,8 +253,9 @@ def interior_point_solve(
     f = torch.cholesky_solve(rhs.unsqueeze(-1), L).reshape(B, K, d)
     gl, gq = cones.G(f)
     zl, zq = gl - hl, (gq - hq if d > 1 else None)
-    sl, sq = _shift_interior(-zl, -zq if d > 1 else None)
-    zl, zq = _shift_interior(zl, zq)
+    sl, sq = _shift_interior(-zl, -zq if d > 1 else None, valid)
+    zl, zq = _shift_interior(zl, zq, valid)
+    f, sl, zl, sq, zq = freeze(valid, f, sl, zl, sq, zq)
 
     Ab, bb = A, b
     stalled = torch.zeros(B, dtype=torch.bool, device=device)
@@ -245,10 +268,14 @@ def interior_point_solve(
         rx = rx + cones.GT(zl, zq)
         rzl = gl + sl + cones.lower
         rzq = gq + sq - hq if d > 1 else None
-        gap = (sl * zl).sum(-1) + ((sq * zq).sum((-1, -2)) if d > 1 else 0)
-        res = torch.maximum(rx.abs().flatten(1).amax(-1), rzl.abs().amax(-1))
+        vq = valid[..., None]
+        gap = torch.where(valid, sl * zl, 0).sum(-1)
         if d > 1:
-            res = torch.maximum(res, rzq.abs().flatten(1).amax(-1))
+            gap = gap + torch.where(valid, (sq * zq).sum(-1), 0).sum(-1)
+        res = torch.where(vq, rx, 0).abs().flatten(1).amax(-1)
+        res = torch.maximum(res, torch.where(valid, rzl, 0).abs().amax(-1))
+        if d > 1:
+            res = torch.maximum(res, torch.where(vq, rzq, 0).abs().flatten(1).amax(-1))
         solved = (gap <= tol * n_cones) & (res <= tol)
         diverged = f.abs().flatten(1).amax(-1) > blowup
         # complementarity reached but the residual no longer falls: the scaling has run
@@ -271,6 +298,7 @@ def interior_point_solve(
                 break
             f, sl, zl, rx, rzl, gap = f[keep], sl[keep], zl[keep], rx[keep], rzl[keep], gap[keep]
             stalled, plain_only = stalled[keep], plain_only[keep]
+            valid, n_cones = valid[keep], n_cones[keep]
             prev_res, prev_size = prev_res[keep], prev_size[keep]
             if d > 1:
                 sq, zq, rzq = sq[keep], zq[keep], rzq[keep]
@@ -326,10 +354,15 @@ def interior_point_solve(
         slz = torch.cat([sl, zl], -1)
         sqz = torch.cat([sq, zq], -2) if d > 1 else None
 
+        valid2 = torch.cat([valid, valid], -1)
+        inf = float("inf")
+
         def max_step(dsl, dsq, dzl, dzq):
-            a = _orth_max_step(slz, torch.cat([dsl, dzl], -1)).amin(-1)
+            a = _orth_max_step(slz, torch.cat([dsl, dzl], -1))
+            a = torch.where(valid2, a, inf).amin(-1)
             if d > 1:
-                a = torch.minimum(a, _soc_max_step(sqz, torch.cat([dsq, dzq], -2)).amin(-1))
+                aq = _soc_max_step(sqz, torch.cat([dsq, dzq], -2))
+                a = torch.minimum(a, torch.where(valid2, aq, inf).amin(-1))
             return a
 
         # predictor
@@ -357,10 +390,11 @@ def interior_point_solve(
             _, dsl, dsq, dzl, dzq = direction
             alpha = (0.99 * max_step(dsl, dsq, dzl, dzq)).clamp(max=1.0)
             a = alpha[:, None]
-            g = ((sl + a * dsl) * (zl + a * dzl)).sum(-1)
+            g = torch.where(valid, (sl + a * dsl) * (zl + a * dzl), 0).sum(-1)
             if d > 1:
                 a = a[..., None]
-                g = g + ((sq + a * dsq) * (zq + a * dzq)).sum((-1, -2))
+                gq = ((sq + a * dsq) * (zq + a * dzq)).sum(-1)
+                g = g + torch.where(valid, gq, 0).sum(-1)
             return g, alpha
 
         gap_m, alpha = gap_after(mehrotra)
@@ -378,9 +412,11 @@ def interior_point_solve(
         a1 = alpha[:, None]
         f_new = f + a1[..., None] * df
         sl_new, zl_new = sl + a1 * dsl, zl + a1 * dzl
+        sq_new = sq + a1[..., None] * dsq if d > 1 else None
+        zq_new = zq + a1[..., None] * dzq if d > 1 else None
+        f_new, sl_new, zl_new, sq_new, zq_new = freeze(valid, f_new, sl_new, zl_new, sq_new, zq_new)
         ok = torch.isfinite(f_new).flatten(1).all(-1) & torch.isfinite(sl_new * zl_new).all(-1)
         if d > 1:
-            sq_new, zq_new = sq + a1[..., None] * dsq, zq + a1[..., None] * dzq
             ok = ok & torch.isfinite(sq_new * zq_new).flatten(1).all(-1)
             ok = ok & (_soc_det(sq_new) > 0).all(-1) & (_soc_det(zq_new) > 0).all(-1)
         ok = ok & (sl_new > 0).all(-1) & (zl_new > 0).all(-1)

@@ -31,9 +31,10 @@ from diffcontact.mechanics.dynamics import (
     lagrangian_vector_field,
     potential_gradient,
 )
-from diffcontact.mechanics.integrate import VectorField, rk4_step
+from diffcontact.mechanics.integrate import INTEGRATORS, VectorField, rk4_38_step, rk4_step
 
 __all__ = [
+    "INTEGRATORS",
     "EqualityConstraints",
     "Mhat_inv",
     "VectorField",
@@ -56,5 +57,6 @@ __all__ = [
     "potential_gradient",
     "rigid_body_constraints",
     "rigid_body_points_3d",
+    "rk4_38_step",
     "rk4_step",
 ]

@@ -28,10 +28,15 @@ __all__ = [
 
 
 def _solve_spd(A: Tensor, B: Tensor) -> Tensor:
-    """Solve ``A X = B`` for symmetric positive definite ``A: (..., n, n)``, ``B: (..., n, k)``."""
+    """Solve ``A X = B`` for symmetric positive definite ``A: (..., n, n)``, ``B: (..., n, k)``.
+
+    A batch element whose ``A`` is not positive definite (a constraint system that
+    became singular: the state left its constraint manifold) gets NaN, without a host
+    synchronisation; ``System.simulate`` reports such states by index at the end."""
     batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    L = torch.linalg.cholesky(A.expand(*batch, *A.shape[-2:]))
-    return torch.cholesky_solve(B.expand(*batch, *B.shape[-2:]), L)
+    L, info = torch.linalg.cholesky_ex(A.expand(*batch, *A.shape[-2:]))
+    X = torch.cholesky_solve(B.expand(*batch, *B.shape[-2:]), L)
+    return torch.where((info > 0)[..., None, None], torch.nan, X)
 
 
 def Mhat_inv(M_inv: Tensor, J_E: Tensor) -> Tensor:

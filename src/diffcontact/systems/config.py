@@ -148,6 +148,9 @@ class _SystemBase(_Strict):
     cor: PerContact = 1.0
     penetration_fraction: Annotated[float, Field(ge=0, le=1)] = 0.125
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
+    # the fourth-order Runge-Kutta rule of the smooth dynamics: classic, or the 3/8 rule
+    # (torchdiffeq's "rk4", used by the paper's released code)
+    integrator: Literal["rk4", "rk4_38"] = "rk4"
     # how a learned model parameterises mu and e_P: one value shared by all contacts,
     # or one per candidate contact (paper-facts.md, "Homogeneous tasks")
     contact_parameters: Literal["shared", "per_contact"] = "shared"

@@ -503,6 +503,7 @@ class LearnedModel(nn.Module):
         penetration_fraction: float | None = None,
         check_overlap: bool = True,
         solver_settings: Any = None,
+        on_tunnelling: str = "warn",
     ) -> Tensor:
         """Roll out trajectories with the learned parameters: ``System.simulate``'s contract.
 
@@ -512,8 +513,8 @@ class LearnedModel(nn.Module):
             steps: number of steps (default: the task's ``horizon / dt - 1``).
             contact_model, eps, dynamics: accepted for interchangeability with
                 ``System.simulate``; they must match the model (or be ``None``).
-            progress, penetration_fraction, check_overlap, solver_settings: as
-                in :meth:`System.simulate`.
+            progress, penetration_fraction, check_overlap, solver_settings,
+                on_tunnelling: as in :meth:`System.simulate`.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)``, differentiable with respect to the
@@ -530,6 +531,7 @@ class LearnedModel(nn.Module):
             penetration_fraction=penetration_fraction,
             check_overlap=check_overlap,
             solver_settings=solver_settings,
+            on_tunnelling=on_tunnelling,
         )
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:
