@@ -273,15 +273,13 @@ class Parameter(Variable):
 
     def write(self, z0: Tensor, params: Any, value: Tensor, sim: Any) -> tuple[Tensor, Any]:
         shape = self._value(sim.parameters()).shape  # the unbatched field
-        current = self._value(params).to(value)
-        if self.field in ("mu", "cor") and len(shape) == 0:
-            # a shared value batched is (S, 1): a 1-D mu/cor always means one per contact
-            shape = torch.Size([1])
-            current = current.reshape(-1, 1) if current.dim() == 1 else current.reshape(1)
         S = value.shape[0]
         if self.index is None:
+            if self.field in ("mu", "cor") and len(shape) == 0:
+                shape = torch.Size([1])  # batched shared mu/cor is (S, 1); 1-D means per contact
             full = value.reshape(S, *shape)
-        else:
+        else:  # an indexed field is at least 1-D (bind checks the index)
+            current = self._value(params).to(value)
             batched = current.shape == (S, *shape) and current.dim() > len(shape)
             full = (current if batched else current.expand(S, *shape)).clone()
             full[(slice(None), *_as_tuple(self.index))] = value.reshape(
