@@ -58,11 +58,12 @@ Gradients at degenerate points follow the one-sided choices documented in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from diffcontact.contact.closed_form import separating_guess, single_contact_minimiser
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
 
@@ -181,7 +182,17 @@ def _jacobian(A: Tensor, P: Tensor, rho: Tensor, reg: Tensor) -> Tensor:
     return add_block_diag(eye + rho[:, None, None] * _blockwise(P, A_reg), -P)
 
 
-def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify: bool = True):
+def _forward(
+    A,
+    b,
+    mu,
+    lower,
+    active,
+    d: int,
+    settings: SolverSettings,
+    certify: bool = True,
+    warm_start: Tensor | None = None,
+):
     """Solve a flat batch. Shapes: A (B,C,C), b (B,C), mu/lower/active (B,K).
 
     ``certify=False`` skips the test for unboundedness (used by that test itself, on
@@ -239,21 +250,31 @@ def _forward(A, b, mu, lower, active, d: int, settings: SolverSettings, certify:
     # identify its active set: rare, near-degenerate) is solved again with a tighter gap.
     rows = torch.arange(b.shape[0], device=device)
     fresh = True  # no problem has a result yet
-    # Fast path: a problem with no lower bound whose every b_k lies in its dual cone
-    # (mu_k ||b_t,k|| <= b_n,k: every contact separates) has f = 0 as a minimiser; it
-    # skips the interior point, and its derivatives are those of the natural map at 0
-    # (zero inside the dual cone, the one-sided choices of cone.py on its boundary).
-    bk = b_m.reshape(-1, mu.shape[-1], d)
-    if d == 1:
-        separating = bk[..., 0] >= 0
-    else:
-        separating = mu_m * torch.linalg.vector_norm(bk[..., 1:], dim=-1) <= bk[..., 0]
-    trivial = (separating | ~active).all(-1) & (lower_m == 0).all(-1)
-    if bool(trivial.any()):
-        at_zero = replace(settings, polish_steps=0)
-        f, res, P, dmu, dl, LU, piv = _polish(torch.zeros_like(b_m), data, at_zero)
+    # Fast paths (:mod:`diffcontact.contact.closed_form`): problems with a starting
+    # point that is often already a minimiser skip the interior point when the polish
+    # from it reaches the tolerance: f = 0 for separating problems (exact; derivatives
+    # those of the natural map at 0: zero inside the dual cone, the one-sided choices
+    # of cone.py on its boundary), the closed form of one active contact (d <= 2), and
+    # the caller's warm start. Each guess depends on its problem alone.
+    separating = separating_guess(b_m, mu_m, lower_m, active, d)
+    guess, single = single_contact_minimiser(A_m, b_m, mu_m, lower_m, active, d)
+    guess = torch.where(separating[:, None], 0, guess)
+    guessed = separating | single
+    if warm_start is not None:
+        guess = torch.where(guessed[:, None], guess, torch.where(act_c, warm_start, 0))
+        guessed = torch.ones_like(guessed)
+    if bool(guessed.any()):
+        g_rows = rows[guessed]
+        polished = _polish(guess[g_rows], [x[g_rows] for x in data], settings)
+        # kept only at the polish's own target (rounding level), not at ``tol``: a guess
+        # must not end less accurate than the interior point and polish would
+        kept = polished[1] <= min(settings.polish_tol, settings.tol)
+        f, res, P, dmu, dl, LU, piv = (
+            x.new_zeros(b.shape[0], *x.shape[1:]).index_put_((g_rows,), x) for x in polished
+        )
         iterations = torch.zeros_like(res, dtype=torch.int64)
-        rows, fresh = rows[~trivial], False
+        done = torch.zeros_like(guessed).index_put_((g_rows,), kept)
+        rows, fresh = rows[~done], False
     gap = settings.gap
     for _attempt in range(settings.retries + 1):
         if rows.numel() == 0:
@@ -444,11 +465,20 @@ class _ConeQPFunction(torch.autograd.Function):
     """Autograd wrapper: forward solve + implicit-differentiation backward."""
 
     @staticmethod
-    def forward(A, b, mu, lower, active, d, settings):
+    def forward(A, b, mu, lower, active, d, settings, warm_start):
         work = settings.compute_dtype
         A = 0.5 * (A + A.transpose(-1, -2))
+        if warm_start is not None:
+            warm_start = warm_start.detach().to(work)
         f, status, saved = _forward(
-            A.to(work), b.to(work), mu.to(work), lower.to(work), active, d, settings
+            A.to(work),
+            b.to(work),
+            mu.to(work),
+            lower.to(work),
+            active,
+            d,
+            settings,
+            warm_start=warm_start,
         )
         return (
             f.to(A.dtype),
@@ -493,7 +523,7 @@ class _ConeQPFunction(torch.autograd.Function):
         if ctx.needs_input_grad[3]:
             grad_l = torch.where(active, (dl * vk).sum(-1), 0)
         grads = [None if x is None else x.to(out_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
-        return *grads, None, None, None
+        return *grads, None, None, None, None
 
 
 def _check(name: str, x: Tensor) -> None:
@@ -513,6 +543,7 @@ def solve_cone_qp(
     *,
     settings: SolverSettings | None = None,
     return_status: bool = False,
+    warm_start: Tensor | None = None,
 ) -> Tensor | tuple[Tensor, SolverStatus]:
     """Solve a batch of friction-cone QPs, differentiably.
 
@@ -531,6 +562,11 @@ def solve_cone_qp(
         settings: :class:`SolverSettings`; defaults depend on the dtype.
         return_status: also return a :class:`SolverStatus`. Without it, a batch
             with unbounded or unconverged problems raises :class:`ConeQPError`.
+        warm_start: (..., C) a guess of the solution (no gradient flows through it).
+            Every problem is first polished from it (the natural-map Newton steps); a
+            problem whose residual then reaches ``tol`` keeps that point and skips the
+            interior point. Where the minimiser is not unique, the one found depends on
+            the guess (it is still a function of the problem and its guess alone).
 
     Leading batch dims broadcast against each other; a parameter shared across
     the batch (e.g. ``mu.expand(N, K)``) receives the summed gradient.
@@ -604,6 +640,21 @@ def solve_cone_qp(
         if bool((A.diagonal(dim1=-2, dim2=-1) < -1e-9 * scale.squeeze(-1)).any()):
             raise ValueError("solve_cone_qp: A must be positive semi-definite (negative diagonal)")
 
+    if warm_start is not None:
+        _check("warm_start", warm_start)
+        if warm_start.device != A.device:
+            raise ValueError(
+                f"solve_cone_qp: warm_start is on {warm_start.device}, A is on {A.device}"
+            )
+        if warm_start.dim() < 1 or warm_start.shape[-1] != C:
+            raise ValueError(
+                f"solve_cone_qp: warm_start must have shape (..., {C}), "
+                f"got {tuple(warm_start.shape)}"
+            )
+        try:
+            batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
+        except RuntimeError as err:
+            raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
     resolved = settings.resolved(A.dtype)
     n = 1
     for s in batch:
@@ -615,7 +666,11 @@ def solve_cone_qp(
         lower.expand(*batch, K).reshape(n, K),
         active.expand(*batch, K).reshape(n, K),
     )
-    f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(*flat, d, resolved)
+    if warm_start is not None:
+        warm_start = warm_start.expand(*batch, C).reshape(n, C)
+    f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(
+        *flat, d, resolved, warm_start
+    )
     f = f.reshape(*batch, C)
     status = SolverStatus(
         converged=converged.reshape(batch),
