@@ -109,7 +109,27 @@ def plan_row(task: str, planner_spec: str, targets: int, radius: float, iters: i
     }
 
 
-def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
+def learned_contact_parameters(out: Path, task: str) -> dict[str, tuple[list, list]] | None:
+    """``{"mu": (learned, true), "e_P": (learned, true)}`` of the task's trained model
+    (``learned.json``) and its config, or None when the model is not trained yet."""
+    from diffcontact import load_system
+
+    learned_file = out / "runs" / TASKS[task] / MODEL / "learned.json"
+    if not learned_file.is_file():
+        return None
+    learned = json.loads(learned_file.read_text())["learned"]
+    truth = load_system(TASKS[task])
+    return {
+        "mu": (learned["mu"], truth.mu.reshape(-1).tolist()),
+        "e_P": (learned["cor"], truth.cor.reshape(-1).tolist()),
+    }
+
+
+def _numbers(xs: list[float]) -> str:
+    return ", ".join(f"{x:.3f}" for x in xs[:5]) + (", ..." if len(xs) > 5 else "")
+
+
+def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = None) -> str:
     lines = [
         BEGIN,
         "## Planning through learned simulators (billiards, throwing)",
@@ -152,6 +172,25 @@ def render(results: dict[str, Any], meta: dict[str, Any]) -> str:
             f"| {task} ({task_name}) | MLP-CD-CLNN | not run: the baselines (issue 12) are "
             "not in diffcontact yet | | | | | |"
         )
+    learned_rows = []
+    for task, task_name in TASKS.items():
+        pairs = learned_contact_parameters(out, task) if out is not None else None
+        for name, (got, true) in (pairs or {}).items():
+            paired = true if len(true) == len(got) else true[:1] * len(got)  # shared truth
+            worst = max(abs(g - t) for g, t in zip(got, paired, strict=True))
+            learned_rows.append(
+                f"| {task_name} | {name} | {_numbers(got)} | {_numbers(true)} | {worst:.3f} |"
+            )
+    if learned_rows:
+        lines += [
+            "",
+            "The contact parameters the learned planners plan with (a planner is only as good "
+            "as what its training data determined; issue 15 adds per-parameter uncertainty):",
+            "",
+            "| task | parameter | learned | truth | largest error |",
+            "|---|---|---|---|---|",
+            *learned_rows,
+        ]
     lines += [
         "",
         "The planner is a local optimiser with 8 starts, so the true system is an upper bound "
@@ -223,7 +262,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "torch": torch.__version__,
         "cpu": f"{platform.machine()} CPU",
     }
-    section = render(results, meta)
+    section = render(results, meta, out)
     _write(out / "control.md", section + "\n")
     if args.doc:
         write_doc(Path(args.doc), section)
