@@ -1,5 +1,6 @@
 """Rollouts: shapes, energy conservation, momentum, inelastic contacts, dynamics options."""
 
+import re
 import warnings
 
 import pytest
@@ -261,3 +262,22 @@ def test_task_rollouts_do_not_tunnel(task):
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(4, seed=2)
     system.simulate(z0, 40, on_tunnelling="raise")
+
+
+def test_a_failed_contact_solve_names_the_states_and_the_cause():
+    """A rollout that blows up (CP3 under gravity 1e6 at dt = 0.01) stops with the states
+    whose contact problems failed, their speeds and the likely cause, not a bare
+    solver error."""
+    from diffcontact.contact import ConeQPError
+
+    system = dc.load_system("CP3")
+    z0 = system.sample_initial_conditions(8, seed=0)
+    params = system.parameters().replace(gravity=1e6)
+    with pytest.raises(ConeQPError) as info:
+        system.simulate(z0, 20, params=params, on_tunnelling="ignore")
+    message = str(info.value)
+    assert "simulate CP3: the contact solve failed at step" in message
+    assert "the motion blew up" in message and "smaller dt" in message
+    assert info.value.status is not None
+    states = [int(s) for s in re.findall(r"state (\d+) \(speed", message)]
+    assert states and all(0 <= s < 8 for s in states)

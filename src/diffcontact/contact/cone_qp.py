@@ -69,7 +69,18 @@ from diffcontact.contact.interior_point import add_block_diag, interior_point_so
 
 
 class ConeQPError(RuntimeError):
-    """Raised when some problems of a batch are unbounded or did not converge."""
+    """Raised when some problems of a batch are unbounded or did not converge.
+
+    Attributes:
+        status: the :class:`SolverStatus` of the batch (which problems failed), or None.
+        states: indices of the simulated states whose problems failed, where a
+            simulator filled them in (:meth:`diffcontact.systems.System.simulate`).
+    """
+
+    def __init__(self, message: str, status: SolverStatus | None = None):
+        super().__init__(message)
+        self.status = status
+        self.states: list[int] | None = None
 
 
 @dataclass(frozen=True)
@@ -696,6 +707,7 @@ def solve_cone_qp(
                 f"tol {resolved.tol:.3g})"
             )
         raise ConeQPError(
-            "solve_cone_qp: " + "; ".join(parts) + ". Pass return_status=True to inspect them."
+            "solve_cone_qp: " + "; ".join(parts) + ". Pass return_status=True to inspect them.",
+            status,
         )
     return f

@@ -36,7 +36,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from diffcontact.contact.cone_qp import SolverSettings
+from diffcontact.contact.cone_qp import ConeQPError, SolverSettings
 from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams
 from diffcontact.contact.registry import create_contact_model
@@ -789,16 +789,22 @@ class System:
 
         mu, cor = pick(ctx.mu), pick(ctx.cor)
         contact_params = ContactParams(mu=mu, cor=cor, eps=ctx.select(ctx.eps, 0, b))
-        res = model.resolve(
-            J,
-            Mh,
-            vs.reshape(n, D),
-            contact_params,
-            mask,
-            d,
-            v_C_star=v_star if fraction > 0 else None,
-            settings=self._inner_settings(settings),
-        )
+        try:
+            res = model.resolve(
+                J,
+                Mh,
+                vs.reshape(n, D),
+                contact_params,
+                mask,
+                d,
+                v_C_star=v_star if fraction > 0 else None,
+                settings=self._inner_settings(settings),
+            )
+        except ConeQPError as err:  # name the states (rows of this step's contact batch)
+            status = err.status
+            if status is not None and status.converged.shape == (n,):
+                err.states = b[~status.converged].tolist()
+            raise
         v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
         return ContactResult(
             z=torch.stack([x, v_new], dim=-3),
@@ -967,6 +973,9 @@ class System:
                 parameters or options, an unknown contact model; NaN or infinite
                 states during the rollout (named, with the likely cause); tunnelling
                 with ``on_tunnelling="raise"``.
+            ConeQPError: a contact problem could not be solved; the message names
+                the step, the states (their speeds and penetration) and the likely
+                cause (a blow-up: dt too large; or an ill-conditioned problem).
         """
         if on_tunnelling not in ON_TUNNELLING:
             raise ValueError(f"on_tunnelling must be one of {ON_TUNNELLING}, got {on_tunnelling!r}")
@@ -997,6 +1006,9 @@ class System:
                     raise
                 states.append(z1)
                 raise ValueError(self._nonfinite_message(states, step + 1)) from err
+            except ConeQPError as err:
+                raise ConeQPError(self._solver_failure_message(err, z0, z1, step + 1),
+                                  err.status) from err  # fmt: skip
             states.append(z)
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
@@ -1045,6 +1057,39 @@ class System:
         if raise_error:
             raise ValueError(message)
         warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+    def _solver_failure_message(self, err: ConeQPError, z0: Tensor, z1: Tensor, at: int) -> str:
+        """Which states' contact problems failed at step ``at``, and the likely cause."""
+        rows = err.states
+        if not rows:
+            return f"simulate {self.name}: the contact solve failed at step {at}: {err}"
+        with torch.no_grad():
+            speed0 = z0.detach()[rows, 1].flatten(1).abs().amax(-1)
+            speed = z1.detach()[rows, 1].flatten(1).abs().amax(-1)
+            gaps = self.gaps(z1.detach()[rows, 0])
+            depth = (-gaps / self._contact_sizes(gaps)).amax(-1)
+        items = [
+            f"state {r} (speed {float(s0):.3g} at step 0, {float(s):.3g} now; deepest "
+            f"penetration {float(p):.3g} radii)"
+            for r, s0, s, p in zip(rows[:5], speed0, speed, depth, strict=False)
+        ]
+        more = "" if len(rows) <= 5 else f" and {len(rows) - 5} more"
+        if bool((speed > 1e3 * speed0.clamp_min(1e-12)).any()) or bool((depth > 1).any()):
+            cause = (
+                f"the motion blew up or bodies tunnelled: dt = {self.dt} is too large for these "
+                "speeds or forces; use a smaller dt"
+            )
+        else:
+            cause = (
+                "the contact problem is too ill-conditioned for the solver (e.g. touching "
+                "bodies whose masses differ by many orders of magnitude); solve it with "
+                "solve_cone_qp(..., return_status=True) to inspect it"
+            )
+        return (
+            f"simulate {self.name}: the contact solve failed at step {at} for {len(rows)} "
+            f"of {z0.shape[0]} trajectories: {'; '.join(items)}{more}. Likely cause: {cause}. "
+            f"Solver: {err}"
+        )
 
     def _nonfinite_message(self, states: list[Tensor], at: int) -> str:
         """Which states became NaN or infinite, when, and the likely cause."""
