@@ -89,6 +89,31 @@ def test_optimizer_reaches_a_reachable_target(two_balls, optimizer, iterations, 
     assert (final - target).square().sum() == pytest.approx(float(res.objective), abs=1e-12)
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_plan_matches_cpu(two_balls):
+    """The same optimisation on a CUDA state gives the CPU's shot (float64)."""
+    system, z0 = two_balls
+    steps = 25
+    target = _reachable_target(system, z0, (1.6, 0.35), steps)
+    z_start = z0.clone()
+    z_start[1, 0] = torch.tensor([1.4, 0.25], dtype=torch.float64)
+    results = []
+    for device in ("cpu", "cuda"):
+        goal = target.to(device)
+
+        def squared(traj, goal=goal):
+            return (traj[..., -1, 0, 1, :] - goal).square().sum(-1)
+
+        res = dc.optimize(
+            system, z_start.to(device), squared, variables=[Velocity(0, bounds=(-3, 3))],
+            steps=steps, optimizer="lbfgs", iterations=10, lr=1.0, progress=False,
+        )  # fmt: skip
+        assert res.z0.device.type == device
+        results.append(res)
+    torch.testing.assert_close(results[1].z0.cpu(), results[0].z0, rtol=0, atol=1e-8)
+
+
 def test_multistart_is_one_batched_call_per_iteration(two_balls):
     system, z0 = two_balls
     planner = as_planner(system)
