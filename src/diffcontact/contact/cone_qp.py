@@ -63,6 +63,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from diffcontact.contact import fused
 from diffcontact.contact.closed_form import separating_guess, single_contact_minimiser
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
@@ -108,6 +109,11 @@ class SolverSettings:
             the input dtype: faster, but a float32 interior point cannot reach the gap
             that identifies the active set of every problem, and some problems then
             end unconverged (``test_leading_batch_dims_and_float32`` runs this mode).
+        backend: ``"auto"`` (default), ``"torch"`` or ``"warp"``: the reference solver of
+            batched torch operations, or the same algorithm fused into one NVIDIA Warp
+            kernel per call (one thread per problem; ``pip install diffcontact[warp]``).
+            ``"auto"`` takes the environment variable ``DIFFCONTACT_SOLVER`` if set, else
+            Warp where it is installed (:mod:`diffcontact.contact.fused`).
     """
 
     tol: float | None = None
@@ -119,8 +125,16 @@ class SolverSettings:
     kkt_reg: float | None = None
     check_inputs: bool = True
     compute_dtype: torch.dtype | None = torch.float64
+    backend: str = "auto"
 
-    def resolved(self, dtype: torch.dtype) -> SolverSettings:
+    def __post_init__(self) -> None:
+        if self.backend not in fused.BACKENDS:
+            raise ValueError(
+                f"SolverSettings.backend must be one of {', '.join(fused.BACKENDS)}, "
+                f"got {self.backend!r}"
+            )
+
+    def resolved(self, dtype: torch.dtype, device: torch.device | None = None) -> SolverSettings:
         dtype = self.compute_dtype or dtype
         double = dtype == torch.float64
         return SolverSettings(
@@ -135,6 +149,7 @@ class SolverSettings:
             kkt_reg=self.kkt_reg if self.kkt_reg is not None else (1e-12 if double else 1e-7),
             check_inputs=self.check_inputs,
             compute_dtype=dtype,
+            backend=fused.resolve_backend(self.backend, dtype, device),
         )
 
 
@@ -290,11 +305,9 @@ def _forward(
     for _attempt in range(settings.retries + 1):
         if rows.numel() == 0:
             break
-        sub = [x[rows] for x in (A_ipm, b_ipm, mu_ipm, lower_ipm)]
-        ipm = interior_point_solve(
-            *sub, d, tol=gap, max_iter=settings.max_iter, apex=apex[rows], active=active[rows]
+        ipm, polished = _solve(
+            rows, (A_ipm, b_ipm, mu_ipm, lower_ipm, apex, active), data, d, gap, settings
         )
-        polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
         if fresh:
             f, res, P, dmu, dl, LU, piv = polished
             iterations, fresh = ipm.iterations, False
@@ -321,6 +334,33 @@ def _forward(
     )
     saved = (f, P, dmu, dl, rho, LU, piv, act_c, active)
     return f, status, saved
+
+
+def _solve(rows: Tensor, ipm_data, data, d: int, gap: float, settings: SolverSettings):
+    """Interior point, then polish, of the problems ``rows`` (B,) of a batch, on the
+    backend of ``settings`` (one fused Warp kernel, or the torch reference).
+
+    ``ipm_data``: the scaled problem of :func:`interior_point_solve` (``A, b, mu, lower,
+    apex, active``), ``data``: that of :func:`_polish`, both for the whole batch. Returns
+    the :class:`~diffcontact.contact.interior_point.InteriorPointResult` and what
+    :func:`_polish` returns, for the rows."""
+    if settings.backend == "warp":
+        return fused.solve(rows, ipm_data, data, d, gap, settings)
+    A_ipm, b_ipm, mu_ipm, lower_ipm, apex, active = (x[rows] for x in ipm_data)
+    ipm = interior_point_solve(
+        A_ipm,
+        b_ipm,
+        mu_ipm,
+        lower_ipm,
+        d,
+        tol=gap,
+        max_iter=settings.max_iter,
+        apex=apex,
+        active=active,
+    )
+    c = data[-1]
+    polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
+    return ipm, polished
 
 
 def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):
@@ -666,7 +706,7 @@ def solve_cone_qp(
             batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
         except RuntimeError as err:
             raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
-    resolved = settings.resolved(A.dtype)
+    resolved = settings.resolved(A.dtype, A.device)
     n = 1
     for s in batch:
         n *= s

@@ -1,0 +1,244 @@
+"""Solver backends of :func:`~diffcontact.contact.solve_cone_qp`: which one runs, and the
+fused (NVIDIA Warp) one.
+
+``SolverSettings.backend`` picks the backend:
+
+- ``"torch"``: the reference implementation, batched torch operations
+  (:func:`diffcontact.contact.interior_point.interior_point_solve` and
+  :func:`diffcontact.contact.cone_qp._polish`); thousands of small operations per call;
+- ``"warp"``: the same algorithm fused into one Warp kernel, one thread per problem
+  (:mod:`diffcontact.contact.warp_kernels`), on the CPU or a CUDA device; needs
+  ``pip install diffcontact[warp]`` (``warp-lang``);
+- ``"auto"`` (default): the environment variable ``DIFFCONTACT_SOLVER`` (``torch``,
+  ``warp`` or ``auto``) if it is set, else Warp where it is installed, the device is the
+  CPU or CUDA and the solve runs in float32 or float64, else torch.
+
+Warp is imported (and initialised, with its console messages silenced) on the first solve
+that uses it, so the torch backend costs no import time. Its kernels are compiled on the
+first call for each float type (a few seconds on a CPU) and cached on disk (Warp's kernel
+cache, ``~/.cache/warp``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import importlib.util
+import os
+import sys
+import tempfile
+import warnings
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+BACKENDS = ("auto", "torch", "warp")
+ENV_VAR = "DIFFCONTACT_SOLVER"
+INSTALL_HINT = "pip install diffcontact[warp]"
+
+
+@functools.cache
+def warp_installed() -> bool:
+    """Whether ``warp`` can be found (it is not imported)."""
+    return importlib.util.find_spec("warp") is not None
+
+
+def _env_backend() -> str | None:
+    value = os.environ.get(ENV_VAR, "").strip().lower()
+    if not value:
+        return None
+    if value not in BACKENDS:
+        raise ValueError(
+            f"environment variable {ENV_VAR}={os.environ[ENV_VAR]!r}: expected one of "
+            f"{', '.join(BACKENDS)}"
+        )
+    return value
+
+
+def resolve_backend(backend: str, dtype: torch.dtype, device: torch.device | None) -> str:
+    """The backend that solves: ``"torch"`` or ``"warp"`` (see the module docstring).
+
+    Args:
+        backend: ``SolverSettings.backend``.
+        dtype: the dtype the solve runs in (``compute_dtype``).
+        device: the inputs' device (``None``: not known, taken as supported).
+
+    Raises:
+        ValueError: an unknown name, or ``"warp"`` for a dtype or device it cannot run.
+        ImportError: ``"warp"`` asked for (by the setting or the environment variable)
+            but Warp is not installed.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"solver backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    explicit = backend != "auto"
+    if backend == "auto":
+        backend = _env_backend() or "auto"
+    if backend == "torch":
+        return "torch"
+    supported_dtype = dtype in (torch.float32, torch.float64)
+    supported_device = device is None or torch.device(device).type in ("cpu", "cuda")
+    if backend == "auto":
+        if warp_installed() and supported_dtype and supported_device and _warp_loads():
+            return "warp"
+        return "torch"
+    where = "SolverSettings(backend='warp')" if explicit else f"{ENV_VAR}=warp"
+    if not warp_installed():
+        raise ImportError(
+            f"{where} needs NVIDIA Warp, which is not installed: {INSTALL_HINT} "
+            "(or pip install warp-lang), or use backend='torch'"
+        )
+    if not supported_dtype:
+        raise ValueError(f"{where}: the Warp solver runs in float32 or float64, not {dtype}")
+    if not supported_device:
+        raise ValueError(f"{where}: the Warp solver runs on the CPU or CUDA, not {device}")
+    return "warp"
+
+
+@functools.cache
+def _warp_loads() -> bool:
+    """Whether Warp imports and initialises (``auto`` falls back to torch, with a warning,
+    where it does not)."""
+    try:
+        _load()
+    except Exception as err:  # a broken install must not break the default backend
+        warnings.warn(
+            f"diffcontact: NVIDIA Warp is installed but failed to load ({err!r}); "
+            "solve_cone_qp uses its torch backend",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def _quiet_native_stderr():
+    """Drop the native library's "CUDA driver not found" notice (printed on machines
+    without a GPU driver) from file descriptor 2; anything else written there is kept."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), fd)
+        try:
+            yield
+        finally:
+            os.dup2(saved, fd)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace")
+            kept = [
+                line
+                for line in text.splitlines(keepends=True)
+                if "Could not find or load the NVIDIA CUDA driver" not in line
+            ]
+            if kept:
+                sys.stderr.write("".join(kept))
+
+
+@functools.cache
+def _load() -> tuple[ModuleType, ModuleType]:
+    """Import and initialise Warp (quietly) and the kernels' module."""
+    import warp as wp
+
+    wp.config.quiet = True  # Warp < 1.10
+    if hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING  # no "Module ... load" lines
+    with _quiet_native_stderr():
+        wp.init()
+    from diffcontact.contact import warp_kernels
+
+    return wp, warp_kernels
+
+
+def solve(
+    rows: Tensor,
+    ipm_data: tuple[Tensor, ...],
+    data: tuple[Tensor, ...],
+    d: int,
+    gap: float,
+    settings,
+):
+    """Interior point and polish of the problems ``rows`` in one Warp kernel launch.
+
+    The counterpart of the reference's ``interior_point_solve`` followed by ``_polish``
+    (:func:`diffcontact.contact.cone_qp._solve`).
+
+    Args:
+        rows: (n,) int64 indices of the problems to solve.
+        ipm_data: the scaled interior-point problem ``(A (B, C, C), b (B, C), mu, lower,
+            apex (B, K), active (B, K) bool)``.
+        data: the polish's problem ``(A (B, C, C), b (B, C), mu (B, K), lower (B, K),
+            rho (B,), reg (B,), c (B,))``.
+        d: contact dimension.
+        gap: the interior point's gap target.
+        settings: resolved :class:`~diffcontact.contact.SolverSettings`.
+
+    Returns:
+        ``(ipm, polished)``: an :class:`~diffcontact.contact.interior_point.
+        InteriorPointResult` of the rows (its ``f`` scaled, as the reference's) and
+        ``(f (n, C), residual (n,), P (n, K, d, d), dmu (n, K, d), dl (n, K, d), LU (n, C,
+        C), pivots (n, C) int32)`` at the polished point, as ``_polish`` returns them.
+    """
+    from diffcontact.contact.interior_point import InteriorPointResult
+
+    wp, kernels = _load()
+    A_ipm = ipm_data[0]
+    dtype, device = A_ipm.dtype, A_ipm.device
+    n, C, K = rows.numel(), A_ipm.shape[-1], ipm_data[2].shape[-1]
+    scalar = wp.float64 if dtype == torch.float64 else wp.float32
+    finfo = torch.finfo(dtype)
+    cuda = device.type == "cuda"
+
+    def scratch(*shape: int) -> Tensor:
+        # the thread index varies fastest on CUDA (coalesced), slowest on the CPU
+        if cuda:
+            return torch.empty(*shape[1:], shape[0], dtype=dtype, device=device).movedim(-1, 0)
+        return torch.empty(*shape, dtype=dtype, device=device)
+
+    vec = scratch(n, kernels.N_SLOTS, C)
+    V = scratch(n, C, C)
+    LU = scratch(n, C, C)
+    f = torch.empty(n, C, dtype=dtype, device=device)
+    f_ipm = torch.empty(n, C, dtype=dtype, device=device)
+    res = torch.empty(n, dtype=dtype, device=device)
+    P = torch.empty(n, C, d, dtype=dtype, device=device)
+    dmu = torch.empty(n, C, dtype=dtype, device=device)
+    dl = torch.empty(n, C, dtype=dtype, device=device)
+    piv = torch.empty(n, C, dtype=torch.int32, device=device)
+    iterations = torch.empty(n, dtype=torch.int64, device=device)
+    solved = torch.empty(n, dtype=torch.bool, device=device)
+    unbounded = torch.empty(n, dtype=torch.bool, device=device)
+    target = min(settings.polish_tol, settings.tol)
+    arrays_in = [rows.to(torch.int32), *ipm_data, *data]
+    arrays_out = [vec, V, f_ipm, f, res, P, dmu, dl, LU, piv, iterations, solved, unbounded]
+    inputs = [wp.from_torch(x.contiguous()) for x in arrays_in[:14]]
+    inputs += [
+        d,
+        K,
+        scalar(gap),
+        settings.max_iter,
+        scalar(target),
+        settings.polish_steps,
+        scalar(1e10),
+        scalar(finfo.eps),
+        scalar(finfo.tiny),
+        scalar(float("inf")),
+    ]
+    inputs += [wp.from_torch(x) for x in arrays_out]
+    stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
+    wp.launch(
+        kernels.fused_solve,
+        dim=n,
+        inputs=inputs,
+        device=wp.device_from_torch(device),
+        stream=stream,
+    )
+    ipm = InteriorPointResult(f_ipm, solved, unbounded, iterations)
+    polished = (f, res, P.view(n, K, d, d), dmu.view(n, K, d), dl.view(n, K, d), LU, piv)
+    return ipm, polished

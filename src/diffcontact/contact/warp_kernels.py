@@ -1,0 +1,1111 @@
+"""Warp kernel of the fused friction-cone QP solver: one thread per problem.
+
+The thread runs, for its problem, the same algorithm as the reference solver:
+
+1. the primal-dual interior point of :func:`diffcontact.contact.interior_point.
+   interior_point_solve` (initial point, Nesterov-Todd scaling, Mehrotra
+   predictor-corrector with the ``plain_only`` fallback, the stopping tests
+   ``solved / diverged / stalled / stuck``, padded contacts held at ``f = 0``);
+2. the natural-map Newton polish of :func:`diffcontact.contact.cone_qp._polish`
+   (backtracking line search on the residual; where the Jacobian is nearly singular the
+   step with its component along the null space of ``A`` removed is tried first);
+3. the natural map, the projection's derivatives and the LU factorisation (LAPACK's
+   ``getrf`` layout: packed ``L \\ U`` and 1-based row interchanges) of ``dF/df`` at the
+   final point, which the implicit backward pass reuses.
+
+Dense linear algebra (Cholesky, LU with partial pivoting, the symmetric eigenproblem by
+cyclic Jacobi rotations) runs in per-thread scratch arrays. Every array is generic in its
+float type (float32 or float64); scalars of that type are passed typed. Contact blocks
+are handled as 3-vectors padded with zeros (exact for ``d = 2``: the padded components
+stay zero), so one kernel serves ``d = 1, 2, 3``.
+
+Shapes (``n`` threads, ``B`` problems in the inputs, ``K`` contacts, ``C = K d``): inputs
+are indexed by ``rows[t]``, outputs and scratch by the thread ``t``. The scratch arrays
+may be strided (on CUDA the thread index is the fastest-varying one, so that the threads
+of a warp read adjacent words).
+
+This module imports Warp at import time; :mod:`diffcontact.contact.fused` imports it
+lazily, on the first solve that uses the Warp backend.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+# forward only: gradients come from the implicit backward pass in torch (this also
+# halves the compile time)
+wp.set_module_options({"enable_backward": False})
+
+# rows of the vector scratch ``vec`` (n, N_SLOTS, C); contact-indexed quantities use the
+# first K entries of their row, per-contact d x d blocks use d rows (row i of block k at
+# index k d + j)
+F_ = wp.constant(0)  # iterate f (scaled in the interior point, then unscaled)
+SL = wp.constant(1)  # orthant slack s_l (K)
+ZL = wp.constant(2)  # orthant dual z_l (K)
+SQ = wp.constant(3)  # cone slack s_q (C)
+ZQ = wp.constant(4)  # cone dual z_q (C)
+RX = wp.constant(5)  # dual residual r_x (C)
+RZL = wp.constant(6)  # primal residual, orthant (K)
+RZQ = wp.constant(7)  # primal residual, cone (C)
+WL = wp.constant(8)  # orthant scaling w_l (K)
+LAML = wp.constant(9)  # orthant scaled point lambda_l (K)
+LAMQ = wp.constant(10)  # cone scaled point lambda_q (C)
+W0 = wp.constant(11)  # NT scaling W, 3 rows
+WI0 = wp.constant(14)  # W^-1, 3 rows
+WII0 = wp.constant(17)  # W^-2, 3 rows
+R3L = wp.constant(20)  # right-hand side r3 (orthant, K), then the plain one
+R3Q = wp.constant(21)  # right-hand side r3 (cone, C)
+R3LC = wp.constant(22)  # corrected r3 (Mehrotra)
+R3QC = wp.constant(23)
+DIR_A = wp.constant(24)  # direction (df, dsl, dsq, dzl, dzq): predictor, then plain
+DIR_B = wp.constant(29)  # direction: Mehrotra
+# polish (reuses the interior point's rows from 1 on)
+FN = wp.constant(1)  # trial point
+RES = wp.constant(2)  # natural map F at f
+RESN = wp.constant(3)  # F at the trial point
+DMU = wp.constant(4)  # dPi/dmu at f
+DMUN = wp.constant(5)
+DL = wp.constant(6)  # dPi/dl at f
+DLN = wp.constant(7)
+P0 = wp.constant(8)  # dPi/dz at f, 3 rows
+PN0 = wp.constant(11)  # dPi/dz at the trial point, 3 rows
+DELTA = wp.constant(14)  # Newton step
+DFLAT = wp.constant(15)  # Newton step without its null-space component
+EVAL = wp.constant(16)  # 1 for the eigenvectors spanning the null space of A, else 0
+N_SLOTS = 34
+
+
+# --- small helpers ---------------------------------------------------------------------
+
+
+@wp.func
+def _load(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int):
+    """Block k of a vector row as a 3-vector padded with zeros."""
+    i = k * d
+    x0 = vec[t, slot, i]
+    x1 = type(x0)(0.0)
+    x2 = type(x0)(0.0)
+    if d > 1:
+        x1 = vec[t, slot, i + 1]
+    if d > 2:
+        x2 = vec[t, slot, i + 2]
+    return wp.vector(x0, x1, x2)
+
+
+@wp.func
+def _store(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int, x: Any):
+    i = k * d
+    for j in range(d):
+        vec[t, slot, i + j] = x[j]
+
+
+@wp.func
+def _load_block(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int):
+    """Per-contact d x d block (rows in ``slot``, ``slot + 1``, ...) as a padded 3x3."""
+    r0 = _load(vec, t, slot, k, d)
+    zero = type(r0[0])(0.0)
+    r1 = wp.vector(zero, zero, zero)
+    r2 = r1
+    if d > 1:
+        r1 = _load(vec, t, slot + 1, k, d)
+    if d > 2:
+        r2 = _load(vec, t, slot + 2, k, d)
+    return wp.matrix_from_rows(r0, r1, r2)
+
+
+@wp.func
+def _store_block(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int, M: Any):
+    for i in range(d):
+        for j in range(d):
+            vec[t, slot + i, k * d + j] = M[i, j]
+
+
+@wp.func
+def _cone_G(x: Any, mu: Any):
+    """Cone block of G x for one contact: -(mu x_n, x_t)."""
+    return wp.vector(-(mu * x[0]), -x[1], -x[2])
+
+
+@wp.func
+def _cone_GT(zl: Any, zq: Any, mu: Any, d: int):
+    """G^T z for one contact: -(z_l + mu z_q0, z_qt) (d > 1), -z_l (d = 1)."""
+    if d == 1:
+        return wp.vector(-zl, type(zl)(0.0), type(zl)(0.0))
+    return wp.vector(-(zl + mu * zq[0]), -zq[1], -zq[2])
+
+
+@wp.func
+def _soc_det(x: Any):
+    return x[0] * x[0] - (x[1] * x[1] + x[2] * x[2])
+
+
+@wp.func
+def _soc_prod(x: Any, y: Any):
+    """Jordan product (x.y, x0 y_t + y0 x_t)."""
+    return wp.vector(
+        wp.dot(x, y),
+        x[0] * y[1] + y[0] * x[1],
+        x[0] * y[2] + y[0] * x[2],
+    )
+
+
+@wp.func
+def _soc_div(x: Any, y: Any):
+    """u with x o u = y (x inside the cone)."""
+    u0 = (x[0] * y[0] - (x[1] * y[1] + x[2] * y[2])) / _soc_det(x)
+    return wp.vector(u0, (y[1] - x[1] * u0) / x[0], (y[2] - x[2] * u0) / x[0])
+
+
+@wp.func
+def _orth_max_step(x: Any, dx: Any, inf: Any):
+    if dx < type(x)(0.0):
+        return -x / dx
+    return inf
+
+
+@wp.func
+def _soc_max_step(x: Any, dx: Any, inf: Any):
+    """Largest alpha with x + alpha dx in the cone (x interior), as the reference."""
+    zero = type(inf)(0.0)
+    c = _soc_det(x)
+    bq = x[0] * dx[0] - (x[1] * dx[1] + x[2] * dx[2])
+    a = _soc_det(dx)
+    disc = bq * bq - a * c
+    sq = wp.sqrt(wp.max(disc, zero))
+    q = -(bq + wp.where(bq >= zero, sq, -sq))
+    r1 = q / a
+    r2 = c / q
+    if not (r1 > zero):
+        r1 = inf
+    if not (r2 > zero):
+        r2 = inf
+    roots = wp.min(r1, r2)
+    if disc < zero:
+        roots = inf
+    return wp.min(roots, _orth_max_step(x[0], dx[0], inf))
+
+
+# --- dense linear algebra on one thread's matrix ---------------------------------------
+
+
+@wp.func
+def _cholesky(M: wp.array3d(dtype=Any), t: int, n: int):
+    """In-place lower Cholesky factor of M[t] (lower triangle read); False on failure."""
+    zero = type(M[t, 0, 0])(0.0)
+    for j in range(n):
+        s = M[t, j, j]
+        for k in range(j):
+            s = s - M[t, j, k] * M[t, j, k]
+        if not (s > zero):
+            return False
+        ljj = wp.sqrt(s)
+        M[t, j, j] = ljj
+        for i in range(j + 1, n):
+            s = M[t, i, j]
+            for k in range(j):
+                s = s - M[t, i, k] * M[t, j, k]
+            M[t, i, j] = s / ljj
+    return True
+
+
+@wp.func
+def _cholesky_solve(
+    M: wp.array3d(dtype=Any), t: int, n: int, vec: wp.array3d(dtype=Any), slot: int
+):
+    """Solve L L^T x = vec[t, slot] in place."""
+    for i in range(n):
+        s = vec[t, slot, i]
+        for k in range(i):
+            s = s - M[t, i, k] * vec[t, slot, k]
+        vec[t, slot, i] = s / M[t, i, i]
+    for ii in range(n):
+        i = n - 1 - ii
+        s = vec[t, slot, i]
+        for k in range(i + 1, n):
+            s = s - M[t, k, i] * vec[t, slot, k]
+        vec[t, slot, i] = s / M[t, i, i]
+
+
+@wp.func
+def _lu_factor(M: wp.array3d(dtype=Any), piv: wp.array2d(dtype=wp.int32), t: int, n: int):
+    """In-place LU with partial pivoting (LAPACK getrf layout); returns min |U_jj|."""
+    zero = type(M[t, 0, 0])(0.0)
+    umin = wp.abs(M[t, 0, 0])
+    for j in range(n):
+        p = j
+        amax = wp.abs(M[t, j, j])
+        for i in range(j + 1, n):
+            if wp.abs(M[t, i, j]) > amax:
+                amax = wp.abs(M[t, i, j])
+                p = i
+        piv[t, j] = p + 1
+        if p != j:
+            for k in range(n):
+                tmp = M[t, j, k]
+                M[t, j, k] = M[t, p, k]
+                M[t, p, k] = tmp
+        ajj = M[t, j, j]
+        umin = wp.where(j == 0, wp.abs(ajj), wp.min(umin, wp.abs(ajj)))
+        if ajj != zero:
+            for i in range(j + 1, n):
+                M[t, i, j] = M[t, i, j] / ajj
+        for i in range(j + 1, n):
+            lij = M[t, i, j]
+            for k in range(j + 1, n):
+                M[t, i, k] = M[t, i, k] - lij * M[t, j, k]
+    return umin
+
+
+@wp.func
+def _lu_solve(
+    M: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+    t: int,
+    n: int,
+    vec: wp.array3d(dtype=Any),
+    slot: int,
+):
+    """Solve (P L U) x = vec[t, slot] in place."""
+    for j in range(n):
+        p = piv[t, j] - 1
+        if p != j:
+            tmp = vec[t, slot, j]
+            vec[t, slot, j] = vec[t, slot, p]
+            vec[t, slot, p] = tmp
+    for i in range(n):
+        s = vec[t, slot, i]
+        for k in range(i):
+            s = s - M[t, i, k] * vec[t, slot, k]
+        vec[t, slot, i] = s
+    for ii in range(n):
+        i = n - 1 - ii
+        s = vec[t, slot, i]
+        for k in range(i + 1, n):
+            s = s - M[t, i, k] * vec[t, slot, k]
+        vec[t, slot, i] = s / M[t, i, i]
+
+
+@wp.func
+def _null_space(
+    A: wp.array3d(dtype=Any),
+    r: int,
+    t: int,
+    n: int,
+    M: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    vec: wp.array3d(dtype=Any),
+    eps: Any,
+):
+    """Eigenvectors V[t] of A[r] by cyclic Jacobi rotations (M[t] is overwritten), and
+    in ``vec[t, EVAL]`` a 1 for those whose eigenvalue is at most ``1e3 eps n`` times the
+    largest in magnitude (the null space, as the reference's threshold), else 0."""
+    zero = type(eps)(0.0)
+    one = type(eps)(1.0)
+    for i in range(n):
+        for j in range(n):
+            M[t, i, j] = A[r, i, j]
+            V[t, i, j] = wp.where(i == j, one, zero)
+    for _sweep in range(60):
+        off = zero
+        total = zero
+        for i in range(n):
+            for j in range(n):
+                a2 = M[t, i, j] * M[t, i, j]
+                total = total + a2
+                if i != j:
+                    off = off + a2
+        if off <= eps * eps * total:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = M[t, p, q]
+                if apq != zero:
+                    theta = (M[t, q, q] - M[t, p, p]) / (type(eps)(2.0) * apq)
+                    tan = one / (wp.abs(theta) + wp.sqrt(theta * theta + one))
+                    if wp.abs(theta) > type(eps)(1e150):
+                        tan = one / (type(eps)(2.0) * wp.abs(theta))
+                    if theta < zero:
+                        tan = -tan
+                    cs = one / wp.sqrt(tan * tan + one)
+                    sn = tan * cs
+                    for k in range(n):
+                        akp = M[t, k, p]
+                        akq = M[t, k, q]
+                        M[t, k, p] = cs * akp - sn * akq
+                        M[t, k, q] = sn * akp + cs * akq
+                    for k in range(n):
+                        apk = M[t, p, k]
+                        aqk = M[t, q, k]
+                        M[t, p, k] = cs * apk - sn * aqk
+                        M[t, q, k] = sn * apk + cs * aqk
+                    for k in range(n):
+                        vkp = V[t, k, p]
+                        vkq = V[t, k, q]
+                        V[t, k, p] = cs * vkp - sn * vkq
+                        V[t, k, q] = sn * vkp + cs * vkq
+    top = zero
+    for i in range(n):
+        top = wp.max(top, wp.abs(M[t, i, i]))
+    threshold = type(eps)(1e3) * eps * type(eps)(n) * top
+    for i in range(n):
+        vec[t, EVAL, i] = wp.where(M[t, i, i] <= threshold, one, zero)
+
+
+# --- the interior point ----------------------------------------------------------------
+
+
+@wp.func
+def _nt_scaling(vec: wp.array3d(dtype=Any), t: int, k: int, d: int, tiny: Any):
+    """Nesterov-Todd scaling of cone k: stores W, W^-1, W^-2 and lambda_q = W z_q."""
+    one = type(tiny)(1.0)
+    two = type(tiny)(2.0)
+    s = _load(vec, t, SQ, k, d)
+    z = _load(vec, t, ZQ, k, d)
+    sJs = wp.max(_soc_det(s), tiny)
+    zJz = wp.max(_soc_det(z), tiny)
+    sb = s / wp.sqrt(sJs)
+    zb = z / wp.sqrt(zJz)
+    gamma = wp.sqrt(wp.max((one + wp.dot(sb, zb)) / two, type(tiny)(0.0)))
+    Jzb = wp.vector(zb[0], -zb[1], -zb[2])
+    wbar = (sb + Jzb) / (two * gamma)
+    v = wp.vector(wbar[0] + one, wbar[1], wbar[2]) / wp.sqrt(two * (wbar[0] + one))
+    eta = wp.pow(sJs / zJz, type(tiny)(0.25))
+    J = wp.diag(wp.vector(one, -one, -one))
+    W = eta * (two * wp.outer(v, v) - J)
+    Jv = wp.vector(v[0], -v[1], -v[2])
+    Wi = (two * wp.outer(Jv, Jv) - J) / eta
+    _store_block(vec, t, W0, k, d, W)
+    _store_block(vec, t, WI0, k, d, Wi)
+    _store_block(vec, t, WII0, k, d, Wi * Wi)
+    _store(vec, t, LAMQ, k, d, W * z)
+
+
+@wp.func
+def _build_kkt(
+    A: wp.array3d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    jitter: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+):
+    """Lower triangle of A + blockdiag(D) + jitter I into M[t], D = G^T W^-2 G per contact;
+    returns max |D|."""
+    n = K * d
+    one = type(jitter)(1.0)
+    dmax = type(jitter)(0.0)
+    for i in range(n):
+        for j in range(i + 1):
+            M[t, i, j] = A[r, i, j]
+    for k in range(K):
+        i0 = k * d
+        wl = vec[t, WL, k]
+        d00 = one / (wl * wl)
+        if d == 1:
+            M[t, i0, i0] = M[t, i0, i0] + d00
+            dmax = wp.max(dmax, wp.abs(d00))
+        else:
+            Wii = _load_block(vec, t, WII0, k, d)
+            m = mu[r, k]
+            for i in range(d):
+                for j in range(d):
+                    si = wp.where(i == 0, m, one)
+                    sj = wp.where(j == 0, m, one)
+                    dij = si * Wii[i, j] * sj
+                    if i == 0 and j == 0:
+                        dij = d00 + dij
+                    dmax = wp.max(dmax, wp.abs(dij))
+                    if j <= i:
+                        M[t, i0 + i, i0 + j] = M[t, i0 + i, i0 + j] + dij
+    if jitter != type(jitter)(0.0):
+        for i in range(n):
+            M[t, i, i] = M[t, i, i] + jitter
+    return dmax
+
+
+@wp.func
+def _direction(
+    mu: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+    r3l: int,
+    r3q: int,
+    out: int,
+):
+    """Newton direction (df, dsl, dsq, dzl, dzq) into rows out .. out + 4 for the
+    complementarity right-hand side r3 (rows r3l, r3q), on the factor in M[t]."""
+    for k in range(K):
+        wl = vec[t, WL, k]
+        ul = vec[t, r3l, k] / vec[t, LAML, k]
+        vl = (-vec[t, RZL, k]) / (wl * wl) - ul / wl
+        vq = wp.vector(type(vl)(0.0), type(vl)(0.0), type(vl)(0.0))
+        if d > 1:
+            uq = _soc_div(_load(vec, t, LAMQ, k, d), _load(vec, t, r3q, k, d))
+            rzq = _load(vec, t, RZQ, k, d)
+            vq = _load_block(vec, t, WII0, k, d) * (-rzq) - _load_block(vec, t, WI0, k, d) * uq
+        rhs = -_load(vec, t, RX, k, d) + _cone_GT(vl, vq, mu[r, k], d)
+        _store(vec, t, out, k, d, rhs)
+    _cholesky_solve(M, t, K * d, vec, out)
+    for k in range(K):
+        wl = vec[t, WL, k]
+        ul = vec[t, r3l, k] / vec[t, LAML, k]
+        df = _load(vec, t, out, k, d)
+        gl = -df[0]
+        vec[t, out + 3, k] = (gl + vec[t, RZL, k]) / (wl * wl) + ul / wl
+        vec[t, out + 1, k] = -(gl + vec[t, RZL, k])
+        if d > 1:
+            uq = _soc_div(_load(vec, t, LAMQ, k, d), _load(vec, t, r3q, k, d))
+            gq = _cone_G(df, mu[r, k]) + _load(vec, t, RZQ, k, d)
+            dzq = _load_block(vec, t, WII0, k, d) * gq + _load_block(vec, t, WI0, k, d) * uq
+            _store(vec, t, out + 4, k, d, dzq)
+            _store(vec, t, out + 2, k, d, -gq)
+
+
+@wp.func
+def _max_step(
+    active: wp.array2d(dtype=wp.bool),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    vec: wp.array3d(dtype=Any),
+    out: int,
+    inf: Any,
+):
+    """Largest step keeping the active contacts' s and z inside their cones."""
+    a = inf
+    for k in range(K):
+        if active[r, k]:
+            a = wp.min(a, _orth_max_step(vec[t, SL, k], vec[t, out + 1, k], inf))
+            a = wp.min(a, _orth_max_step(vec[t, ZL, k], vec[t, out + 3, k], inf))
+            if d > 1:
+                sq = _load(vec, t, SQ, k, d)
+                zq = _load(vec, t, ZQ, k, d)
+                a = wp.min(a, _soc_max_step(sq, _load(vec, t, out + 2, k, d), inf))
+                a = wp.min(a, _soc_max_step(zq, _load(vec, t, out + 4, k, d), inf))
+    return a
+
+
+@wp.func
+def _gap_after(
+    active: wp.array2d(dtype=wp.bool),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    vec: wp.array3d(dtype=Any),
+    out: int,
+    inf: Any,
+):
+    """Step length 0.99 x the largest (at most 1) along a direction and the gap there."""
+    alpha = wp.min(type(inf)(0.99) * _max_step(active, r, t, d, K, vec, out, inf), type(inf)(1.0))
+    gl = type(inf)(0.0)
+    gq = type(inf)(0.0)
+    for k in range(K):
+        if active[r, k]:
+            sl = vec[t, SL, k] + alpha * vec[t, out + 1, k]
+            zl = vec[t, ZL, k] + alpha * vec[t, out + 3, k]
+            gl = gl + sl * zl
+            if d > 1:
+                sq = _load(vec, t, SQ, k, d) + alpha * _load(vec, t, out + 2, k, d)
+                zq = _load(vec, t, ZQ, k, d) + alpha * _load(vec, t, out + 4, k, d)
+                gq = gq + wp.dot(sq, zq)
+    return gl + gq, alpha
+
+
+@wp.func
+def _shift(x0: Any, worst: Any):
+    """x0 + (1 + worst) if the worst violation is >= 0, as the reference's shift."""
+    if worst >= type(x0)(0.0):
+        return x0 + (type(x0)(1.0) + worst)
+    return x0
+
+
+@wp.func
+def _interior_point(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    apex: wp.array2d(dtype=Any),
+    active: wp.array2d(dtype=wp.bool),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    tol: Any,
+    max_iter: int,
+    blowup: Any,
+    tiny: Any,
+    inf: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+):
+    """The reference's interior point on problem r (scaled data); f into vec[t, F_].
+
+    Returns (solved, unbounded, iterations)."""
+    n = K * d
+    zero = type(tol)(0.0)
+    one = type(tol)(1.0)
+    n_valid = int(0)
+    for k in range(K):
+        if active[r, k]:
+            n_valid += 1
+    per_contact = wp.where(d > 1, 2, 1)
+    n_cones = type(tol)(wp.max(n_valid * per_contact, 1))
+
+    # initial point: minimise 0.5 f'Af + b'f + 0.5 ||G f - h||^2, z = G f - h, s = -z
+    for i in range(n):
+        for j in range(i + 1):
+            M[t, i, j] = A[r, i, j]
+    for k in range(K):
+        i0 = k * d
+        m = mu[r, k]
+        hl = -lower[r, k]
+        if d == 1:
+            M[t, i0, i0] = M[t, i0, i0] + one
+            vec[t, F_, i0] = -b[r, i0] + (-hl)
+        else:
+            M[t, i0, i0] = M[t, i0, i0] + (one + m * m)
+            vec[t, F_, i0] = -b[r, i0] + (-(hl + m * apex[r, k]))
+            for j in range(1, d):
+                M[t, i0 + j, i0 + j] = M[t, i0 + j, i0 + j] + one
+                vec[t, F_, i0 + j] = -b[r, i0 + j]
+    if not _cholesky(M, t, n):
+        for i in range(n):
+            vec[t, F_, i] = zero
+        return False, False, 0
+    _cholesky_solve(M, t, n, vec, F_)
+    worst_s = -inf
+    worst_z = -inf
+    for k in range(K):
+        f = _load(vec, t, F_, k, d)
+        zl = -f[0] - (-lower[r, k])
+        vec[t, ZL, k] = zl
+        vec[t, SL, k] = -zl
+        if d > 1:
+            zq = _cone_G(f, mu[r, k]) - wp.vector(apex[r, k], zero, zero)
+            _store(vec, t, ZQ, k, d, zq)
+            _store(vec, t, SQ, k, d, -zq)
+        if active[r, k]:
+            worst_s = wp.max(worst_s, zl)
+            worst_z = wp.max(worst_z, -zl)
+            if d > 1:
+                zq = _load(vec, t, ZQ, k, d)
+                nt = wp.sqrt(zq[1] * zq[1] + zq[2] * zq[2])
+                worst_s = wp.max(worst_s, nt + zq[0])
+                worst_z = wp.max(worst_z, nt - zq[0])
+    for k in range(K):
+        if active[r, k]:
+            vec[t, SL, k] = _shift(vec[t, SL, k], worst_s)
+            vec[t, ZL, k] = _shift(vec[t, ZL, k], worst_z)
+            if d > 1:
+                vec[t, SQ, k * d] = _shift(vec[t, SQ, k * d], worst_s)
+                vec[t, ZQ, k * d] = _shift(vec[t, ZQ, k * d], worst_z)
+        else:  # held at f = 0, s = z = e
+            vec[t, SL, k] = one
+            vec[t, ZL, k] = one
+            for j in range(d):
+                vec[t, F_, k * d + j] = zero
+                if d > 1:
+                    vec[t, SQ, k * d + j] = wp.where(j == 0, one, zero)
+                    vec[t, ZQ, k * d + j] = wp.where(j == 0, one, zero)
+
+    stalled = bool(False)
+    plain_only = bool(False)
+    prev_res = inf
+    prev_size = inf
+    for it in range(max_iter):
+        # residuals and gap
+        gap_l = zero
+        gap_q = zero
+        res = zero
+        size = zero
+        for i in range(n):
+            size = wp.max(size, wp.abs(vec[t, F_, i]))
+        for k in range(K):
+            m = mu[r, k]
+            zq = _load(vec, t, ZQ, k, d)
+            gt = _cone_GT(vec[t, ZL, k], zq, m, d)
+            for j in range(d):
+                i = k * d + j
+                s = zero
+                for jj in range(n):
+                    s = s + A[r, i, jj] * vec[t, F_, jj]
+                rx = (s + b[r, i]) + gt[j]
+                vec[t, RX, i] = rx
+                if active[r, k]:
+                    res = wp.max(res, wp.abs(rx))
+            f = _load(vec, t, F_, k, d)
+            rzl = -f[0] + vec[t, SL, k] + lower[r, k]
+            vec[t, RZL, k] = rzl
+            if active[r, k]:
+                res = wp.max(res, wp.abs(rzl))
+                gap_l = gap_l + vec[t, SL, k] * vec[t, ZL, k]
+            if d > 1:
+                sq = _load(vec, t, SQ, k, d)
+                rzq = _cone_G(f, m) + sq - wp.vector(apex[r, k], zero, zero)
+                _store(vec, t, RZQ, k, d, rzq)
+                if active[r, k]:
+                    gap_q = gap_q + wp.dot(sq, zq)
+                    res = wp.max(
+                        res, wp.max(wp.abs(rzq[0]), wp.max(wp.abs(rzq[1]), wp.abs(rzq[2])))
+                    )
+        gap = gap_l + gap_q
+        small_gap = gap <= tol * n_cones
+        solved = small_gap and res <= tol
+        diverged = size > blowup
+        stuck = small_gap and res > type(tol)(0.5) * prev_res and size <= type(tol)(1.5) * prev_size
+        prev_res = res
+        prev_size = size
+        if solved or diverged or stalled or stuck:
+            return solved, diverged and not solved, it
+        mu_gap = gap / n_cones
+
+        # Nesterov-Todd scaling and the factorisation of A + G^T W^-2 G
+        for k in range(K):
+            sl = vec[t, SL, k]
+            zl = vec[t, ZL, k]
+            vec[t, WL, k] = wp.sqrt(sl / zl)
+            vec[t, LAML, k] = wp.sqrt(sl * zl)
+            if d > 1:
+                _nt_scaling(vec, t, k, d, tiny)
+        dmax = _build_kkt(A, mu, r, t, d, K, zero, vec, M)
+        if not _cholesky(M, t, n):
+            jitter = type(tol)(1e-12) * (one + dmax)
+            _build_kkt(A, mu, r, t, d, K, jitter, vec, M)
+            _cholesky(M, t, n)
+
+        # predictor
+        for k in range(K):
+            laml = vec[t, LAML, k]
+            vec[t, R3L, k] = -laml * laml
+            if d > 1:
+                lamq = _load(vec, t, LAMQ, k, d)
+                _store(vec, t, R3Q, k, d, -_soc_prod(lamq, lamq))
+        _direction(mu, r, t, d, K, vec, M, R3L, R3Q, DIR_A)
+        alpha = wp.min(_max_step(active, r, t, d, K, vec, DIR_A, inf), one)
+        sigma = (one - alpha) * (one - alpha) * (one - alpha)
+        # corrector: r3 = -lam o lam + sigma mu e - (W^-1 ds_a) o (W dz_a); a problem whose
+        # gap grows under Mehrotra's term drops it from then on (plain_only)
+        centre = sigma * mu_gap
+        for k in range(K):
+            r3l = vec[t, R3L, k] + centre
+            vec[t, R3L, k] = r3l
+            corr = vec[t, DIR_A + 1, k] * vec[t, DIR_A + 3, k]
+            if plain_only:
+                corr = zero
+            vec[t, R3LC, k] = r3l - corr
+            if d > 1:
+                r3q = _load(vec, t, R3Q, k, d)
+                r3q = wp.vector(r3q[0] + centre, r3q[1], r3q[2])
+                _store(vec, t, R3Q, k, d, r3q)
+                a_s = _load_block(vec, t, WI0, k, d) * _load(vec, t, DIR_A + 2, k, d)
+                a_z = _load_block(vec, t, W0, k, d) * _load(vec, t, DIR_A + 4, k, d)
+                corr_q = _soc_prod(a_s, a_z)
+                if plain_only:
+                    corr_q = wp.vector(zero, zero, zero)
+                _store(vec, t, R3QC, k, d, r3q - corr_q)
+        _direction(mu, r, t, d, K, vec, M, R3LC, R3QC, DIR_B)
+        gap_m, alpha = _gap_after(active, r, t, d, K, vec, DIR_B, inf)
+        direction = DIR_B
+        if gap_m > gap and not plain_only:
+            _direction(mu, r, t, d, K, vec, M, R3L, R3Q, DIR_A)
+            _gap, alpha_p = _gap_after(active, r, t, d, K, vec, DIR_A, inf)
+            alpha = alpha_p
+            plain_only = True
+            direction = DIR_A
+
+        # step; a problem whose step breaks down keeps its iterate (stalled)
+        ok = bool(True)
+        for k in range(K):
+            if active[r, k]:
+                for j in range(d):
+                    i = k * d + j
+                    ok = ok and wp.isfinite(vec[t, F_, i] + alpha * vec[t, direction, i])
+                sl = vec[t, SL, k] + alpha * vec[t, direction + 1, k]
+                zl = vec[t, ZL, k] + alpha * vec[t, direction + 3, k]
+                ok = ok and wp.isfinite(sl * zl) and sl > zero and zl > zero
+                if d > 1:
+                    sq = _load(vec, t, SQ, k, d) + alpha * _load(vec, t, direction + 2, k, d)
+                    zq = _load(vec, t, ZQ, k, d) + alpha * _load(vec, t, direction + 4, k, d)
+                    for j in range(d):
+                        ok = ok and wp.isfinite(sq[j] * zq[j])
+                    ok = ok and _soc_det(sq) > zero and _soc_det(zq) > zero
+        if ok:
+            for k in range(K):
+                if active[r, k]:
+                    for j in range(d):
+                        i = k * d + j
+                        vec[t, F_, i] = vec[t, F_, i] + alpha * vec[t, direction, i]
+                        if d > 1:
+                            vec[t, SQ, i] = vec[t, SQ, i] + alpha * vec[t, direction + 2, i]
+                            vec[t, ZQ, i] = vec[t, ZQ, i] + alpha * vec[t, direction + 4, i]
+                    vec[t, SL, k] = vec[t, SL, k] + alpha * vec[t, direction + 1, k]
+                    vec[t, ZL, k] = vec[t, ZL, k] + alpha * vec[t, direction + 3, k]
+        else:
+            stalled = True
+    return False, False, max_iter
+
+
+# --- the polish ------------------------------------------------------------------------
+
+
+@wp.func
+def _project(z: Any, mu: Any, lower: Any, d: int):
+    """Projection of one contact block onto {f_n >= l, ||f_t|| <= mu f_n} with dPi/dz,
+    dPi/dmu and dPi/dl (the regions and one-sided choices of
+    :func:`diffcontact.contact.cone.project_contact_set`); padded 3-vectors / 3x3."""
+    zero = type(mu)(0.0)
+    one = type(mu)(1.0)
+    zv = wp.vector(zero, zero, zero)
+    zm = wp.outer(zv, zv)
+    zn = z[0]
+    if d == 1:
+        if zn < lower:
+            return wp.vector(lower, zero, zero), zm, zv, wp.vector(one, zero, zero)
+        return wp.vector(zn, zero, zero), wp.diag(wp.vector(one, zero, zero)), zv, zv
+    s = wp.sqrt(z[1] * z[1] + z[2] * z[2])
+    s_safe = wp.where(s > zero, s, one)
+    u = zv
+    if s > zero:
+        u = wp.vector(zero, z[1] / s_safe, z[2] / s_safe)
+    uu = wp.outer(u, u)
+    eye_t = wp.diag(wp.vector(zero, one, one))
+    mu2 = mu * mu
+    inside = mu > zero and s <= mu * zn
+    polar = (not inside) and mu * s <= -zn
+    c = (zn + mu * s) / (one + mu2)
+    cone_n = c
+    if inside:
+        cone_n = zn
+    elif polar:
+        cone_n = zero
+    use_disk = cone_n < lower or (polar and cone_n <= lower)
+    if use_disk:  # f_n = l, f_t clipped to the radius mu l
+        radius = mu * lower
+        e0 = wp.vector(one, zero, zero)
+        if s > radius or radius <= zero:
+            P = (radius / s_safe) * (eye_t - uu)
+            return lower * e0 + radius * u, P, lower * u, e0 + mu * u
+        return wp.vector(lower, z[1], z[2]), eye_t, zv, e0
+    if inside:
+        return z, wp.diag(wp.vector(one, one, one)), zv, zv
+    if polar:
+        return zv, zm, zv, zv
+    # the cone's surface (sliding)
+    e0 = wp.vector(one, zero, zero)
+    a = mu / (one + mu2)
+    P = wp.outer(e0, e0) / (one + mu2) + a * (wp.outer(e0, u) + wp.outer(u, e0))
+    P = P + (mu2 / (one + mu2)) * uu + (c * mu / s_safe) * (eye_t - uu)
+    dc = (s - type(mu)(2.0) * mu * c) / (one + mu2)
+    return c * e0 + (c * mu) * u, P, dc * e0 + (dc * mu + c) * u, zv
+
+
+@wp.func
+def _natural_map(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    c: Any,
+    vec: wp.array3d(dtype=Any),
+    f: int,
+    res: int,
+    P: int,
+    dmu: int,
+    dl: int,
+):
+    """F(f) = f - Pi(f - rho (A f + b)) and the projection's derivatives at the point in
+    row f, into rows res, P (3 rows), dmu, dl; returns ||F||_inf / max(c, ||f||_inf)."""
+    n = K * d
+    zero = type(rho)(0.0)
+    fmax = zero
+    Fmax = zero
+    for k in range(K):
+        zk = wp.vector(zero, zero, zero)
+        for j in range(d):
+            i = k * d + j
+            s = zero
+            for jj in range(n):
+                s = s + A[r, i, jj] * vec[t, f, jj]
+            zk[j] = vec[t, f, i] - rho * (s + b[r, i])
+        proj, Pk, dmuk, dlk = _project(zk, mu[r, k], lower[r, k], d)
+        fk = _load(vec, t, f, k, d)
+        Fk = fk - proj
+        _store(vec, t, res, k, d, Fk)
+        _store_block(vec, t, P, k, d, Pk)
+        _store(vec, t, dmu, k, d, dmuk)
+        _store(vec, t, dl, k, d, dlk)
+        for j in range(d):
+            fmax = wp.max(fmax, wp.abs(fk[j]))
+            Fmax = wp.max(Fmax, wp.abs(Fk[j]))
+    return Fmax / wp.max(c, fmax)
+
+
+@wp.func
+def _jacobian(
+    A: wp.array3d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    reg: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+):
+    """dF/df = I - P + rho P (A + reg I) into M[t] (P: rows P0.., per-contact blocks)."""
+    n = K * d
+    zero = type(rho)(0.0)
+    one = type(rho)(1.0)
+    for k in range(K):
+        Pk = _load_block(vec, t, P0, k, d)
+        for i in range(d):
+            row = k * d + i
+            for col in range(n):
+                s = zero
+                for m in range(d):
+                    a = A[r, k * d + m, col]
+                    if k * d + m == col:
+                        a = a + reg
+                    s = s + Pk[i, m] * a
+                value = wp.where(row == col, one, zero) + rho * s
+                if col >= k * d and col < k * d + d:
+                    value = value - Pk[i, col - k * d]
+                M[t, row, col] = value
+
+
+@wp.func
+def _accept(vec: wp.array3d(dtype=Any), t: int, n: int):
+    """The trial point (rows FN, RESN, PN0.., DMUN, DLN) becomes the current one."""
+    for i in range(n):
+        vec[t, F_, i] = vec[t, FN, i]
+        vec[t, RES, i] = vec[t, RESN, i]
+        vec[t, DMU, i] = vec[t, DMUN, i]
+        vec[t, DL, i] = vec[t, DLN, i]
+        for j in range(3):
+            vec[t, P0 + j, i] = vec[t, PN0 + j, i]
+
+
+@wp.func
+def _try_steps(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    c: Any,
+    res: Any,
+    vec: wp.array3d(dtype=Any),
+    step: int,
+):
+    """Backtracking along row ``step`` (full, 1/2, 1/4, 1/8): the first step that lowers
+    the residual is taken; returns the residual (unchanged if none)."""
+    n = K * d
+    alpha = type(rho)(1.0)
+    for _ in range(4):
+        for i in range(n):
+            vec[t, FN, i] = vec[t, F_, i] + alpha * vec[t, step, i]
+        res_new = _natural_map(A, b, mu, lower, r, t, d, K, rho, c, vec, FN, RESN, PN0, DMUN, DLN)
+        if res_new < res:
+            _accept(vec, t, n)
+            return res_new
+        alpha = alpha * type(rho)(0.5)
+    return res
+
+
+@wp.func
+def _polish(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    reg: Any,
+    c: Any,
+    target: Any,
+    steps: int,
+    eps: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+):
+    """Newton steps on the natural map from vec[t, F_] as the reference's ``_polish``;
+    returns the residual. Leaves F, P, dmu, dl at the final point in their rows and the
+    LU factorisation of dF/df there in M[t], piv[t]."""
+    n = K * d
+    zero = type(rho)(0.0)
+    res = _natural_map(A, b, mu, lower, r, t, d, K, rho, c, vec, F_, RES, P0, DMU, DL)
+    flat = bool(False)
+    for step in range(steps):
+        if res <= target:
+            break
+        _jacobian(A, r, t, d, K, rho, reg, vec, M)
+        umin = _lu_factor(M, piv, t, n)
+        for i in range(n):
+            vec[t, DELTA, i] = -vec[t, RES, i]
+        _lu_solve(M, piv, t, n, vec, DELTA)
+        for i in range(n):
+            if not wp.isfinite(vec[t, DELTA, i]):
+                vec[t, DELTA, i] = zero
+        if step == 0 and umin <= type(rho)(1e-6):
+            # nearly singular: the minimiser may not be unique; try the step without
+            # its component along the null space of A first (no move by rounding)
+            flat = True
+            _null_space(A, r, t, n, M, V, vec, eps)
+        new_res = res
+        if flat:
+            for i in range(n):
+                vec[t, DFLAT, i] = vec[t, DELTA, i]
+            for e in range(n):
+                if vec[t, EVAL, e] > zero:
+                    proj = zero
+                    for i in range(n):
+                        proj = proj + V[t, i, e] * vec[t, DELTA, i]
+                    for i in range(n):
+                        vec[t, DFLAT, i] = vec[t, DFLAT, i] - V[t, i, e] * proj
+            new_res = _try_steps(A, b, mu, lower, r, t, d, K, rho, c, res, vec, DFLAT)
+        if not (new_res < res):
+            new_res = _try_steps(A, b, mu, lower, r, t, d, K, rho, c, res, vec, DELTA)
+        if not (new_res < res):
+            break  # the same point would give the same steps again
+        res = new_res
+    _jacobian(A, r, t, d, K, rho, reg, vec, M)
+    _lu_factor(M, piv, t, n)
+    return res
+
+
+# --- the kernel ------------------------------------------------------------------------
+
+
+@wp.kernel
+def fused_solve(
+    rows: wp.array(dtype=wp.int32),
+    A_ipm: wp.array3d(dtype=Any),
+    b_ipm: wp.array2d(dtype=Any),
+    mu_ipm: wp.array2d(dtype=Any),
+    lower_ipm: wp.array2d(dtype=Any),
+    apex: wp.array2d(dtype=Any),
+    active: wp.array2d(dtype=wp.bool),
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    rho: wp.array(dtype=Any),
+    reg: wp.array(dtype=Any),
+    c: wp.array(dtype=Any),
+    d: int,
+    K: int,
+    gap: Any,
+    max_iter: int,
+    target: Any,
+    polish_steps: int,
+    blowup: Any,
+    eps: Any,
+    tiny: Any,
+    inf: Any,
+    vec: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    f_ipm: wp.array2d(dtype=Any),
+    f_out: wp.array2d(dtype=Any),
+    res_out: wp.array(dtype=Any),
+    P_out: wp.array3d(dtype=Any),
+    dmu_out: wp.array2d(dtype=Any),
+    dl_out: wp.array2d(dtype=Any),
+    LU: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+    iterations: wp.array(dtype=wp.int64),
+    solved: wp.array(dtype=wp.bool),
+    unbounded: wp.array(dtype=wp.bool),
+):
+    """Interior point, polish and the backward pass's factorisation for problem rows[t].
+
+    Inputs: the scaled problem of the interior point (``A_ipm`` (B, C, C), ``b_ipm``
+    (B, C), ``mu_ipm``, ``lower_ipm``, ``apex``, ``active`` (B, K)) and the problem of the
+    polish (``A``, ``b``, ``mu``, ``lower``; ``rho``, ``reg`` and the impulse scale ``c``
+    (B,)). Outputs per thread: the interior point's (scaled) iterate and f (n, C), the
+    scaled residual (n,), dPi/dz (n, C, d), dPi/dmu and dPi/dl (n, C), the LU
+    factorisation of dF/df (n, C, C) with its pivots (n, C), the interior point's
+    iterations, solved and unbounded flags (n,).
+    """
+    t = wp.tid()
+    r = int(rows[t])
+    n = K * d
+    ok, diverged, it = _interior_point(
+        A_ipm,
+        b_ipm,
+        mu_ipm,
+        lower_ipm,
+        apex,
+        active,
+        r,
+        t,
+        d,
+        K,
+        gap,
+        max_iter,
+        blowup,
+        tiny,
+        inf,
+        vec,
+        LU,
+    )
+    iterations[t] = wp.int64(it)
+    solved[t] = ok
+    unbounded[t] = diverged
+    for i in range(n):
+        f_ipm[t, i] = vec[t, F_, i]
+        vec[t, F_, i] = vec[t, F_, i] * c[r]
+    res = _polish(
+        A,
+        b,
+        mu,
+        lower,
+        r,
+        t,
+        d,
+        K,
+        rho[r],
+        reg[r],
+        c[r],
+        target,
+        polish_steps,
+        eps,
+        vec,
+        LU,
+        V,
+        piv,
+    )
+    res_out[t] = res
+    for i in range(n):
+        f_out[t, i] = vec[t, F_, i]
+        dmu_out[t, i] = vec[t, DMU, i]
+        dl_out[t, i] = vec[t, DL, i]
+    for k in range(K):
+        for a in range(d):
+            for j in range(d):
+                P_out[t, k * d + a, j] = vec[t, P0 + a, k * d + j]

@@ -1,0 +1,441 @@
+"""The fused (Warp) solver against the torch reference, and the choice of backend.
+
+``solve_cone_qp`` with ``SolverSettings(backend="warp")`` runs the interior point and the
+polish in one Warp kernel (one thread per problem); ``backend="torch"`` is the reference
+implementation. Both must give the same impulses (1e-8 relative in float64), the same
+per-problem status and the same gradients, on problem families that exercise padding,
+lower bounds, mu = 0, singular and unbounded problems, in float32 and float64.
+
+The rest of the suite runs with the default backend (``auto``: Warp when installed);
+``DIFFCONTACT_SOLVER=torch pytest ...`` runs it on the reference instead.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffcontact.contact import SolverSettings, fused, solve_cone_qp
+from diffcontact.contact.cone import project_contact_set
+
+from .test_cone_qp import _singular_problems, natural_residual, random_problems
+
+pytest.importorskip("warp", reason="the fused solver needs NVIDIA Warp (pip install warp-lang)")
+
+F64 = torch.float64
+TORCH = SolverSettings(backend="torch")
+WARP = SolverSettings(backend="warp")
+RTOL = 1e-8
+DATA = Path(__file__).parent / "data"
+
+
+def both(*args, settings: SolverSettings | None = None, **kwargs):
+    """(f, status) from the torch reference and from the fused solver."""
+    from dataclasses import replace
+
+    settings = settings or SolverSettings()
+    out = []
+    for backend in ("torch", "warp"):
+        s = replace(settings, backend=backend)
+        out.append(solve_cone_qp(*args, settings=s, return_status=True, **kwargs))
+    return out
+
+
+def rel_diff(f: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Per problem max |f - g| / max(1, max |g|)."""
+    return (f - g).abs().amax(-1) / g.abs().amax(-1).clamp_min(1)
+
+
+def assert_agree(ref, fused_, rtol=RTOL, check_f=None):
+    """Same status; f within rtol where ``check_f`` (default: converged) holds."""
+    (f_t, s_t), (f_w, s_w) = ref, fused_
+    assert torch.equal(s_w.converged, s_t.converged)
+    assert torch.equal(s_w.unbounded, s_t.unbounded)
+    rows = s_t.converged if check_f is None else check_f
+    if rows.any():
+        worst = rel_diff(f_w, f_t)[rows].max().item()
+        assert worst <= rtol, f"fused vs reference: relative difference {worst:.2e}"
+
+
+def mixed_family(n: int, K: int, d: int, seed: int):
+    """Full-rank problems with padded (inactive) contacts, lower bounds on ~30% of the
+    contacts and mu = 0 on ~20% (d > 1)."""
+    A, b, mu, lower = random_problems(n, K, d, seed=seed, lower_frac=0.3)
+    gen = torch.Generator().manual_seed(seed)
+    if d > 1:
+        mu = torch.where(torch.rand(n, K, generator=gen) < 0.2, 0, mu)
+    active = torch.rand(n, K, generator=gen) < 0.7
+    active[:, 0] = True
+    active[0] = True  # one problem without padding
+    return A, b, mu, lower, active
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+@pytest.mark.parametrize("K", [1, 4, 12])
+def test_agrees_with_reference_on_mixed_problems(d, K):
+    A, b, mu, lower, active = mixed_family(24, K, d, seed=100 * d + K)
+    ref, out = both(A, b, mu, d, lower, active)
+    assert ref[1].converged.all()
+    assert_agree(ref, out)
+    f = out[0]
+    assert (f[~active.repeat_interleave(d, -1)] == 0).all()  # padded entries exactly zero
+    assert natural_residual(A, b, mu, lower, f, d)[active.all(-1)].max() < 1e-9
+
+
+@pytest.mark.parametrize(("d", "K", "rank"), [(1, 8, 5), (2, 3, 2), (2, 8, 10), (3, 4, 6)])
+def test_agrees_with_reference_on_singular_A(d, K, rank):
+    """A = J M^-1 J^T with fewer rows in J than contact components (several contacts on
+    one body): bounded problems (b = A y + w, w in the dual cones)."""
+    A, b, mu, lower = _singular_problems(60, K, d, rank, seed=7 * K + d, unbounded=False)
+    ref, out = both(A, b, mu, d, lower)
+    assert ref[1].converged.all()
+    assert_agree(ref, out)
+
+
+def point_mass_family(n: int, K: int, bodies: int, seed: int):
+    """Contacts on point masses in the plane (d = 2), several per body (as BP5's corner),
+    so that A = J M^-1 J^T is singular and the minimiser is often not unique; b = J v."""
+    gen = torch.Generator().manual_seed(seed)
+    body = torch.randint(0, bodies, (n, K), generator=gen)
+    angle = torch.rand(n, K, generator=gen, dtype=F64) * 2 * torch.pi
+    normal = torch.stack([angle.cos(), angle.sin()], -1)
+    tangent = torch.stack([-angle.sin(), angle.cos()], -1)
+    onehot = torch.nn.functional.one_hot(body, bodies).to(F64)[..., None]
+    J = torch.stack([onehot * normal[:, :, None], onehot * tangent[:, :, None]], 2)
+    J = J.reshape(n, 2 * K, 2 * bodies)
+    m_inv = (0.5 + torch.rand(n, bodies, generator=gen, dtype=F64)).repeat_interleave(2, -1)
+    A = J @ torch.diag_embed(m_inv) @ J.transpose(-1, -2)
+    b = (J @ torch.randn(n, 2 * bodies, 1, generator=gen, dtype=F64)).squeeze(-1)
+    mu = 0.1 + torch.rand(n, K, generator=gen, dtype=F64)
+    return A, b, mu
+
+
+def test_non_unique_minimisers():
+    """Where the minimiser is not unique, which one is returned is sensitive to rounding in
+    either backend (the reference's differs by up to 0.6 between a problem alone and in a
+    batch on this family): both must return minimisers (same A f and objective), and the
+    polish must not move along the null space of A (it keeps the interior point's choice)
+    except where the constraints need it."""
+    import diffcontact.contact.cone_qp as cone_qp
+
+    A, b, mu = point_mass_family(120, 5, 2, seed=0)
+    (f_t, s_t), (f_w, s_w) = both(A, b, mu, 2)
+    assert s_t.converged.all() and s_w.converged.all()
+    Af_t, Af_w = (torch.einsum("bij,bj->bi", A, f) for f in (f_t, f_w))
+    torch.testing.assert_close(Af_w, Af_t, rtol=0, atol=1e-9)
+    obj = [0.5 * (f * Af).sum(-1) + (b * f).sum(-1) for f, Af in ((f_t, Af_t), (f_w, Af_w))]
+    torch.testing.assert_close(obj[1], obj[0], rtol=1e-10, atol=1e-10)
+
+    calls = []
+
+    def spy(rows, ipm_data, data, d, gap, settings):
+        ipm, polished = solve_rows(rows, ipm_data, data, d, gap, settings)
+        calls.append((rows, ipm.f * data[-1][rows, None], polished[0]))
+        return ipm, polished
+
+    solve_rows = cone_qp._solve
+    cone_qp._solve = spy
+    try:
+        solve_cone_qp(A, b, mu, 2, settings=WARP)
+    finally:
+        cone_qp._solve = solve_rows
+    rows, f_ipm, f = calls[0]
+    evals, V = torch.linalg.eigh(A[rows])
+    N = V * (evals <= 1e-9 * evals[:, -1:])[:, None, :]
+    move = torch.einsum("bij,bkj,bk->bi", N, N, f - f_ipm).abs().amax(-1)
+    kept = (move <= 1e-12 * f.abs().amax(-1).clamp_min(1)).float().mean()
+    assert kept >= 0.6, f"the polish moved along null(A) on {1 - kept:.0%} of the problems"
+
+
+@pytest.mark.parametrize(("d", "K", "rank"), [(1, 3, 2), (1, 8, 7), (2, 3, 2)])
+def test_unbounded_problems_have_the_same_status(d, K, rank):
+    A, b, mu, lower = _singular_problems(60, K, d, rank, seed=K + 10 * d, unbounded=True)
+    ref, out = both(A, b, mu, d, lower)
+    assert ref[1].unbounded.all()
+    assert_agree(ref, out)
+
+
+@pytest.mark.parametrize(("d", "K", "rank"), [(2, 8, 10), (3, 3, 4)])
+def test_hard_unbounded_problems(d, K, rank):
+    """Unbounded problems whose free direction lies on a cone's surface: on a few of them
+    neither phase of the certificate finds one (test_cone_qp.py), and which few depends
+    on rounding (the iterate runs off to 1e10 before it is examined). Both backends give
+    the same guarantees: never converged, at least 90% certified; they disagree on at
+    most 3 of 100."""
+    A, b, mu, lower = _singular_problems(100, K, d, rank, seed=K + 10 * d, unbounded=True)
+    (_, s_t), (_, s_w) = both(A, b, mu, d, lower)
+    for status in (s_t, s_w):
+        assert not status.converged.any()
+        assert status.unbounded.float().mean() >= 0.9
+    assert int((s_t.unbounded != s_w.unbounded).sum()) <= 3
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_zero_A_status_matches(d):
+    """A = 0: bounded exactly when b lies in the dual cones (then f = lower)."""
+    gen = torch.Generator().manual_seed(40 + d)
+    n, K = 60, 3
+    b = torch.randn(n, K, d, generator=gen, dtype=F64)
+    mu = torch.rand(n, K, generator=gen, dtype=F64) * 2
+    inside = (mu * b[..., 1:].norm(dim=-1) if d > 1 else 0) + b[..., 0].abs()
+    b[: n // 2, :, 0] = inside[: n // 2]  # the first half in the dual cones: bounded
+    b = b.reshape(n, K * d)
+    lower = torch.rand(n, K, generator=gen, dtype=F64) * (torch.rand(n, K, generator=gen) < 0.3)
+    A = torch.zeros(n, K * d, K * d, dtype=F64)
+    ref, out = both(A, b, mu, d, lower)
+    assert not ref[1].unbounded[: n // 2].any() and ref[1].unbounded[n // 2 :].any()
+    assert_agree(ref, out)
+
+
+@pytest.mark.parametrize(
+    ("name", "d"),
+    [
+        ("bd5_restitution_mu0_singular", 2),
+        ("gyro_compression_singular", 3),
+        ("rope_d200_restitution", 1),
+        ("bp5_restitution_inactive_tip", 2),
+        ("rope_mehrotra_cycling", 1),
+        ("rope_d100_degenerate", 1),
+    ],
+)
+def test_agrees_on_recorded_simulator_problems(name, d):
+    data = torch.load(DATA / f"{name}.pt")
+    ref, out = both(data["A"], data["b"], data["mu"], d, data["lower"], data["active"])
+    assert ref[1].converged.all()
+    # the degenerate rope problem's polish ends at a residual near 6e-8 (not rounding level)
+    assert_agree(ref, out, rtol=1e-6 if name == "rope_d100_degenerate" else RTOL)
+
+
+def test_retries_with_a_tighter_gap_run_on_the_fused_solver():
+    """A loose gap leaves some problems to the retry loop (solved again, in torch's loop
+    around the kernel, on the rows that need it)."""
+    A, b, mu, lower = random_problems(64, 20, 3, seed=21, lower_frac=0.3)
+    loose = SolverSettings(gap=1e-2, polish_steps=1, retries=4, tol=1e-10)
+    ref, out = both(A, b, mu, 3, lower, settings=loose)
+    assert (out[1].iterations > out[1].iterations.min()).any()  # some rows ran again
+    assert_agree(ref, out, rtol=1e-7)
+
+
+def test_float32():
+    A, b, mu, lower, active = mixed_family(32, 5, 3, seed=4)
+    f64 = solve_cone_qp(A, b, mu, 3, lower, active, settings=TORCH)
+    args = (A.float(), b.float(), mu.float(), 3, lower.float(), active)
+    # default: solved in float64 inside, the result cast back
+    f = solve_cone_qp(*args, settings=WARP)
+    assert f.dtype == torch.float32
+    torch.testing.assert_close(f.double(), f64, rtol=1e-4, atol=1e-5)
+    # compute_dtype=None: the kernel's float32 instance
+    native = SolverSettings(backend="warp", compute_dtype=None)
+    f, status = solve_cone_qp(*args, settings=native, return_status=True)
+    assert f.dtype == torch.float32
+    assert status.converged.float().mean() >= 0.9
+    ok = status.converged
+    torch.testing.assert_close(f[ok].double(), f64[ok], rtol=1e-3, atol=1e-3)
+
+
+def nondegenerate_problem(d: int, K: int, seed: int):
+    """A small problem away from kinks of the solution map (no contact at a region
+    boundary), with some sliding, some sticking and some separating contacts."""
+    gen = torch.Generator().manual_seed(seed)
+    C = K * d
+    G = torch.randn(C, C, generator=gen, dtype=F64)
+    A = G @ G.T / C + 0.3 * torch.eye(C, dtype=F64)
+    b = torch.randn(C, generator=gen, dtype=F64)
+    mu = 0.2 + 0.8 * torch.rand(K, generator=gen, dtype=F64)
+    lower = 0.05 + 0.2 * torch.rand(K, generator=gen, dtype=F64)
+    return A, b, mu, lower
+
+
+@pytest.mark.parametrize(("d", "K", "seed"), [(1, 3, 0), (2, 3, 1), (3, 2, 2)])
+def test_gradcheck(d, K, seed):
+    A, b, mu, lower = nondegenerate_problem(d, K, seed)
+    settings = SolverSettings(backend="warp", check_inputs=False)
+
+    def fn(A, b, mu, lower):
+        return solve_cone_qp(A, b, mu, d, lower, settings=settings)
+
+    inputs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradients_equal_the_reference_backends():
+    A, b, mu, lower, active = mixed_family(16, 5, 2, seed=9)
+    w = torch.randn(16, 10, generator=torch.Generator().manual_seed(0), dtype=F64)
+    grads = []
+    for settings in (TORCH, WARP):
+        xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+        f = solve_cone_qp(*xs[:3], 2, xs[3], active, settings=settings)
+        grads.append(torch.autograd.grad((f * w).sum(), xs))
+    for g_t, g_w in zip(*grads, strict=True):
+        torch.testing.assert_close(g_w, g_t, rtol=1e-7, atol=1e-9)
+
+
+def test_batch_invariance():
+    """A problem gets bitwise the same impulse alone, inside a random batch, and with its
+    padded contacts removed (each problem is one thread's arithmetic)."""
+    d = 2
+    A, b, mu, lower, active = mixed_family(48, 6, d, seed=3)
+    f_batch = solve_cone_qp(A, b, mu, d, lower, active, settings=WARP)
+    gen = torch.Generator().manual_seed(5)
+    for i in (0, 1, 7):
+        alone = solve_cone_qp(A[i], b[i], mu[i], d, lower[i], active[i], settings=WARP)
+        assert torch.equal(alone, f_batch[i])
+        others = torch.randperm(48, generator=gen)
+        others = others[others != i][:10]
+        where = int(torch.randint(0, 11, (), generator=gen))
+        rows = torch.cat([others[:where], torch.tensor([i]), others[where:]])
+        f = solve_cone_qp(A[rows], b[rows], mu[rows], d, lower[rows], active[rows], settings=WARP)
+        assert torch.equal(f[where], f_batch[i])
+        keep = active[i].repeat_interleave(d)
+        unpadded = solve_cone_qp(
+            A[i][keep][:, keep], b[i][keep], mu[i][active[i]], d, lower[i][active[i]], settings=WARP
+        )
+        assert torch.equal(unpadded, f_batch[i][keep])
+
+
+def test_reference_groups_with_both_backends():
+    """The independent reference's problem groups (test_reference_agreement.py, which runs
+    the default backend): each backend within 1e-7 of Clarabel's polished answers, and
+    within 1e-8 of each other."""
+    pytest.importorskip("cvxpy", reason="the independent reference needs cvxpy")
+    pytest.importorskip("clarabel", reason="the independent reference needs Clarabel")
+    from . import test_reference_agreement as ra
+
+    for d, a_kind, lower_kind in ra.GROUPS:
+        problems, refs = ra.problem_group(d, a_kind, lower_kind)
+        T = ra.stack(problems)
+        lower = T["lower"] if lower_kind != "none" else None
+        ref, out = both(T["A"], T["b"], T["mu"], d, lower, T["active"])
+        assert_agree(ref, out)
+        for f, _ in (ref, out):
+            bad = ra.check_against_references(f.numpy(), problems, refs)
+            assert not bad, "\n".join(bad)
+
+
+def test_few_torch_operations_per_call():
+    """The fused forward is a few dozen to a few hundred torch operations (scaling, the
+    status, the unboundedness test), not thousands: a regression guard."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    A, b, mu, lower = random_problems(64, 5, 2, seed=1, lower_frac=0.3)
+    counts = {}
+    for settings in (TORCH, WARP):
+        solve_cone_qp(A, b, mu, 2, lower, settings=settings)
+        Count.n = 0
+        with Count():
+            solve_cone_qp(A, b, mu, 2, lower, settings=settings)
+        counts[settings.backend] = Count.n
+    assert counts["warp"] < 400 < 2000 < counts["torch"], counts
+
+
+# --- the choice of backend ----------------------------------------------------------------
+
+
+def test_backend_names_and_environment(monkeypatch):
+    with pytest.raises(ValueError, match="backend must be one of auto, torch, warp"):
+        SolverSettings(backend="cuda")
+    monkeypatch.delenv(fused.ENV_VAR, raising=False)
+    assert SolverSettings().resolved(F64).backend == "warp"  # installed: the default
+    assert SolverSettings(backend="torch").resolved(F64).backend == "torch"
+    # half precision is the reference's only
+    assert SolverSettings(compute_dtype=None).resolved(torch.float16).backend == "torch"
+    with pytest.raises(ValueError, match="float32 or float64"):
+        SolverSettings(backend="warp", compute_dtype=None).resolved(torch.float16)
+    monkeypatch.setenv(fused.ENV_VAR, "torch")
+    assert SolverSettings().resolved(F64).backend == "torch"
+    assert SolverSettings(backend="warp").resolved(F64).backend == "warp"  # explicit wins
+    monkeypatch.setenv(fused.ENV_VAR, "numpy")
+    with pytest.raises(ValueError, match="DIFFCONTACT_SOLVER='numpy'"):
+        SolverSettings().resolved(F64)
+
+
+def test_missing_warp_has_a_clear_error(monkeypatch):
+    monkeypatch.setattr(fused, "warp_installed", lambda: False)
+    monkeypatch.delenv(fused.ENV_VAR, raising=False)
+    assert SolverSettings().resolved(F64).backend == "torch"  # auto falls back
+    A, b, mu = torch.eye(2, dtype=F64), -torch.ones(2, dtype=F64), torch.ones(1, dtype=F64)
+    with pytest.raises(ImportError, match=r"pip install diffcontact\[warp\]"):
+        solve_cone_qp(A, b, mu, 2, settings=WARP)
+    monkeypatch.setenv(fused.ENV_VAR, "warp")
+    with pytest.raises(ImportError, match="DIFFCONTACT_SOLVER=warp"):
+        solve_cone_qp(A, b, mu, 2)
+
+
+def test_warp_is_imported_lazily_and_quietly():
+    """The torch backend never imports Warp; the Warp backend prints nothing (no module
+    load or driver messages)."""
+    code = (
+        "import sys, torch\n"
+        "from diffcontact.contact import SolverSettings, solve_cone_qp\n"
+        # two contacts: one would take the closed form and never reach a kernel
+        "A, b, mu = torch.eye(4, dtype=torch.float64), -torch.ones(4), torch.ones(2)\n"
+        "b, mu = b.double(), mu.double()\n"
+        "solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend='torch'))\n"
+        "assert 'warp' not in sys.modules, 'torch backend imported warp'\n"
+        "f = solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend='warp'))\n"
+        "assert 'warp' in sys.modules and torch.allclose(f, torch.ones(4, dtype=f.dtype))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != fused.ENV_VAR}
+    src = str(Path(__file__).resolve().parents[2] / "src")
+    env["PYTHONPATH"] = os.pathsep.join([src, env.get("PYTHONPATH", "")])
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "" and out.stderr == "", (out.stdout, out.stderr)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_matches_cpu_and_reference():
+    A, b, mu, lower, active = mixed_family(64, 10, 2, seed=11)
+    f_cpu = solve_cone_qp(A, b, mu, 2, lower, active, settings=WARP)
+    cuda = [x.cuda() for x in (A, b, mu, lower)]
+    f_gpu, status = solve_cone_qp(
+        *cuda[:3], 2, cuda[3], active.cuda(), settings=WARP, return_status=True
+    )
+    assert f_gpu.device.type == "cuda" and status.converged.all()
+    torch.testing.assert_close(f_gpu.cpu(), f_cpu, rtol=1e-10, atol=1e-12)
+    # gradients on the device, float32 inputs
+    A32 = cuda[0].float().requires_grad_()
+    f = solve_cone_qp(A32, cuda[1].float(), cuda[2].float(), 2, settings=WARP)
+    f.sum().backward()
+    assert A32.grad.device.type == "cuda" and torch.isfinite(A32.grad).all()
+    f_ref = solve_cone_qp(A, b, mu, 2, settings=TORCH)
+    torch.testing.assert_close(f.detach().cpu().double(), f_ref, rtol=1e-4, atol=1e-5)
+
+
+def test_projection_derivatives_match_the_reference():
+    """The kernel's dPi/dz, dPi/dmu and dPi/dl at the solution (saved for the backward
+    pass) equal cone.py's at the same point (checked through the saved tensors)."""
+    from diffcontact.contact.cone_qp import SolverSettings as S
+    from diffcontact.contact.cone_qp import _forward
+
+    A, b, mu, lower, active = mixed_family(32, 6, 3, seed=12)
+    settings = S(backend="warp").resolved(F64)
+    f, _, saved = _forward(A, b, mu, lower, active, 3, settings)
+    _, P, dmu, dl, rho, *_ = saved
+    act_c = active.repeat_interleave(3, -1)
+    # the data the polish saw: inactive contacts decoupled, scaled by the same rho
+    A_m = torch.where(act_c[:, :, None] & act_c[:, None, :], A, 0)
+    z = f - rho[:, None] * (torch.einsum("bij,bj->bi", A_m, f) + b)
+    mu_m = torch.where(active, mu, 1)
+    _, P_ref, dmu_ref, dl_ref = project_contact_set(z.reshape(32, 6, 3), mu_m, lower)
+    on = active[..., None]
+    torch.testing.assert_close(
+        torch.where(on[..., None], P, 0), torch.where(on[..., None], P_ref, 0)
+    )
+    torch.testing.assert_close(torch.where(on, dmu, 0), torch.where(on, dmu_ref, 0))
+    torch.testing.assert_close(torch.where(on, dl, 0), torch.where(on, dl_ref, 0))
