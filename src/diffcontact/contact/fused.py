@@ -165,6 +165,23 @@ def _load() -> tuple[ModuleType, ModuleType]:
     return wp, warp_kernels
 
 
+@functools.cache
+def _kernel(dtype: torch.dtype):
+    """The fused kernel instantiated for one float type (launching a concrete overload
+    skips Warp's per-launch type inference)."""
+    import typing
+
+    wp, kernels = _load()
+    scalar = wp.float64 if dtype == torch.float64 else wp.float32
+    types = {}
+    for arg in kernels.fused_solve.adj.args:
+        if wp.types.is_array(arg.type) and arg.type.dtype is typing.Any:
+            types[arg.label] = wp.array(dtype=scalar, ndim=arg.type.ndim)
+        elif arg.type is typing.Any:
+            types[arg.label] = scalar
+    return wp.overload(kernels.fused_solve, types)
+
+
 def solve(
     rows: Tensor,
     ipm_data: tuple[Tensor, ...],
@@ -226,7 +243,7 @@ def solve(
     target = min(settings.polish_tol, settings.tol)
     arrays_in = [rows.to(torch.int32), *ipm_data, *data]
     arrays_out = [vec, V, f_ipm, f, res, P, dmu, dl, LU, piv, iterations, solved, unbounded]
-    inputs = [wp.from_torch(x.contiguous()) for x in arrays_in[:14]]
+    inputs = [wp.from_torch(x.contiguous(), return_ctype=True) for x in arrays_in]
     inputs += [
         d,
         K,
@@ -239,10 +256,10 @@ def solve(
         scalar(finfo.tiny),
         scalar(float("inf")),
     ]
-    inputs += [wp.from_torch(x) for x in arrays_out]
+    inputs += [wp.from_torch(x, return_ctype=True) for x in arrays_out]
     stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
     wp.launch(
-        kernels.fused_solve,
+        _kernel(dtype),
         dim=n,
         inputs=inputs,
         device=wp.device_from_torch(device),
