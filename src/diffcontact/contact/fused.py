@@ -24,7 +24,9 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib.util
+import io
 import os
+import re
 import sys
 import tempfile
 import warnings
@@ -112,33 +114,40 @@ def _warp_loads() -> bool:
     return True
 
 
+_NO_DRIVER = re.compile(r"cuda[ _]driver|libcuda", re.IGNORECASE)
+
+
 @contextlib.contextmanager
-def _quiet_native_stderr():
-    """Drop the native library's "CUDA driver not found" notice (printed on machines
-    without a GPU driver) from file descriptor 2; anything else written there is kept."""
+def _quiet_init():
+    """Drop Warp's notices about a missing CUDA driver, printed on machines without a GPU
+    driver (where torch has no CUDA device either) by its native library on file
+    descriptor 2 and, by older versions, as a warning on ``sys.stdout``; anything else
+    printed is kept."""
+    out = io.StringIO()
     try:
         fd = sys.stderr.fileno()
     except (AttributeError, OSError, ValueError):
-        yield
-        return
+        fd = None
     sys.stderr.flush()
-    saved = os.dup(fd)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), fd)
+    saved = None if fd is None else os.dup(fd)
+    with tempfile.TemporaryFile() as err:
+        if saved is not None:
+            os.dup2(err.fileno(), fd)
         try:
-            yield
+            with contextlib.redirect_stdout(out):
+                yield
         finally:
-            os.dup2(saved, fd)
-            os.close(saved)
-            tmp.seek(0)
-            text = tmp.read().decode(errors="replace")
-            kept = [
-                line
-                for line in text.splitlines(keepends=True)
-                if "Could not find or load the NVIDIA CUDA driver" not in line
-            ]
-            if kept:
-                sys.stderr.write("".join(kept))
+            sys.stderr.flush()
+            if saved is not None:
+                os.dup2(saved, fd)
+                os.close(saved)
+            err.seek(0)
+            for text, stream in (
+                (err.read().decode(errors="replace"), sys.stderr),
+                (out.getvalue(), sys.stdout),
+            ):
+                if text and not (_NO_DRIVER.search(text) and not torch.cuda.is_available()):
+                    stream.write(text)
 
 
 @functools.cache
@@ -149,11 +158,28 @@ def _load() -> tuple[ModuleType, ModuleType]:
     wp.config.quiet = True  # Warp < 1.10
     if hasattr(wp, "LOG_WARNING"):
         wp.config.log_level = wp.LOG_WARNING  # no "Module ... load" lines
-    with _quiet_native_stderr():
+    with _quiet_init():
         wp.init()
     from diffcontact.contact import warp_kernels
 
     return wp, warp_kernels
+
+
+@functools.cache
+def _kernel(dtype: torch.dtype):
+    """The fused kernel instantiated for one float type (launching a concrete overload
+    skips Warp's per-launch type inference)."""
+    import typing
+
+    wp, kernels = _load()
+    scalar = wp.float64 if dtype == torch.float64 else wp.float32
+    types = {}
+    for arg in kernels.fused_solve.adj.args:
+        if wp.types.is_array(arg.type) and arg.type.dtype is typing.Any:
+            types[arg.label] = wp.array(dtype=scalar, ndim=arg.type.ndim)
+        elif arg.type is typing.Any:
+            types[arg.label] = scalar
+    return wp.overload(kernels.fused_solve, types)
 
 
 def solve(
@@ -217,7 +243,7 @@ def solve(
     target = min(settings.polish_tol, settings.tol)
     arrays_in = [rows.to(torch.int32), *ipm_data, *data]
     arrays_out = [vec, V, f_ipm, f, res, P, dmu, dl, LU, piv, iterations, solved, unbounded]
-    inputs = [wp.from_torch(x.contiguous()) for x in arrays_in[:14]]
+    inputs = [wp.from_torch(x.contiguous(), return_ctype=True) for x in arrays_in]
     inputs += [
         d,
         K,
@@ -230,10 +256,10 @@ def solve(
         scalar(finfo.tiny),
         scalar(float("inf")),
     ]
-    inputs += [wp.from_torch(x) for x in arrays_out]
+    inputs += [wp.from_torch(x, return_ctype=True) for x in arrays_out]
     stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
     wp.launch(
-        kernels.fused_solve,
+        _kernel(dtype),
         dim=n,
         inputs=inputs,
         device=wp.device_from_torch(device),

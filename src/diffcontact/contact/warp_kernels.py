@@ -76,8 +76,23 @@ DFLAT = wp.constant(15)  # Newton step without its null-space component
 EVAL = wp.constant(16)  # 1 for the eigenvectors spanning the null space of A, else 0
 N_SLOTS = 34
 
+# constants that are not exact in float32, typed float64 (Warp before 1.10 emits float
+# literals in kernels as float32); ``type(x)(C)`` rounds them to the kernel's type
+STEP_BACK = wp.constant(wp.float64(0.99))  # fraction of the largest step taken
+JITTER = wp.constant(wp.float64(1e-12))  # relative diagonal jitter of a failed Cholesky
+FLAT = wp.constant(wp.float64(1e-6))  # |U_jj| below which dF/df counts as singular
+HUGE = wp.constant(wp.float64(1e150))  # Jacobi: angle cotangents beyond this are 0
+
 
 # --- small helpers ---------------------------------------------------------------------
+
+
+@wp.func
+def _pick(cond: bool, a: Any, b: Any):
+    """``a`` if ``cond`` else ``b``."""
+    if cond:
+        return a
+    return b
 
 
 @wp.func
@@ -112,7 +127,7 @@ def _load_block(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int):
         r1 = _load(vec, t, slot + 1, k, d)
     if d > 2:
         r2 = _load(vec, t, slot + 2, k, d)
-    return wp.matrix_from_rows(r0, r1, r2)
+    return wp.matrix(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2], shape=(3, 3))
 
 
 @wp.func
@@ -120,6 +135,24 @@ def _store_block(vec: wp.array3d(dtype=Any), t: int, slot: int, k: int, d: int, 
     for i in range(d):
         for j in range(d):
             vec[t, slot + i, k * d + j] = M[i, j]
+
+
+@wp.func
+def _square(M: Any):
+    """M M for a 3x3 matrix, summed explicitly (Warp 1.5's float64 matrix product is not
+    accurate to rounding)."""
+    r0 = wp.vector(M[0, 0], M[0, 1], M[0, 2])
+    r1 = wp.vector(M[1, 0], M[1, 1], M[1, 2])
+    r2 = wp.vector(M[2, 0], M[2, 1], M[2, 2])
+    c0 = wp.vector(M[0, 0], M[1, 0], M[2, 0])
+    c1 = wp.vector(M[0, 1], M[1, 1], M[2, 1])
+    c2 = wp.vector(M[0, 2], M[1, 2], M[2, 2])
+    return wp.matrix(
+        wp.dot(r0, c0), wp.dot(r0, c1), wp.dot(r0, c2),
+        wp.dot(r1, c0), wp.dot(r1, c1), wp.dot(r1, c2),
+        wp.dot(r2, c0), wp.dot(r2, c1), wp.dot(r2, c2),
+        shape=(3, 3),
+    )  # fmt: skip
 
 
 @wp.func
@@ -174,7 +207,7 @@ def _soc_max_step(x: Any, dx: Any, inf: Any):
     a = _soc_det(dx)
     disc = bq * bq - a * c
     sq = wp.sqrt(wp.max(disc, zero))
-    q = -(bq + wp.where(bq >= zero, sq, -sq))
+    q = -(bq + _pick(bq >= zero, sq, -sq))
     r1 = q / a
     r2 = c / q
     if not (r1 > zero):
@@ -247,7 +280,7 @@ def _lu_factor(M: wp.array3d(dtype=Any), piv: wp.array2d(dtype=wp.int32), t: int
                 M[t, j, k] = M[t, p, k]
                 M[t, p, k] = tmp
         ajj = M[t, j, j]
-        umin = wp.where(j == 0, wp.abs(ajj), wp.min(umin, wp.abs(ajj)))
+        umin = _pick(j == 0, wp.abs(ajj), wp.min(umin, wp.abs(ajj)))
         if ajj != zero:
             for i in range(j + 1, n):
                 M[t, i, j] = M[t, i, j] / ajj
@@ -306,7 +339,7 @@ def _null_space(
     for i in range(n):
         for j in range(n):
             M[t, i, j] = A[r, i, j]
-            V[t, i, j] = wp.where(i == j, one, zero)
+            V[t, i, j] = _pick(i == j, one, zero)
     for _sweep in range(60):
         off = zero
         total = zero
@@ -324,7 +357,7 @@ def _null_space(
                 if apq != zero:
                     theta = (M[t, q, q] - M[t, p, p]) / (type(eps)(2.0) * apq)
                     tan = one / (wp.abs(theta) + wp.sqrt(theta * theta + one))
-                    if wp.abs(theta) > type(eps)(1e150):
+                    if wp.abs(theta) > type(eps)(HUGE):
                         tan = one / (type(eps)(2.0) * wp.abs(theta))
                     if theta < zero:
                         tan = -tan
@@ -350,7 +383,7 @@ def _null_space(
         top = wp.max(top, wp.abs(M[t, i, i]))
     threshold = type(eps)(1e3) * eps * type(eps)(n) * top
     for i in range(n):
-        vec[t, EVAL, i] = wp.where(M[t, i, i] <= threshold, one, zero)
+        vec[t, EVAL, i] = _pick(M[t, i, i] <= threshold, one, zero)
 
 
 # --- the interior point ----------------------------------------------------------------
@@ -378,7 +411,7 @@ def _nt_scaling(vec: wp.array3d(dtype=Any), t: int, k: int, d: int, tiny: Any):
     Wi = (two * wp.outer(Jv, Jv) - J) / eta
     _store_block(vec, t, W0, k, d, W)
     _store_block(vec, t, WI0, k, d, Wi)
-    _store_block(vec, t, WII0, k, d, Wi * Wi)
+    _store_block(vec, t, WII0, k, d, _square(Wi))
     _store(vec, t, LAMQ, k, d, W * z)
 
 
@@ -414,8 +447,8 @@ def _build_kkt(
             m = mu[r, k]
             for i in range(d):
                 for j in range(d):
-                    si = wp.where(i == 0, m, one)
-                    sj = wp.where(j == 0, m, one)
+                    si = _pick(i == 0, m, one)
+                    sj = _pick(j == 0, m, one)
                     dij = si * Wii[i, j] * sj
                     if i == 0 and j == 0:
                         dij = d00 + dij
@@ -507,7 +540,8 @@ def _gap_after(
     inf: Any,
 ):
     """Step length 0.99 x the largest (at most 1) along a direction and the gap there."""
-    alpha = wp.min(type(inf)(0.99) * _max_step(active, r, t, d, K, vec, out, inf), type(inf)(1.0))
+    largest = _max_step(active, r, t, d, K, vec, out, inf)
+    alpha = wp.min(type(inf)(STEP_BACK) * largest, type(inf)(1.0))
     gl = type(inf)(0.0)
     gq = type(inf)(0.0)
     for k in range(K):
@@ -560,7 +594,7 @@ def _interior_point(
     for k in range(K):
         if active[r, k]:
             n_valid += 1
-    per_contact = wp.where(d > 1, 2, 1)
+    per_contact = _pick(d > 1, 2, 1)
     n_cones = type(tol)(wp.max(n_valid * per_contact, 1))
 
     # initial point: minimise 0.5 f'Af + b'f + 0.5 ||G f - h||^2, z = G f - h, s = -z
@@ -617,8 +651,8 @@ def _interior_point(
             for j in range(d):
                 vec[t, F_, k * d + j] = zero
                 if d > 1:
-                    vec[t, SQ, k * d + j] = wp.where(j == 0, one, zero)
-                    vec[t, ZQ, k * d + j] = wp.where(j == 0, one, zero)
+                    vec[t, SQ, k * d + j] = _pick(j == 0, one, zero)
+                    vec[t, ZQ, k * d + j] = _pick(j == 0, one, zero)
 
     stalled = bool(False)
     plain_only = bool(False)
@@ -681,7 +715,7 @@ def _interior_point(
                 _nt_scaling(vec, t, k, d, tiny)
         dmax = _build_kkt(A, mu, r, t, d, K, zero, vec, M)
         if not _cholesky(M, t, n):
-            jitter = type(tol)(1e-12) * (one + dmax)
+            jitter = type(tol)(JITTER) * (one + dmax)
             _build_kkt(A, mu, r, t, d, K, jitter, vec, M)
             _cholesky(M, t, n)
 
@@ -775,7 +809,7 @@ def _project(z: Any, mu: Any, lower: Any, d: int):
             return wp.vector(lower, zero, zero), zm, zv, wp.vector(one, zero, zero)
         return wp.vector(zn, zero, zero), wp.diag(wp.vector(one, zero, zero)), zv, zv
     s = wp.sqrt(z[1] * z[1] + z[2] * z[2])
-    s_safe = wp.where(s > zero, s, one)
+    s_safe = _pick(s > zero, s, one)
     u = zv
     if s > zero:
         u = wp.vector(zero, z[1] / s_safe, z[2] / s_safe)
@@ -812,6 +846,25 @@ def _project(z: Any, mu: Any, lower: Any, d: int):
 
 
 @wp.func
+def _z(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    r: int,
+    t: int,
+    n: int,
+    i: int,
+    rho: Any,
+    vec: wp.array3d(dtype=Any),
+    f: int,
+):
+    """Component i of z = f - rho (A f + b), f in row ``f``."""
+    s = type(rho)(0.0)
+    for j in range(n):
+        s = s + A[r, i, j] * vec[t, f, j]
+    return vec[t, f, i] - rho * (s + b[r, i])
+
+
+@wp.func
 def _natural_map(
     A: wp.array3d(dtype=Any),
     b: wp.array2d(dtype=Any),
@@ -837,13 +890,14 @@ def _natural_map(
     fmax = zero
     Fmax = zero
     for k in range(K):
-        zk = wp.vector(zero, zero, zero)
-        for j in range(d):
-            i = k * d + j
-            s = zero
-            for jj in range(n):
-                s = s + A[r, i, jj] * vec[t, f, jj]
-            zk[j] = vec[t, f, i] - rho * (s + b[r, i])
+        z0 = _z(A, b, r, t, n, k * d, rho, vec, f)
+        z1 = zero
+        z2 = zero
+        if d > 1:
+            z1 = _z(A, b, r, t, n, k * d + 1, rho, vec, f)
+        if d > 2:
+            z2 = _z(A, b, r, t, n, k * d + 2, rho, vec, f)
+        zk = wp.vector(z0, z1, z2)
         proj, Pk, dmuk, dlk = _project(zk, mu[r, k], lower[r, k], d)
         fk = _load(vec, t, f, k, d)
         Fk = fk - proj
@@ -884,7 +938,7 @@ def _jacobian(
                     if k * d + m == col:
                         a = a + reg
                     s = s + Pk[i, m] * a
-                value = wp.where(row == col, one, zero) + rho * s
+                value = _pick(row == col, one, zero) + rho * s
                 if col >= k * d and col < k * d + d:
                     value = value - Pk[i, col - k * d]
                 M[t, row, col] = value
@@ -972,7 +1026,7 @@ def _polish(
         for i in range(n):
             if not wp.isfinite(vec[t, DELTA, i]):
                 vec[t, DELTA, i] = zero
-        if step == 0 and umin <= type(rho)(1e-6):
+        if step == 0 and umin <= type(rho)(FLAT):
             # nearly singular: the minimiser may not be unique; try the step without
             # its component along the null space of A first (no move by rounding)
             flat = True
