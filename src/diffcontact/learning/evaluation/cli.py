@@ -58,6 +58,12 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--data", default=None, metavar="DIR", help="dataset folder (default: run.json's)"
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the files of another evaluation in the output folder (those of an "
+        "evaluation of the same run and data are always replaced)",
+    )
     p.set_defaults(func=_cmd_evaluate)
     return p
 
@@ -111,6 +117,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         device=args.device,
         steps=args.steps,
         n_test=args.n_test,
+        force=args.force,
     )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
     print(
