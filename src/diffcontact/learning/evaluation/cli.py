@@ -35,7 +35,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="training run directory")
     p.add_argument(
-        "--out", default=None, metavar="DIR", help="output folder (default RUN_DIR/evaluation)"
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="output folder (default RUN_DIR/evaluation; another evaluation there is replaced "
+        "only with --force)",
     )
     p.add_argument(
         "--device", choices=("cpu", "cuda"), default="cpu", help="rollout device (default cpu)"

@@ -381,8 +381,9 @@ class RolloutModule(pl.LightningModule):
             self._epoch_batches = int(state["batches"])
             self._epoch_skipped.update(state["skipped"])
             self._epoch_first_error = state["first_error"]
-            self._train_sum = float(state["train_sum"])
-            self._train_count = int(state["train_count"])
+            if self.global_rank == 0:  # the sums over all ranks (reduced when saved)
+                self._train_sum = float(state["train_sum"])
+                self._train_count = int(state["train_count"])
             self._epoch_start -= float(state["seconds"])
 
     def on_train_epoch_start(self) -> None:
@@ -441,6 +442,8 @@ class RolloutModule(pl.LightningModule):
 
     # -------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # every rank saves (rank 0 writes): the running epoch's loss sums over all ranks
+        train_sum, train_count = self._reduce_sum(self._train_sum, self._train_count)
         checkpoint["diffcontact"] = {
             "skipped_total": dict(self.skipped_total),
             "grad_norm_history": [list(h) for h in self.grad_norm_history],
@@ -451,8 +454,8 @@ class RolloutModule(pl.LightningModule):
                 "batches": self._epoch_batches,
                 "skipped": dict(self._epoch_skipped),
                 "first_error": self._epoch_first_error,
-                "train_sum": self._train_sum,
-                "train_count": self._train_count,
+                "train_sum": train_sum,
+                "train_count": int(train_count),
                 "seconds": time.perf_counter() - self._epoch_start,
             },
         }

@@ -561,7 +561,7 @@ def _interrupted(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted
         f"{stop.signal_name} received: stopped before step {batch + 1} of {n} in epoch "
         f"{epoch + 1}; wrote {stop.checkpoint}; continue with --resume"
     )
-    return TrainingInterrupted(message, stop.signal_name, 128 + int(stop.received), stop.checkpoint)
+    return TrainingInterrupted(message, stop.signal_name, stop.exit_status, stop.checkpoint)
 
 
 def _schedule_cut(trainer: pl.Trainer, stop_after: StopAfter) -> dict[str, Any]:

@@ -26,6 +26,7 @@ import torch
 __all__ = ["GracefulStop", "StopAfter", "Stopped"]
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_OTHER_RANK = -1  # ``received`` when the stop came from another rank's signal
 
 
 class Stopped(Exception):
@@ -55,7 +56,14 @@ class GracefulStop(pl.Callback):
 
     @property
     def signal_name(self) -> str:
+        if self.received == _OTHER_RANK:
+            return "a signal to another process (DDP)"
         return signal.Signals(self.received).name if self.received is not None else ""
+
+    @property
+    def exit_status(self) -> int:
+        """``128 + signal number`` (143 when another rank got the signal)."""
+        return 128 + (signal.SIGTERM if self.received == _OTHER_RANK else int(self.received or 0))
 
     def install(self) -> None:
         if threading.current_thread() is not threading.main_thread():
@@ -100,8 +108,8 @@ class GracefulStop(pl.Callback):
     ) -> None:
         if not self._requested(trainer, pl_module.device):
             return
-        if self.received is None:  # another rank got the signal
-            self.received = signal.SIGTERM
+        if self.received is None:
+            self.received = _OTHER_RANK
         trainer.save_checkpoint(self.checkpoint, weights_only=False)
         self.stopped_at = (int(trainer.current_epoch), int(batch_idx))
         raise Stopped(self.signal_name)
