@@ -9,6 +9,12 @@ error the temporary file is removed and the destination is left untouched.
 floats) into plain JSON data; :func:`read_json_object` reads a JSON file with
 one-line errors; :func:`parse_device` checks a device name. torch is imported
 only inside the functions that take tensors or devices.
+
+Output folders are written only through these renames, so a symbolic link
+planted at a file's name is replaced, never written through;
+:func:`find_symlinks` lists the links in a folder (a run directory refuses
+them), and :func:`remove_orphan_temporaries` removes the temporary files a
+killed writer left behind (``.NAME.tmp-XXXXXXXX.SUFFIX``).
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import tempfile
 import zipfile
 from collections.abc import Iterator, Mapping
@@ -31,14 +38,18 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "check_writable",
+    "find_symlinks",
     "json_bytes",
     "jsonable",
     "parse_device",
     "read_json_object",
+    "remove_orphan_temporaries",
 ]
 
 # Fixed zip entry timestamp so the same arrays always give the same bytes.
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+# the names atomic_path gives its temporary files (mkstemp adds 8 characters)
+_TEMPORARY = re.compile(r"^\..+\.tmp-[A-Za-z0-9_]{8}[^/]*$")
 
 
 def _umask() -> int:
@@ -106,6 +117,36 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             tmp.unlink()
         raise
     _fsync_dir(folder)
+
+
+def find_symlinks(folder: str | os.PathLike[str]) -> list[Path]:
+    """The symbolic links in ``folder`` and below (links to folders are not followed).
+
+    ``folder`` itself may be a link (the caller named it); an absent folder has none.
+    """
+    found: list[Path] = []
+    for root, dirs, files in os.walk(folder):
+        for name in [*dirs, *files]:
+            path = Path(root, name)
+            if path.is_symlink():
+                found.append(path)
+    return sorted(found)
+
+
+def remove_orphan_temporaries(folder: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporary files of :func:`atomic_path` left in ``folder`` by a killed writer.
+
+    Only ``folder``'s own entries named like ours (``.NAME.tmp-XXXXXXXX.SUFFIX``)
+    are removed; returns them.
+    """
+    removed = []
+    with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+        for entry in os.scandir(folder):
+            if _TEMPORARY.match(entry.name) and not entry.is_dir(follow_symlinks=False):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(entry.path)
+                    removed.append(Path(entry.path))
+    return sorted(removed)
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:

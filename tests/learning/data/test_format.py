@@ -105,9 +105,9 @@ def test_a_split_is_hashed_once_unless_its_file_changed(bp5_dir, tmp_path, monke
     monkeypatch.setattr(format_mod.hashlib, "sha256", counting)
     fresh = copy_dataset(bp5_dir, tmp_path / "fresh")
     ds = load_dataset(fresh)
-    assert len(calls) == 3
+    assert len(calls) == 4  # metadata.json's own checksum and the three files
     ds.split("train")  # just written: within the timestamp granularity, hashed again
-    assert len(calls) == 4
+    assert len(calls) == 5
 
     monkeypatch.setattr(format_mod, "_RECENT_NS", -(10**15))  # as if written long ago
     folder = copy_dataset(bp5_dir, tmp_path / "old")
@@ -115,7 +115,7 @@ def test_a_split_is_hashed_once_unless_its_file_changed(bp5_dir, tmp_path, monke
     ds = load_dataset(folder)
     ds.split("train")
     ds.split("val")
-    assert len(calls) == 3  # verified by load_dataset, unchanged since
+    assert len(calls) == 4  # verified by load_dataset, unchanged since
     raw = bytearray((folder / "val.npz").read_bytes())
     raw[-100] ^= 0xFF
     (tmp_path / "val.npz").write_bytes(bytes(raw))

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
-from .support import cli
+from diffcontact.learning.models.physical import LearnedModel
+
+from .support import TINY, cli, run_dir
 
 
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, dataset, capsys):
@@ -26,3 +29,51 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, dataset, capsys):
     with pytest.raises(SystemExit) as exc:
         cli(["evaluate", str(run), "--n-gif", "-1"])
     assert exc.value.code == 2
+
+
+def _run_with_model(root, dataset):
+    root.mkdir()
+    run = run_dir(root, dataset, log=False)
+    LearnedModel(TINY, hidden=(4,)).save(run / "model.pt")
+    return run
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("diffcontact evaluate: error:"), err
+    return lines[0]
+
+
+def test_another_evaluation_is_not_replaced_without_force(tmp_path, dataset, capsys):
+    run_a = _run_with_model(tmp_path / "a", dataset)
+    run_b = _run_with_model(tmp_path / "b", dataset)
+    out = tmp_path / "evaluation"
+    argv = ["--steps", "5", "--n-gif", "0", "--out", str(out)]
+    assert cli(["evaluate", str(run_a), *argv]) == 0
+    assert cli(["evaluate", str(run_a), *argv]) == 0  # the same evaluation again
+    capsys.readouterr()
+    assert cli(["evaluate", str(run_b), *argv]) == 2
+    line = _error_line(capsys)
+    assert "already holds" in line and "metrics.json" in line and "--force" in line
+    assert json.loads((out / "metrics.json").read_text())["run_dir"] == str(run_a)
+    assert cli(["evaluate", str(run_b), *argv, "--force"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["run_dir"] == str(run_b)
+
+
+def test_a_changed_test_set_is_refused(tmp_path, dataset, capsys):
+    run = _run_with_model(tmp_path / "r", dataset)
+    data = shutil.copytree(dataset, tmp_path / "data")
+    argv = ["evaluate", str(run), "--data", str(data), "--steps", "5", "--n-gif", "0"]
+    meta = json.loads((data / "metadata.json").read_text())
+    meta["config"]["dt"] = meta["dt"] = 0.02  # an edited time step
+    (data / "metadata.json").write_text(json.dumps(meta))
+    assert cli(argv) == 2
+    line = _error_line(capsys)
+    assert "metadata.json does not match its checksum" in line
+    shutil.copy(dataset / "metadata.json", data / "metadata.json")
+    raw = (data / "test.npz").read_bytes()
+    (data / "test.npz").write_bytes(raw[: len(raw) // 2])  # a truncated test set
+    assert cli(argv) == 2
+    assert "test.npz does not match its sha256" in _error_line(capsys)
+    assert not (run / "evaluation").exists()

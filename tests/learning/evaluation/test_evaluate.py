@@ -14,6 +14,7 @@ from PIL import Image
 
 import diffcontact as dc
 from diffcontact.learning.data.arrays import dataset_from_arrays
+from diffcontact.learning.data.format import metadata_checksum
 from diffcontact.learning.evaluation.evaluate import EvaluationInputError, evaluate
 from diffcontact.learning.models.physical import LearnedModel
 from diffcontact.learning.training.run import train
@@ -157,6 +158,7 @@ def _other_dataset(tmp_path: Path, dataset: Path) -> Path:
     shutil.copytree(dataset, folder)
     meta = json.loads((folder / "metadata.json").read_text())
     meta["config"] = dc.load_system("BP5").config.model_dump(mode="json")
+    meta["metadata_sha256"] = metadata_checksum(meta)  # a consistent, if wrong, dataset
     (folder / "metadata.json").write_text(json.dumps(meta))
     return folder
 

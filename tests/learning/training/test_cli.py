@@ -26,7 +26,6 @@ def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
     cases = [
         (["train", str(tmp_path / "missing"), "--out", out], "does not exist"),
         (["train", str(bp5_data), "--model", "XX-CD-CLNN", "--out", out], "unknown model"),
-        (["train", str(bp5_data), "--resume", "--out", out], "cannot resume"),
         (["train", str(bp5_data), "--dtype", "float16", "--out", out], "dtype"),
     ]
     if not torch.cuda.is_available():
@@ -39,7 +38,8 @@ def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
     run = tmp_path / "other"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "last.ckpt").write_bytes(b"")
-    (run / "run.json").write_text(json.dumps({"model": "CM-CD-CLNN", "lr": 0.5}))
+    other = {"format_version": 1, "model": "CM-CD-CLNN", "lr": 0.5, "versions": {"diffcontact": ""}}
+    (run / "run.json").write_text(json.dumps(other))
     code, err = _run_cli(["train", str(bp5_data), "--resume", "--out", str(run)], capsys)
     assert code == 2 and "different run" in err and err.count("\n") == 1
     code, err = _run_cli(["train", str(bp5_data), "--out", str(run)], capsys)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 
 import lightning.pytorch as pl
 import numpy as np
@@ -21,10 +22,15 @@ def _state(run_dir):
     return torch.load(run_dir / "model.pt", weights_only=True)["state_dict"]
 
 
-def test_train_writes_the_run_directory(bp5_data, tmp_path):
+def test_train_writes_the_run_directory(bp5_data, tmp_path, caplog):
     out = tmp_path / "run"
     # max_time: stop after the first epoch that ends after 1e-9 minutes, i.e. after epoch 0
-    model = train(bp5_data, out, epochs=3, batch_size=4, max_time=1e-9, **SMALL)
+    with caplog.at_level(logging.WARNING, logger="diffcontact.learning.training.run"):
+        model = train(bp5_data, out, epochs=3, batch_size=4, max_time=1e-9, **SMALL)
+    # the run ends early with its files, and says that the learning-rate schedule was cut
+    (warning,) = [r.getMessage() for r in caplog.records if "--max-time" in r.getMessage()]
+    assert "stopped after epoch 1 of 3" in warning and "schedule was cut" in warning
+    assert "--resume" in warning
     run = json.loads((out / "run.json").read_text())
     assert run["model"] == "CM-CD-CLNN" and run["data_dir"] == str(bp5_data.resolve())
     assert run["dtype"] == "float64" and run["options"]["heterogeneous"] is True
@@ -32,6 +38,9 @@ def test_train_writes_the_run_directory(bp5_data, tmp_path):
     assert (out / "checkpoints" / "epoch0000.ckpt").is_file()
     learned = json.loads((out / "learned.json").read_text())
     assert learned["finished"] and learned["epoch"] == 0
+    stopped = learned["stopped_early"]
+    assert (stopped["reason"], stopped["epochs_done"], stopped["epochs"]) == ("max_time", 1, 3)
+    assert 0.5 < stopped["lr_factor"] < 1  # 2 of 6 steps along the cosine
     assert not (out / "checkpoints" / "epoch0001.ckpt").exists()
     assert learned["learned"] == model.learned_parameters()
     with open(out / "logs" / "metrics.csv") as fh:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -209,23 +211,31 @@ def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
         raise ValueError(f"--from-arrays file {path!r} does not exist")
     try:
         data = np.load(p, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as err:
-        raise ValueError(f"cannot read {path} as .npz or .npy: {one_line(err)}") from None
-    if isinstance(data, np.ndarray):
-        return data, None, None
-    with data:
-        keys = list(data.files)
-        if "traj" not in keys:
+        if isinstance(data, np.ndarray):
+            return data, None, None
+        with data:
+            keys = list(data.files)
+            entries = {k: data[k] for k in ("traj", "dt", "config") if k in keys}
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as err:
+        raise ValueError(
+            f"cannot read {path} as .npz or .npy (truncated or corrupted?): {one_line(err)}"
+        ) from None
+    if "traj" not in entries:
+        raise ValueError(
+            f"{path} has no array named 'traj' (found: {', '.join(keys) or 'nothing'}); "
+            "save the trajectories with numpy.savez(FILE, traj=...)"
+        )
+    traj, dt, config = entries["traj"], None, None
+    if "dt" in entries:
+        if entries["dt"].size != 1 or entries["dt"].dtype.kind not in "fiu":
             raise ValueError(
-                f"{path} has no array named 'traj' (found: {', '.join(keys) or 'nothing'}); "
-                "save the trajectories with numpy.savez(FILE, traj=...)"
+                f"{path}: entry 'dt' must be one number, got {entries['dt'].dtype} of shape "
+                f"{entries['dt'].shape}"
             )
-        traj = data["traj"]
-        dt = float(data["dt"]) if "dt" in keys else None
-        config = None
-        if "config" in keys:
-            try:
-                config = json.loads(str(data["config"]))
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{path}: entry 'config' is not JSON: {err}") from None
+        dt = float(entries["dt"].reshape(()))
+    if "config" in entries:
+        try:
+            config = json.loads(str(entries["config"]))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: entry 'config' is not JSON: {err}") from None
     return traj, dt, config

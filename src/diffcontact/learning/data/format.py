@@ -8,19 +8,29 @@ A dataset is a folder (``docs/conventions.md``, "Learning")::
     test.npz        contact (N, T) bool
 
 ``metadata.json`` is written last, so a folder without it is unfinished (an
-interrupted run leaves the marker file :data:`MARKER`). :func:`load_dataset`
-reads a folder, checks every file against its checksum and returns a
-:class:`Dataset`, whose ``split(name)`` reads one split as tensors; training
-and evaluation read datasets through it.
+interrupted run leaves the marker file :data:`MARKER`). It carries its own
+checksum (``metadata_sha256``, :func:`metadata_checksum`), which covers every
+other key, the data files' checksums in ``files`` included, so an edited
+``metadata.json`` (e.g. its ``config.dt``) is refused like a changed data
+file; metadata written before the checksum existed is read with a warning
+(once per folder). :func:`load_dataset` reads a folder, checks the metadata
+and every file against their checksums and returns a :class:`Dataset`, whose
+``split(name)`` reads one split as tensors; training and evaluation read
+datasets through it. A file that cannot be read (truncated, not an ``.npz``,
+not JSON) is a :class:`DatasetError` naming it.
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import json
+import logging
 import os
 import re
 import time
+import zipfile
+import zlib
 from dataclasses import dataclass, fields
 from functools import cached_property
 from pathlib import Path
@@ -30,7 +40,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffcontact.io import read_json_object
+from diffcontact.cli_args import one_line
+from diffcontact.io import jsonable, read_json_object
 from diffcontact.systems import System, load_config, load_system
 
 __all__ = [
@@ -38,20 +49,25 @@ __all__ = [
     "FORMAT_VERSION",
     "MARKER",
     "METADATA",
+    "METADATA_CHECKSUM",
     "SPLITS",
     "DataSplit",
     "Dataset",
     "DatasetError",
     "load_dataset",
+    "metadata_checksum",
     "read_metadata",
     "sha256_file",
     "split_seeds",
     "verify_files",
 ]
 
+log = logging.getLogger(__name__)
+
 FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")
 METADATA = "metadata.json"
+METADATA_CHECKSUM = "metadata_sha256"  # the key of metadata.json's own checksum
 ARRAYS = ("traj", "chunks", "chunk_start", "chunk_has_contact", "contact")
 MARKER = ".generating.json"  # arguments of a run in progress; removed after metadata.json
 TMP_NAME = re.compile(r"^\.(train|val|test|metadata|\.generating)\.tmp-")
@@ -65,6 +81,10 @@ _REQUIRED = (
 # a file whose timestamps were this close to its verification may change unnoticed within
 # the file system's timestamp granularity; it is hashed again when a split is read
 _RECENT_NS = 2_000_000_000
+# folders whose metadata.json (written by an earlier version) has no checksum: warned once
+_UNCHECKED: set[str] = set()
+# what reading a damaged .npz raises (numpy, zipfile, zlib)
+_NPZ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
 class DatasetError(ValueError):
@@ -146,9 +166,45 @@ def verify_files(folder: Path, meta: dict[str, Any]) -> dict[str, tuple[int, int
     return verified
 
 
+def metadata_checksum(meta: dict[str, Any]) -> str:
+    """The sha256 of ``meta`` without its checksum key, as canonical JSON.
+
+    Canonical: keys sorted, no spaces, ASCII (``json.dumps(..., sort_keys=True,
+    separators=(",", ":"))``), so what was written and what is read back give
+    the same digest.
+    """
+    body = {k: v for k, v in meta.items() if k != METADATA_CHECKSUM}
+    text = json.dumps(jsonable(body), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def read_metadata(folder: Path) -> dict[str, Any]:
-    """``folder/metadata.json`` as a dict (``DatasetError`` when it cannot be read)."""
-    return read_json_object(folder / METADATA, "dataset metadata", DatasetError)
+    """``folder/metadata.json`` as a dict, checked against its own checksum.
+
+    Metadata without a checksum (written by an earlier diffcontact) is read
+    with a warning, once per folder.
+
+    Raises:
+        DatasetError: the file cannot be read, is not a JSON object, or does
+            not match its checksum (it was edited or corrupted).
+    """
+    path = folder / METADATA
+    meta = read_json_object(path, "dataset metadata", DatasetError)
+    stored = meta.get(METADATA_CHECKSUM)
+    if stored is None:
+        key = str(path.resolve())
+        if key not in _UNCHECKED:
+            _UNCHECKED.add(key)
+            log.warning(
+                "%s has no checksum (written by an earlier diffcontact): its contents are "
+                "not verified; generate the dataset again to add one", path,
+            )  # fmt: skip
+    elif stored != metadata_checksum(meta):
+        raise DatasetError(
+            f"{path} does not match its checksum ({METADATA_CHECKSUM}): the file was edited "
+            f"or is corrupted; delete {folder} and generate it again"
+        )
+    return meta
 
 
 # -------------------------------------------------------------------------- load
@@ -304,11 +360,16 @@ class Dataset:
             raise ValueError(f"split must be one of {SPLITS}, got {name!r}")
         path = self.path / f"{name}.npz"
         data = self._read_verified(path)
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            missing = [key for key in ARRAYS if key not in npz.files]
-            if missing:
-                raise DatasetError(f"{path} lacks the arrays {missing}")
-            arrays = {key: npz[key] for key in ARRAYS}
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                missing = [key for key in ARRAYS if key not in npz.files]
+                if missing:
+                    raise DatasetError(f"{path} lacks the arrays {missing}")
+                arrays = {key: npz[key] for key in ARRAYS}
+        except _NPZ_ERRORS as err:
+            raise DatasetError(
+                f"{path} is not a readable .npz file (truncated or corrupted?): {one_line(err)}"
+            ) from None
         N, T, L = self.counts[name], self.n_states, self.chunk_length
         shape = arrays["traj"].shape
         chunk_shape = (N, L, *shape[2:])

@@ -1,8 +1,9 @@
 """Writing a dataset folder: checks against an existing one, atomic files, metadata.
 
-Writes are atomic (temporary file + rename); ``metadata.json`` is written last,
-so a folder without it is unfinished. Re-running with the same arguments
-reuses the files; different arguments never overwrite them (``ValueError``).
+Writes are atomic (temporary file + rename); ``metadata.json`` is written last
+(with its own checksum, ``metadata_sha256``), so a folder without it is
+unfinished. Re-running with the same arguments reuses the files; different
+arguments never overwrite them (``ValueError``).
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ from diffcontact.learning.data.format import (
     FORMAT_VERSION,
     MARKER,
     METADATA,
+    METADATA_CHECKSUM,
     SPLITS,
     TMP_NAME,
     DatasetError,
+    metadata_checksum,
     read_metadata,
     sha256_file,
     split_seeds,
@@ -179,6 +182,8 @@ def write_dataset(
         "arguments": arguments,
         "files": files,
     }
+    metadata = jsonable(metadata)
+    metadata[METADATA_CHECKSUM] = metadata_checksum(metadata)
     atomic_write_json(folder / METADATA, metadata)
     (folder / MARKER).unlink(missing_ok=True)
 

@@ -35,7 +35,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="training run directory")
     p.add_argument(
-        "--out", default=None, metavar="DIR", help="output folder (default RUN_DIR/evaluation)"
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="output folder (default RUN_DIR/evaluation; another evaluation there is replaced "
+        "only with --force)",
     )
     p.add_argument(
         "--device", choices=("cpu", "cuda"), default="cpu", help="rollout device (default cpu)"
@@ -57,6 +61,12 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--data", default=None, metavar="DIR", help="dataset folder (default: run.json's)"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the files of another evaluation in the output folder (those of an "
+        "evaluation of the same run and data are always replaced)",
     )
     p.set_defaults(func=_cmd_evaluate)
     return p
@@ -111,6 +121,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         device=args.device,
         steps=args.steps,
         n_test=args.n_test,
+        force=args.force,
     )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
     print(

@@ -10,11 +10,13 @@ states with the true system (``load_system(config)``, float64).
 The metrics are those of :mod:`~diffcontact.learning.evaluation.metrics`
 (``docs/evaluation.md``); :func:`evaluate` writes ``metrics.json``,
 ``rollout.npz``, the plots of :mod:`~diffcontact.learning.evaluation.plots`
-and a GIF.
+and a GIF (:data:`OUTPUT_FILES`). It does not replace the files of another
+evaluation (of another run or data set) without ``force``.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Mapping
@@ -47,9 +49,12 @@ from diffcontact.learning.evaluation.metrics import (
 )
 from diffcontact.learning.evaluation.plots import plot_energy, plot_rel_error, plot_training
 
-__all__ = ["METRICS_FORMAT_VERSION", "EvaluationInputError", "evaluate"]
+__all__ = ["METRICS_FORMAT_VERSION", "OUTPUT_FILES", "EvaluationInputError", "evaluate"]
 
 METRICS_FORMAT_VERSION = 1
+OUTPUT_FILES = (
+    "metrics.json", "rollout.npz", "rel_error.png", "energy.png", "training.png", "rollout.gif",
+)  # fmt: skip
 
 
 class EvaluationInputError(ValueError):
@@ -174,6 +179,40 @@ def _load_test(data_path: Path) -> tuple[np.ndarray, Any, str | None]:
     return traj, system, contact_model
 
 
+def _same_path(recorded: Any, path: Path | None) -> bool:
+    if recorded is None or path is None:
+        return recorded is None and path is None
+    return Path(str(recorded)).resolve() == path.resolve()
+
+
+def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -> None:
+    """Refuse to replace another evaluation's files in ``out`` (unless ``force``).
+
+    Files of an evaluation of the same run and data set (re-evaluating) are
+    replaced; so is everything with ``force``.
+    """
+    present = [n for n in OUTPUT_FILES if (out / n).exists() or (out / n).is_symlink()]
+    if not present or force:
+        return
+    metrics = out / "metrics.json"
+    old = None
+    if metrics.is_file() and not metrics.is_symlink():
+        try:
+            old = json.loads(metrics.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            old = None
+    if (
+        isinstance(old, dict)
+        and _same_path(old.get("run_dir"), run_path)
+        and _same_path(old.get("data_dir"), data_path)
+    ):
+        return
+    raise EvaluationInputError(
+        f"{out} already holds {', '.join(present)} of another evaluation (or files not "
+        "written by one): pass --force to replace them, or choose another --out"
+    )
+
+
 # ---------------------------------------------------------------------------
 # evaluate
 # ---------------------------------------------------------------------------
@@ -190,6 +229,7 @@ def evaluate(
     steps: int | None = None,
     n_test: int | None = None,
     gif_frames: int = 100,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Evaluate a learned model on the test set and write metrics, plots and a GIF.
 
@@ -209,13 +249,19 @@ def evaluate(
         steps: rollout steps (default ``max(horizon / dt, 100) - 1``).
         n_test: use only the first ``n_test`` test trajectories.
         gif_frames: at most this many GIF frames.
+        force: replace the files of another evaluation in ``out_dir`` (one of
+            another run or data set; those of the same run and data set are
+            always replaced).
 
     Returns:
         The metrics dict written to ``metrics.json`` (see ``docs/evaluation.md``).
 
     Raises:
         EvaluationInputError: missing run directory, checkpoint, test data or
-            config; bad arguments; CUDA requested but unavailable.
+            config; a model or data file that cannot be read, fails its
+            checksum or would run code to load; ``out_dir`` holding another
+            evaluation (without ``force``); bad arguments; CUDA requested but
+            unavailable.
     """
     # ---- arguments and files
     if not isinstance(n_gif, int) or isinstance(n_gif, bool) or n_gif < 0:
@@ -251,6 +297,7 @@ def evaluate(
             raise EvaluationInputError("give out_dir when there is no run directory")
         out_dir = run_path / "evaluation"
     out = Path(out_dir)
+    _check_out(out, run_path, data_path, force)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

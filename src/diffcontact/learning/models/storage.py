@@ -5,24 +5,80 @@ A model file holds ``format_version``, ``model_name`` (the registry name),
 ``options()``) and ``state_dict``; :func:`load_model` rebuilds the model with
 the registry's factory and loads the weights. The physical CM/CMr models read
 older formats through :meth:`LearnedModel.from_checkpoint`.
+
+Loading never runs code: model files and checkpoints hold only tensors and
+plain data (dicts, lists, strings, numbers) and are read by
+:func:`load_torch_file` with ``torch.load(..., weights_only=True)``; a file
+that needs anything else (a pickled object, a function) is refused with
+:class:`UnsafeFileError`.
 """
 
 from __future__ import annotations
 
 import io
 import os
+import pickle
+import re
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from diffcontact.cli_args import one_line
 from diffcontact.io import atomic_write_bytes
 from diffcontact.learning.models.registry import create_model, is_physical_model
 
-__all__ = ["load_model", "model_checkpoint", "model_from_checkpoint", "model_spec", "save_model"]
+__all__ = [
+    "UnsafeFileError",
+    "load_model",
+    "load_torch_file",
+    "model_checkpoint",
+    "model_from_checkpoint",
+    "model_spec",
+    "save_model",
+]
 
 FORMAT_VERSION = 3  # the physical models' format history is in physical.py
+
+
+class UnsafeFileError(ValueError):
+    """A torch file that holds more than tensors and plain data: loading it could run code."""
+
+
+def load_torch_file(path: str | os.PathLike[str], what: str, map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)``, with one-line errors naming ``what`` and the file.
+
+    Raises:
+        UnsafeFileError: the file needs more than tensors and plain data
+            (unpickling it could execute code); it is not loaded.
+        ValueError: the file is missing, truncated or not a torch file.
+    """
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:  # what weights_only refuses: a global it does not allow
+        found = re.search(r"WeightsUnpickler error: (.*?)(?: was not an allowed|\n|$)", str(err))
+        detail = f" ({found.group(1).strip()})" if found else ""
+        raise UnsafeFileError(
+            f"{what} {path} holds objects other than tensors and plain data{detail}: loading "
+            "it could run code, so it is refused (diffcontact writes only tensors and plain "
+            "data; was the file made or changed by something else?)"
+        ) from None
+    except FileNotFoundError:
+        raise ValueError(f"{what} {path} does not exist") from None
+    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError, KeyError) as err:
+        reason = "it is empty" if _is_empty(path) else one_line(err).split(". ")[0]
+        raise ValueError(
+            f"{what} {path} cannot be read (truncated or corrupted?): {reason}"
+        ) from None
+
+
+def _is_empty(path: str | os.PathLike[str]) -> bool:
+    try:
+        return os.stat(path).st_size == 0
+    except OSError:
+        return False
 
 
 def model_spec(model: Any) -> dict[str, Any]:
@@ -91,8 +147,13 @@ def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> An
             the path of a ``model.pt``/``.ckpt`` file.
         map_location: as in ``torch.load``.
 
+    Both are read with ``torch.load(..., weights_only=True)`` (:func:`load_torch_file`):
+    loading never runs code from the file.
+
     Raises:
-        ValueError: nothing loadable at ``run_dir``, or an unregistered model.
+        UnsafeFileError: the file holds more than tensors and plain data (refused).
+        ValueError: nothing loadable at ``run_dir``, a truncated or corrupted
+            file, or an unregistered model.
     """
     path = Path(run_dir)
     if path.is_dir():
@@ -104,9 +165,9 @@ def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> An
     elif not path.is_file():
         raise ValueError(f"{path} does not exist")
     if path.suffix == ".ckpt":
-        ckpt = torch.load(path, map_location=map_location, weights_only=False)
-        hp = ckpt.get("hyper_parameters", {})
-        if "config" not in hp or "options" not in hp:
+        ckpt = load_torch_file(path, "checkpoint", map_location)
+        hp = ckpt.get("hyper_parameters", {}) if isinstance(ckpt, dict) else {}
+        if not isinstance(hp, dict) or "config" not in hp or "options" not in hp:
             raise ValueError(f"{path} is not a diffcontact training checkpoint")
         prefix = "model."
         state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
@@ -119,5 +180,5 @@ def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> An
                 "state_dict": state,
             }
         )
-    data = torch.load(path, map_location=map_location, weights_only=True)
+    data = load_torch_file(path, "model file", map_location)
     return model_from_checkpoint(data)

@@ -8,13 +8,14 @@ from :mod:`~diffcontact.learning.training.options`); the handler imports
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
 from diffcontact.cli_args import non_negative_int, positive_float, positive_int, report_errors
 from diffcontact.learning.models.registry import model_names
 from diffcontact.learning.training import options
-from diffcontact.learning.training.options import TrainingInputError
+from diffcontact.learning.training.options import TrainingInputError, TrainingInterrupted
 
 __all__ = ["register_cli", "run_train_cli"]
 
@@ -56,7 +57,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``train`` subcommand to an argparse ``subparsers`` object; return its parser.
 
     The handler (``args.func``) returns the exit status: 0, 2 for bad input
-    (one line on stderr) or 1 when training fails.
+    (one line on stderr), 1 when training fails, or 130/143 when SIGINT/SIGTERM
+    stopped it (after writing a checkpoint; one line on stderr).
     """
     hidden = ",".join(map(str, options.DEFAULT_HIDDEN))
     p = subparsers.add_parser(
@@ -67,7 +69,9 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
             "constrained Lagrangian or Hamiltonian dynamics) on the chunks of a dataset "
             "folder with the rollout loss (MAE) and AdamW. Writes run.json, checkpoints/ "
             "(last.ckpt and one per epoch), logs/metrics.csv, learned.json (every epoch) "
-            "and model.pt (at the end) to --out. See docs/training.md."
+            "and model.pt (at the end) to --out, which must be new, empty or a run of ours. "
+            "Ctrl-C or SIGTERM stops after the running step with a checkpoint (exit status "
+            "130/143); --resume continues. See docs/training.md."
         ),
     )
     p.add_argument("data_dir", metavar="DATA_DIR", help="dataset folder (diffcontact generate)")
@@ -125,11 +129,14 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         help=f"float32 or float64 (default {options.DEFAULT_DTYPE})",
     )
     p.add_argument(
-        "--resume", action="store_true", help="continue RUN_DIR from checkpoints/last.ckpt"
-    )
+        "--resume", action="store_true",
+        help="continue RUN_DIR from checkpoints/last.ckpt (else the newest readable epoch "
+        "checkpoint); a run without a usable checkpoint starts again from the beginning",
+    )  # fmt: skip
     p.add_argument(
         "--max-time", type=positive_float, default=None, metavar="MIN",
-        help="stop after the epoch that ends after MIN minutes",
+        help="stop after the epoch that ends after MIN minutes (model.pt is written; warns "
+        "that the learning-rate schedule was cut; --resume finishes the run)",
     )  # fmt: skip
     p.add_argument(
         "--hidden", type=_cli_hidden, default=None, metavar="W,W,...",
@@ -142,14 +149,24 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--devices", default="1", help="devices per node for Lightning (default 1)")
     p.add_argument("--num-nodes", type=positive_int, default=1, help="nodes (default 1)")
     p.add_argument("--strategy", default="auto", help="Lightning strategy, e.g. ddp (default auto)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--quiet", action="store_true",
+        help="no progress bar: one line per epoch (losses, learned physical parameters)",
+    )  # fmt: skip
     p.set_defaults(func=run_train_cli)
     return p
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
-    """Handler of ``diffcontact train``: 0 on success, 2 on bad input, 1 on failure."""
-    return report_errors("diffcontact train", lambda: _train(args), bad_input=TrainingInputError)
+    """Handler of ``diffcontact train``: 0 on success, 2 on bad input, 1 on failure, 130/143
+    when stopped by SIGINT/SIGTERM."""
+    try:
+        return report_errors(
+            "diffcontact train", lambda: _train(args), bad_input=TrainingInputError
+        )
+    except TrainingInterrupted as stop:
+        print(f"diffcontact train: {stop}", file=sys.stderr)
+        return stop.exit_status
 
 
 def _train(args: argparse.Namespace) -> int:

@@ -18,6 +18,11 @@ parameter or optimiser state changes (manual optimisation: the optimiser's
 ``step`` is not called). Skipped steps are counted per reason, logged
 (``train/skipped``), reported by one warning per epoch and stored in
 ``learned.json`` and in the checkpoints.
+
+The checkpoints also hold the running epoch's partial sums (``epoch_state``),
+so a run resumed from a checkpoint written in the middle of an epoch (after
+SIGINT/SIGTERM) reports the same epoch loss as an uninterrupted one. With
+``report_epochs`` the module prints one line per epoch (:func:`epoch_line`).
 """
 
 from __future__ import annotations
@@ -58,6 +63,7 @@ __all__ = [
     "SKIP_REASONS",
     "SPIKE_FACTOR",
     "RolloutModule",
+    "epoch_line",
     "rollout_loss",
     "solver_settings_for",
     "write_learned",
@@ -182,6 +188,8 @@ class RolloutModule(pl.LightningModule):
         self.model = model.to(DTYPES[dtype])
         self.automatic_optimization = False
         self.run_dir: Path | None = None  # set by train(): learned.json is written there
+        self.report_epochs = False  # set by train(progress=False): one line per epoch on stdout
+        self._resumed_epoch: dict[str, Any] | None = None  # a mid-epoch checkpoint's sums
         self.skipped_total = dict.fromkeys(SKIP_REASONS, 0)
         # gradient norms of the last accepted steps, per parameter group (spike detection)
         self.group_names = [g["name"] for g in model.param_groups(self._optimizer_settings())]
@@ -190,6 +198,7 @@ class RolloutModule(pl.LightningModule):
         self.last_epoch_summary: dict[str, Any] = {}
 
     def _reset_epoch(self) -> None:
+        self._epoch_batches = 0
         self._epoch_skipped = dict.fromkeys(SKIP_REASONS, 0)
         self._epoch_first_error: str | None = None
         self._train_sum = 0.0
@@ -289,6 +298,7 @@ class RolloutModule(pl.LightningModule):
             scheduler.step()
 
     def training_step(self, batch: Any, batch_idx: int) -> None:
+        self._epoch_batches += 1
         chunk = self._chunk(batch)
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
@@ -362,6 +372,20 @@ class RolloutModule(pl.LightningModule):
         return None
 
     # ------------------------------------------------------------------- epochs
+    def on_train_start(self) -> None:
+        # resumed in the middle of an epoch: Lightning does not start that epoch again
+        # (no on_train_epoch_start), so its sums so far come from the checkpoint
+        state, self._resumed_epoch = self._resumed_epoch, None
+        if state and state.get("epoch") == self.current_epoch:
+            self._reset_epoch()
+            self._epoch_batches = int(state["batches"])
+            self._epoch_skipped.update(state["skipped"])
+            self._epoch_first_error = state["first_error"]
+            if self.global_rank == 0:  # the sums over all ranks (reduced when saved)
+                self._train_sum = float(state["train_sum"])
+                self._train_count = int(state["train_count"])
+            self._epoch_start -= float(state["seconds"])
+
     def on_train_epoch_start(self) -> None:
         self._reset_epoch()
 
@@ -413,21 +437,74 @@ class RolloutModule(pl.LightningModule):
         }
         if self.run_dir is not None:
             write_learned(self.run_dir, self.last_epoch_summary)
+        if self.report_epochs and self.trainer.is_global_zero:
+            print(epoch_line(self.last_epoch_summary, self.trainer.max_epochs), flush=True)
 
     # -------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # every rank saves (rank 0 writes): the running epoch's loss sums over all ranks
+        train_sum, train_count = self._reduce_sum(self._train_sum, self._train_count)
         checkpoint["diffcontact"] = {
             "skipped_total": dict(self.skipped_total),
             "grad_norm_history": [list(h) for h in self.grad_norm_history],
             "model_format": MODEL_FORMAT_VERSION,
             "version": __version__,
+            "epoch_state": {  # the running epoch's sums (complete at the end of an epoch)
+                "epoch": int(self.current_epoch),
+                "batches": self._epoch_batches,
+                "skipped": dict(self._epoch_skipped),
+                "first_error": self._epoch_first_error,
+                "train_sum": train_sum,
+                "train_count": int(train_count),
+                "seconds": time.perf_counter() - self._epoch_start,
+            },
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         extra = checkpoint.get("diffcontact", {})
+        self._resumed_epoch = extra.get("epoch_state")
         self.skipped_total.update(extra.get("skipped_total", {}))
         if "grad_norm_history" in extra:
             self.grad_norm_history = [list(h) for h in extra["grad_norm_history"]]
+
+
+def _values(name: str, values: Any) -> str | None:
+    """``"mu 0.31"``, ``"mu 0.31 0.29"`` or ``"mu 30 values in [0.12, 0.45]"`` (None: no values)."""
+    if values is None:
+        return None
+    vals = [float(v) for v in np.atleast_1d(np.asarray(values, dtype=float)).reshape(-1)]
+    if not vals:
+        return None
+    if len(set(vals)) == 1:
+        return f"{name} {vals[0]:.4g}"
+    if len(vals) <= 4:
+        return f"{name} " + " ".join(f"{v:.4g}" for v in vals)
+    return f"{name} {len(vals)} values in [{min(vals):.4g}, {max(vals):.4g}]"
+
+
+def epoch_line(summary: dict[str, Any], epochs: int | None = None) -> str:
+    """One line for an epoch's summary: losses, skipped steps and the learned physical parameters.
+
+    ``epoch 3/100: loss 1.234e-03 (val 1.456e-03); m_i/m_1 2.01 1.49; mu 0.51; e_P 0.02``
+    """
+    n = int(summary["epoch"]) + 1
+    head = f"epoch {n}/{epochs}" if epochs else f"epoch {n}"
+    parts = [f"{head}: loss {summary['train_loss']:.4g} (val {summary['val_loss']:.4g})"]
+    skipped = sum(summary.get("skipped_steps", {}).values())
+    if skipped:
+        parts[0] += f", {skipped} step(s) skipped"
+    learned = summary.get("learned") or {}
+    if "mass_ratios" in learned or "mu" in learned:
+        ratios = learned.get("mass_ratios")
+        texts = [
+            _values("m_i/m_1", ratios[1:] if ratios else None),
+            _values("mu", learned.get("mu")),
+            _values("e_P", learned.get("cor")),
+            _values("eps", learned.get("eps")),
+        ]
+    else:  # another registered model: its metrics()
+        texts = [_values(k.removeprefix("param/"), v) for k, v in list(learned.items())[:6]]
+    return "; ".join(parts + [t for t in texts if t])
 
 
 @rank_zero_only

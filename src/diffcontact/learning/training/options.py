@@ -30,6 +30,7 @@ __all__ = [
     "DTYPE_NAMES",
     "SCHEDULES",
     "TrainingInputError",
+    "TrainingInterrupted",
     "check_options",
 ]
 
@@ -58,6 +59,23 @@ DEFAULT_HIDDEN = (256, 256, 256)  # hidden widths of the potential MLP
 
 class TrainingInputError(ValueError):
     """Bad input to ``train()`` (data, options, run directory); one-line message."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """``train()`` stopped on SIGINT (Ctrl-C) or SIGTERM after writing a checkpoint.
+
+    Attributes:
+        signal_name: ``"SIGINT"`` or ``"SIGTERM"``.
+        exit_status: ``128 + signal number`` (130, 143), the status of the command.
+        checkpoint: the checkpoint written (resume with ``resume=True``), or
+            ``None`` when none could be written.
+    """
+
+    def __init__(self, message: str, signal_name: str, exit_status: int, checkpoint: Any) -> None:
+        super().__init__(message)
+        self.signal_name = signal_name
+        self.exit_status = exit_status
+        self.checkpoint = checkpoint
 
 
 def _positive_int(name: str, value: Any) -> None:

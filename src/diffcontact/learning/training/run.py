@@ -13,18 +13,21 @@
 The data come from :func:`~diffcontact.learning.data.load_dataset` (checksums
 verified) as a :class:`ChunkDataModule`, shuffled per epoch by
 :class:`EpochShuffleSampler`; the model is trained by
-:class:`~diffcontact.learning.training.module.RolloutModule`.
+:class:`~diffcontact.learning.training.module.RolloutModule`. What may be
+written where is decided in :mod:`~diffcontact.learning.training.rundir`;
+checkpoints are written and read by
+:mod:`~diffcontact.learning.training.checkpoints` (atomically; never running
+code); SIGINT/SIGTERM and ``max_time`` stop a run through
+:mod:`~diffcontact.learning.training.stopping`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
-import io
 import json
 import logging
+import math
 import os
-import time
 import warnings
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
@@ -34,19 +37,19 @@ from typing import Any
 import lightning.pytorch as pl
 import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.loggers import CSVLogger
-from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from torch import Tensor
-from torch.utils.data import DataLoader, Sampler, TensorDataset
+from torch.utils.data import DataLoader, DistributedSampler, Sampler, TensorDataset
 
 from diffcontact import __version__
-from diffcontact.io import atomic_write_bytes, atomic_write_json, jsonable, read_json_object
+from diffcontact.io import jsonable
 from diffcontact.learning.data.format import load_dataset
 from diffcontact.learning.models.physical import FORMAT_VERSION as MODEL_FORMAT_VERSION
 from diffcontact.learning.models.registry import create_model, is_physical_model
 from diffcontact.learning.models.storage import save_model
+from diffcontact.learning.training.checkpoints import LAST, SafeCheckpointIO, resume_point
 from diffcontact.learning.training.module import DTYPES, RolloutModule, write_learned
 from diffcontact.learning.training.options import (
+    COSINE_FLOOR,
     DEFAULT_BATCH_SIZE,
     DEFAULT_DEVICE,
     DEFAULT_DTYPE,
@@ -60,8 +63,18 @@ from diffcontact.learning.training.options import (
     DEFAULT_SEED,
     DEFAULT_WEIGHT_DECAY,
     TrainingInputError,
+    TrainingInterrupted,
     check_options,
 )
+from diffcontact.learning.training.rundir import (
+    check_run_dir,
+    clear_for_restart,
+    loggers,
+    remove_temporaries,
+    truncate_log,
+    write_run_file,
+)
+from diffcontact.learning.training.stopping import GracefulStop, StopAfter, Stopped
 
 __all__ = [
     "ChunkDataModule",
@@ -70,38 +83,58 @@ __all__ = [
     "train",
 ]
 
-RUN_FILE = "run.json"
-# run.json keys that must match to resume a run
-_RUN_IDENTITY = (
-    "model_format", "model", "options", "data_dir", "seed",
-    "batch_size", "lr", "weight_decay", "physics_lr", "schedule", "dtype",
-)  # fmt: skip
+log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------- data
 
 
 class EpochShuffleSampler(Sampler[int]):
-    """A random permutation per epoch drawn from ``(seed, epoch)`` only.
+    """A random permutation per epoch drawn from ``(seed, epoch)`` only, split across ranks.
 
     Lightning calls :meth:`set_epoch` at the start of every epoch, so a
-    resumed run sees exactly the batches an uninterrupted one would.
+    resumed run sees exactly the batches an uninterrupted one would. With
+    ``world_size > 1`` (DDP) rank ``r`` takes the permutation's elements
+    ``r, r + W, ...``, after padding it to a multiple of ``W`` with its own
+    first elements (what ``torch.utils.data.DistributedSampler`` does to a
+    sampler's indices). ``skip=(epoch, k)`` leaves out this rank's first ``k``
+    indices in that epoch: where a run stopped in the middle of it resumes.
     """
 
-    def __init__(self, n: int, seed: int = 0) -> None:
+    def __init__(
+        self,
+        n: int,
+        seed: int = 0,
+        *,
+        rank: int = 0,
+        world_size: int = 1,
+        skip: tuple[int, int] = (-1, 0),
+    ) -> None:
         self.n = int(n)
         self.seed = int(seed)
         self.epoch = 0
+        self.rank, self.world_size = int(rank), int(world_size)
+        self.skip = (int(skip[0]), int(skip[1]))
+        self.num_samples = math.ceil(self.n / self.world_size)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
     def __iter__(self):
         gen = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
-        return iter(torch.randperm(self.n, generator=gen).tolist())
+        order = torch.randperm(self.n, generator=gen).tolist()
+        if self.world_size > 1:
+            total = self.num_samples * self.world_size
+            pad = total - len(order)
+            order = (order + (order * math.ceil(pad / max(len(order), 1)))[:pad])[
+                self.rank : total : self.world_size
+            ]
+        if self.epoch == self.skip[0]:
+            order = order[self.skip[1] :]
+        return iter(order)
 
     def __len__(self) -> int:
-        return self.n
+        return self.num_samples
 
 
 def read_training_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any], Tensor, Tensor]:
@@ -125,6 +158,18 @@ def read_training_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any]
                 f"{folder}/{name}.npz: chunks must have shape (N, L, 2, P, dim) with N >= 1 "
                 f"and L >= 2, got {tuple(chunks.shape)}"
             )
+    bad = int((~torch.isfinite(train.flatten(1)).all(1)).sum())
+    if bad == len(train):
+        raise TrainingInputError(
+            f"{folder}/train.npz: every training chunk ({bad}) contains NaN or infinite "
+            "values: there is nothing to train on"
+        )
+    if bad:
+        log.warning(
+            "%s/train.npz: %d of %d training chunks contain NaN or infinite values; no "
+            "step is taken on a batch that holds one",
+            folder, bad, len(train),
+        )  # fmt: skip
     return dict(ds.metadata), train, val
 
 
@@ -136,6 +181,11 @@ class ChunkDataModule(pl.LightningDataModule):
         batch_size: chunks per batch.
         seed: the shuffling seed (:class:`EpochShuffleSampler`).
         dtype: ``"float32"`` or ``"float64"``.
+        resume_at: ``(epoch, batches)``: a run resumed in the middle of
+            ``epoch`` leaves out the batches it has done (default: none).
+
+    The samplers split the data across ranks themselves (the Trainer runs
+    with ``use_distributed_sampler=False``).
     """
 
     def __init__(
@@ -145,70 +195,37 @@ class ChunkDataModule(pl.LightningDataModule):
         batch_size: int = DEFAULT_BATCH_SIZE,
         seed: int = DEFAULT_SEED,
         dtype: str = DEFAULT_DTYPE,
+        resume_at: tuple[int, int] = (-1, 0),
     ) -> None:
         super().__init__()
         self.train_set = TensorDataset(train_chunks.to(DTYPES[dtype]))
         self.val_set = TensorDataset(val_chunks.to(DTYPES[dtype]))
         self.batch_size = int(batch_size)
         self.seed = int(seed)
+        self.resume_at = resume_at
+
+    def _ranks(self) -> tuple[int, int]:
+        trainer = getattr(self, "trainer", None)
+        return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
 
     def train_dataloader(self) -> DataLoader:
-        sampler = EpochShuffleSampler(len(self.train_set), self.seed)
+        rank, world = self._ranks()
+        epoch, batches = self.resume_at
+        sampler = EpochShuffleSampler(
+            len(self.train_set), self.seed, rank=rank, world_size=world,
+            skip=(epoch, batches * self.batch_size),
+        )  # fmt: skip
         return DataLoader(self.train_set, batch_size=self.batch_size, sampler=sampler)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False)
+        rank, world = self._ranks()
+        if world == 1:
+            return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False)
+        sampler = DistributedSampler(self.val_set, num_replicas=world, rank=rank, shuffle=False)
+        return DataLoader(self.val_set, batch_size=self.batch_size, sampler=sampler)
 
 
 # ------------------------------------------------------------------------ logging
-
-
-class _AppendingCSVWriter(ExperimentWriter):
-    """Lightning's CSV writer, but an existing ``metrics.csv`` is continued, not deleted."""
-
-    def _check_log_dir_exists(self) -> None:
-        if self._fs.isfile(self.metrics_file_path):
-            with self._fs.open(self.metrics_file_path, "r", newline="") as fh:
-                self.metrics_keys = list(next(csv.reader(fh), []))
-
-
-class _RunCSVLogger(CSVLogger):
-    """``CSVLogger`` writing ``RUN_DIR/logs/metrics.csv``; a resumed run appends to it."""
-
-    @property
-    def experiment(self):  # type: ignore[override]
-        if self._experiment is None:
-            self._fs.makedirs(self.root_dir, exist_ok=True)
-            self._experiment = _AppendingCSVWriter(log_dir=self.log_dir)
-        return self._experiment
-
-
-def _truncate_csv(path: Path, first_epoch: int) -> None:
-    """Drop the rows of epochs >= ``first_epoch`` (an interrupted epoch) from a metrics.csv."""
-    if not path.is_file():
-        return
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        fields = reader.fieldnames or []
-        rows = [r for r in reader if not r.get("epoch") or int(float(r["epoch"])) < first_epoch]
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_bytes(path, buf.getvalue().encode())
-
-
-def _loggers(out: Path) -> list[Any]:
-    loggers: list[Any] = [_RunCSVLogger(save_dir=out, name="logs", version="")]
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        pass
-    else:
-        from lightning.pytorch.loggers import TensorBoardLogger
-
-        loggers.append(TensorBoardLogger(save_dir=out / "logs", name="tensorboard", version=""))
-    return loggers
 
 
 class _DropTips(logging.Filter):
@@ -238,28 +255,7 @@ def _lightning_messages(progress: bool):
             lg.setLevel(level)
 
 
-class _StopAfter(pl.Callback):
-    """Stop at the end of the first epoch that ends after ``seconds`` of this invocation."""
-
-    def __init__(self, seconds: float) -> None:
-        self.seconds = float(seconds)
-        self.start = time.monotonic()
-
-    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self.start = time.monotonic()
-
-    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if time.monotonic() - self.start >= self.seconds:
-            trainer.should_stop = True
-
-
 # ----------------------------------------------------------------- run directory
-
-
-def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    return [
-        f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in _RUN_IDENTITY if old.get(k) != new.get(k)
-    ]
 
 
 def _launcher_rank() -> int:
@@ -269,39 +265,6 @@ def _launcher_rank() -> int:
         if value.isdigit() and int(value) > 0:
             return int(value)
     return 0
-
-
-def _check_run_dir(out: Path, run_info: dict[str, Any], resume: bool) -> dict[str, Any]:
-    """Check ``out`` against the new run; return the ``run.json`` to write (rank 0 only)."""
-    run_file = out / RUN_FILE
-    if not resume:
-        if run_file.exists() or (out / "checkpoints" / "last.ckpt").exists():
-            raise TrainingInputError(
-                f"{out} already holds a run; pass --resume to continue it or choose another --out"
-            )
-        if out.exists() and not out.is_dir():
-            raise TrainingInputError(f"--out {out} exists and is not a directory")
-        return run_info
-    if not run_file.is_file():
-        return run_info
-    old = read_json_object(run_file, "run file", TrainingInputError)
-    diff = _differences(old, run_info)
-    if diff:
-        raise TrainingInputError(
-            f"{out} holds a different run ({'; '.join(diff)}); use another --out"
-        )
-    info = dict(old)
-    info["epochs"] = run_info["epochs"]
-    info["resumed"] = [*info.get("resumed", []), run_info["created"]]
-    return info
-
-
-def _write_run_file(out: Path, info: dict[str, Any]) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(out / RUN_FILE, info)
-    except OSError as err:
-        raise TrainingInputError(f"cannot write to {out}: {err}") from None
 
 
 # -------------------------------------------------------------------------- train
@@ -358,11 +321,16 @@ def train(
             registered model, all of them; ``eps``, ``heterogeneous`` and
             ``hidden`` are options of the physical models only).
         dtype: ``"float64"`` (default, see docs/training.md) or ``"float32"``.
-        resume: continue from ``out_dir/checkpoints/last.ckpt`` (the run's
-            options must be the same; ``epochs`` may grow).
-        progress: show Lightning's progress bar and model summary.
+        resume: continue the run in ``out_dir`` from ``checkpoints/last.ckpt``
+            (else from the newest readable per-epoch checkpoint; the run's
+            options must be the same; ``epochs`` may grow). A run with no
+            usable checkpoint (stopped before its first epoch ended), or an
+            empty or new ``out_dir``, starts from the beginning, with a warning.
+        progress: show Lightning's progress bar and model summary; without
+            it, print one line per epoch (losses, learned physical parameters).
         max_time: minutes; stop at the end of the first epoch that ends after
-            this much time of this invocation (checkpoint and files written).
+            this much time of this invocation (checkpoint and files written;
+            a warning says that the learning-rate schedule was cut).
         strategy, devices, num_nodes: passed to ``lightning.Trainer`` (e.g.
             ``strategy="ddp", devices=4``; ``"ddp"`` is run with
             ``find_unused_parameters=True``, see docs/training.md).
@@ -374,9 +342,15 @@ def train(
         The trained model (on the CPU).
 
     Raises:
-        TrainingInputError (a ``ValueError``): missing/malformed data, unknown
-            model, bad options, CUDA unavailable, ``resume`` without a
-            checkpoint, or ``out_dir`` holding a different run.
+        TrainingInputError (a ``ValueError``): missing/malformed data (a
+            training set with no finite chunk included), unknown model, bad
+            options, CUDA unavailable, an ``out_dir`` that is not empty and
+            holds no run of ours, holds a symbolic link, holds a run (without
+            ``resume``) or a different run, or a checkpoint that would need
+            more than tensors and plain data to load.
+        TrainingInterrupted (a ``KeyboardInterrupt``): SIGINT or SIGTERM
+            stopped the run after the running step; a checkpoint was written
+            (``resume=True`` continues).
     """
     check_options(
         model=model, epochs=epochs, batch_size=batch_size, lr=lr, physics_lr=physics_lr,
@@ -434,12 +408,16 @@ def train(
         },
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
-    last_ckpt = out / "checkpoints" / "last.ckpt"
-    if resume and not last_ckpt.is_file():
-        raise TrainingInputError(f"cannot resume: {last_ckpt} does not exist")
+    checkpoints = out / "checkpoints"
     # processes started by a DDP launcher (Lightning's, torchrun, SLURM) leave the files to rank 0
     launcher = _launcher_rank() == 0
-    info = _check_run_dir(out, run_info, resume) if launcher else None
+    info = check_run_dir(out, run_info, resume) if launcher else None
+    point = resume_point(checkpoints) if resume else None
+    if launcher and point is not None and point.path is None and (out / "model.pt").is_file():
+        raise TrainingInputError(
+            f"cannot resume: {out} holds a finished model.pt but no checkpoint to continue "
+            "from; choose another --out to train again"
+        )
 
     module = RolloutModule(
         model=learned,
@@ -450,16 +428,18 @@ def train(
         schedule=schedule,
     )
     module.run_dir = out
+    module.report_epochs = not progress
+    resume_at = (point.epoch, point.batches_in_epoch) if point and point.mid_epoch else (-1, 0)
     datamodule = ChunkDataModule(
-        train_chunks, val_chunks, batch_size=batch_size, seed=seed, dtype=dtype
-    )
-    ckpt_path = str(last_ckpt) if resume else None
+        train_chunks, val_chunks, batch_size=batch_size, seed=seed, dtype=dtype,
+        resume_at=resume_at,
+    )  # fmt: skip
 
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     keep = {} if keep_checkpoints is None else {"monitor": "step", "mode": "max"}
     checkpoint = ModelCheckpoint(
-        dirpath=out / "checkpoints",
+        dirpath=checkpoints,
         filename="epoch{epoch:04d}",
         auto_insert_metric_name=False,
         save_top_k=-1 if keep_checkpoints is None else keep_checkpoints,
@@ -469,9 +449,9 @@ def train(
         save_on_train_epoch_end=True,
         enable_version_counter=False,
     )
-    all_callbacks: list[pl.Callback] = [checkpoint, *callbacks]
-    if max_time is not None:
-        all_callbacks.append(_StopAfter(float(max_time) * 60.0))
+    stop = GracefulStop(checkpoints / LAST, announce=launcher)
+    stop_after = None if max_time is None else StopAfter(float(max_time) * 60.0)
+    all_callbacks = [checkpoint, stop, *callbacks, *([stop_after] if stop_after else [])]
     if strategy == "ddp":
         strategy = "ddp_find_unused_parameters_true"
     with _lightning_messages(progress):
@@ -483,23 +463,54 @@ def train(
                 num_nodes=num_nodes,
                 strategy=strategy,
                 precision="64-true" if dtype == "float64" else "32-true",
-                logger=_loggers(out),
+                logger=loggers(out),
                 callbacks=all_callbacks,
+                plugins=[SafeCheckpointIO()],
                 enable_progress_bar=progress,
                 enable_model_summary=progress,
                 inference_mode=False,  # the dynamics take grad V by autograd, also in validation
                 num_sanity_val_steps=0,
                 log_every_n_steps=1,
                 default_root_dir=out,
+                use_distributed_sampler=False,  # ChunkDataModule splits the data across ranks
             )
         except (MisconfigurationException, ValueError, TypeError) as err:
             raise TrainingInputError(f"bad strategy/devices/num_nodes: {err}") from None
-        if info is not None:  # nothing is written before all checks have passed
-            _write_run_file(out, info)
-            if resume:  # drop the log rows of the interrupted epoch
-                done = torch.load(last_ckpt, map_location="cpu", weights_only=False)["epoch"]
-                _truncate_csv(out / "logs" / "metrics.csv", int(done) + 1)
-        return _fit(trainer, module, datamodule, out, ckpt_path)
+        if launcher:  # nothing is written before all checks have passed
+            _prepare(out, info or run_info, point)
+        ckpt_path = None if point is None or point.path is None else str(point.path)
+        stop.install()
+        try:
+            return _fit(trainer, module, datamodule, out, ckpt_path, stop, stop_after)
+        finally:
+            stop.restore()
+
+
+def _prepare(out: Path, info: dict[str, Any], point: Any) -> None:
+    """Write ``run.json`` and tidy the run directory for a new, restarted or resumed run."""
+    write_run_file(out, info)
+    remove_temporaries(out)
+    if point is None:
+        return
+    for note in point.notes:
+        log.warning("%s", note)
+    if point.path is None:
+        if "resumed" in info:
+            log.warning(
+                "%s has no usable checkpoint (the run stopped before its first epoch ended): "
+                "starting it again from the beginning", out,
+            )  # fmt: skip
+            clear_for_restart(out)
+        else:
+            log.warning("nothing to resume in %s (no run yet): starting a new run", out)
+        return
+    if point.notes:
+        log.warning("resuming %s from %s", out, point.path)
+    # the log keeps the rows written before the checkpoint (an interrupted epoch's are redone)
+    if point.mid_epoch:
+        truncate_log(out, point.epoch, point.batches_stepped)
+    else:
+        truncate_log(out, point.epoch + 1, 0)
 
 
 def _fit(
@@ -508,6 +519,8 @@ def _fit(
     datamodule: ChunkDataModule,
     out: Path,
     ckpt_path: str | None,
+    stop: GracefulStop,
+    stop_after: StopAfter | None,
 ) -> Any:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
@@ -515,9 +528,14 @@ def _fit(
         warnings.filterwarnings("ignore", message=".*is not a valid metric.*")
         warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")  # lightning internals
         warnings.filterwarnings("ignore", message="Checkpoint directory .* is not empty")
+        # a mid-epoch checkpoint: ChunkDataModule leaves out the batches done (resume_at)
+        warnings.filterwarnings("ignore", message=".*your dataloader is not resumable.*")
         # epoch values are reduced across ranks by the module itself (or identical on all)
         warnings.filterwarnings("ignore", message=".*recommended to use `self.log.*sync_dist")
-        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+        except Stopped:
+            raise _interrupted(trainer, stop) from None
 
     trained = module.model.cpu()
     if trainer.is_global_zero:
@@ -529,6 +547,39 @@ def _fit(
         summary["learned"] = learned() if callable(learned) else trained.metrics()
         summary["finished"] = True
         summary["epochs_done"] = int(trainer.current_epoch)
+        if stop_after is not None and stop_after.triggered:
+            summary["stopped_early"] = _schedule_cut(trainer, stop_after)
         save_model(trained, out / "model.pt")
         write_learned(out, summary)
     return trained
+
+
+def _interrupted(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted:
+    epoch, batch = stop.stopped_at or (trainer.current_epoch, 0)
+    n = trainer.num_training_batches
+    message = (
+        f"{stop.signal_name} received: stopped before step {batch + 1} of {n} in epoch "
+        f"{epoch + 1}; wrote {stop.checkpoint}; continue with --resume"
+    )
+    return TrainingInterrupted(message, stop.signal_name, stop.exit_status, stop.checkpoint)
+
+
+def _schedule_cut(trainer: pl.Trainer, stop_after: StopAfter) -> dict[str, Any]:
+    """Warn that ``max_time`` ended the run early; what ``learned.json`` records about it."""
+    done, total = int(trainer.current_epoch), int(trainer.max_epochs or 0)
+    group = trainer.optimizers[0].param_groups[0] if trainer.optimizers else {}
+    factor = group.get("lr", 1.0) / group.get("initial_lr", group.get("lr", 1.0))
+    cosine = bool(trainer.lr_scheduler_configs)
+    record = {"reason": "max_time", "epochs_done": done, "epochs": total, "lr_factor": factor}
+    schedule = (
+        f"; the cosine learning-rate schedule was cut: the rates are at {factor:.0%} of their "
+        f"initial values, not the final {COSINE_FLOOR:.0%}, so the parameters have not "
+        "settled"
+        if cosine
+        else ""
+    )
+    log.warning(
+        "--max-time %.4g min: stopped after epoch %d of %d%s; continue with --resume to finish "
+        "the run", stop_after.seconds / 60, done, total, schedule,
+    )  # fmt: skip
+    return record

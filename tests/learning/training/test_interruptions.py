@@ -1,0 +1,242 @@
+"""Runs never dead-end: signals stop with a checkpoint, kills leave a run that resumes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import lightning.pytorch as pl
+import pytest
+import torch
+
+from diffcontact.learning.training.options import TrainingInputError, TrainingInterrupted
+from diffcontact.learning.training.run import train
+from diffcontact.testing import run_cli
+
+from .support import SMALL
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*LeafSpec")
+
+RUN_LOG = "diffcontact.learning.training.run"
+# 8 training chunks in batches of 2: 4 steps per epoch
+OPTS = dict(batch_size=2, seed=1, **SMALL)
+
+
+def _state(run_dir):
+    return torch.load(run_dir / "model.pt", weights_only=True)["state_dict"]
+
+
+def _assert_same_weights(a, b):
+    sa, sb = _state(a), _state(b)
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), k
+
+
+def _log_rows(run_dir):
+    with open(run_dir / "logs" / "metrics.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _epoch_losses(run_dir):
+    rows = _log_rows(run_dir)
+    return [(r["epoch"], r["train/loss_epoch"]) for r in rows if r["train/loss_epoch"]]
+
+
+class _Signal(pl.Callback):
+    """Send ``sig`` to this process at the start of step ``batch`` of ``epoch``."""
+
+    def __init__(self, sig, epoch, batch):
+        self.sig, self.at, self.sent = sig, (epoch, batch), False
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if (trainer.current_epoch, batch_idx) == self.at and not self.sent:
+            self.sent = True
+            signal.raise_signal(self.sig)
+
+
+class _CrashAt(pl.Callback):
+    def __init__(self, epoch, batch):
+        self.at = (epoch, batch)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if (trainer.current_epoch, batch_idx) == self.at:
+            raise RuntimeError("simulated kill")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(bp5_data, tmp_path_factory):
+    """A 3-epoch run without interruption (the reference)."""
+    out = tmp_path_factory.mktemp("reference") / "run"
+    train(bp5_data, out, epochs=3, **OPTS)
+    return out
+
+
+def test_ctrl_c_stops_at_the_next_step_and_resume_gives_the_uninterrupted_result(
+    bp5_data, uninterrupted, tmp_path
+):
+    run = tmp_path / "run"
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(TrainingInterrupted) as caught:
+        train(bp5_data, run, epochs=3, callbacks=[_Signal(signal.SIGINT, 1, 1)], **OPTS)
+    stop = caught.value
+    assert (stop.signal_name, stop.exit_status) == ("SIGINT", 130)
+    # the step that was running (epoch 2, step 2) finished; the next one did not start
+    assert "stopped before step 3 of 4 in epoch 2" in str(stop) and "--resume" in str(stop)
+    assert stop.checkpoint == run / "checkpoints" / "last.ckpt"
+    assert signal.getsignal(signal.SIGINT) is before  # handlers restored
+    assert not (run / "model.pt").exists()
+    ckpt = torch.load(stop.checkpoint, weights_only=True)
+    assert ckpt["epoch"] == 1 and ckpt["global_step"] == 6  # 4 + 2 steps done
+    train(bp5_data, run, epochs=3, resume=True, **OPTS)
+    _assert_same_weights(run, uninterrupted)
+    # the interrupted epoch's loss is over all of its steps, and each step is logged once
+    assert _epoch_losses(run) == _epoch_losses(uninterrupted)
+    steps = [r["step"] for r in _log_rows(run) if r["train/loss_step"]]
+    assert len(steps) == 12 and len(set(steps)) == 12
+    a = json.loads((run / "learned.json").read_text())
+    b = json.loads((uninterrupted / "learned.json").read_text())
+    assert (a["train_loss"], a["val_loss"], a["global_step"]) == (
+        b["train_loss"], b["val_loss"], b["global_step"]
+    )  # fmt: skip
+
+
+SIGTERM_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys
+    import lightning.pytorch as pl
+    from diffcontact.cli import main
+    from diffcontact.learning.training import run
+
+    class Term(pl.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            if (trainer.current_epoch, batch_idx) == (0, 1):
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    real = run.train
+    run.train = lambda *a, **k: real(*a, callbacks=[Term()], **k)
+    sys.exit(main(sys.argv[1:]))
+    """
+)
+
+
+def test_sigterm_through_the_cli_writes_a_checkpoint_and_exits_143(bp5_data, tmp_path, capsys):
+    run = tmp_path / "run"
+    argv = ["train", str(bp5_data), "--out", str(run), "--epochs", "2", "--batch-size", "2",
+            "--seed", "1", "--hidden", "16,16", "--quiet"]  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", SIGTERM_SCRIPT, *argv], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 143, proc.stderr
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("diffcontact train: SIGTERM received: stopped before step 3 of 4")
+    assert "last.ckpt" in last and "--resume" in last
+    assert "epoch 1/2" not in proc.stdout  # stopped inside the first epoch
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 2
+    code, out, _ = run_cli(capsys, *argv, "--resume")
+    assert code == 0
+    # --quiet still prints one line per epoch: losses and the learned parameters
+    lines = [line for line in out.splitlines() if line.startswith("epoch ")]
+    assert [line.split(":")[0] for line in lines] == ["epoch 1/2", "epoch 2/2"]
+    assert all("loss" in line and "m_i/m_1" in line and "e_P" in line for line in lines)
+    assert json.loads((run / "learned.json").read_text())["global_step"] == 8
+
+
+KILL_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys
+    real = os.replace
+    seen = []
+
+    def replace(src, dst, *args, **kwargs):  # killed just before the 2nd last.ckpt is renamed
+        if str(dst).endswith("last.ckpt"):
+            seen.append(dst)
+            if len(seen) == 2:
+                os.kill(os.getpid(), signal.SIGKILL)
+        return real(src, dst, *args, **kwargs)
+
+    os.replace = replace
+    from diffcontact.cli import main
+    sys.exit(main(sys.argv[1:]))
+    """
+)
+
+
+def test_a_kill_while_a_checkpoint_is_written_leaves_the_previous_one(bp5_data, tmp_path, capsys):
+    run, tmpdir = tmp_path / "run", tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    argv = ["train", str(bp5_data), "--out", str(run), "--epochs", "2", "--batch-size", "4",
+            "--hidden", "8", "--quiet"]  # fmt: skip
+    env = {**os.environ, "TMPDIR": str(tmpdir)}
+    proc = subprocess.run(
+        [sys.executable, "-c", KILL_SCRIPT, *argv], capture_output=True, env=env, timeout=300
+    )
+    assert proc.returncode == -signal.SIGKILL
+    checkpoints = run / "checkpoints"
+    # last.ckpt is still the whole checkpoint of epoch 1; the new one was never renamed over it
+    assert torch.load(checkpoints / "last.ckpt", weights_only=True)["epoch"] == 0
+    orphans = [p.name for p in checkpoints.iterdir() if ".tmp-" in p.name]
+    assert len(orphans) == 1 and orphans[0].startswith(".last.tmp-")
+    assert not [p for p in tmpdir.rglob("*") if p.is_file()]  # nothing written to $TMPDIR
+    code, _, err = run_cli(capsys, *argv, "--resume")
+    assert code == 0, err
+    assert not [p for p in checkpoints.iterdir() if ".tmp-" in p.name]  # the orphan is gone
+    learned = json.loads((run / "learned.json").read_text())
+    assert learned["finished"] and learned["global_step"] == 4
+
+
+def test_a_run_killed_before_its_first_checkpoint_is_started_again(
+    bp5_data, tmp_path, caplog, capsys
+):
+    fresh, run = tmp_path / "fresh", tmp_path / "run"
+    train(bp5_data, fresh, epochs=1, **OPTS)
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        train(bp5_data, run, epochs=1, callbacks=[_CrashAt(0, 2)], **OPTS)
+    assert (run / "run.json").is_file() and not list((run / "checkpoints").glob("*.ckpt"))
+    assert len(_log_rows(run)) == 2  # the rows of the two steps taken
+    # without --resume: refused, saying what to do
+    code, _, err = run_cli(capsys, "train", str(bp5_data), "--out", str(run), "--epochs", "1")
+    assert code == 2 and "no checkpoint yet" in err and "--resume" in err
+    with caplog.at_level(logging.WARNING, logger=RUN_LOG):
+        train(bp5_data, run, epochs=1, resume=True, **OPTS)
+    assert any("starting it again from the beginning" in r.getMessage() for r in caplog.records)
+    _assert_same_weights(run, fresh)
+    assert len(_log_rows(run)) == len(_log_rows(fresh))  # the old rows are gone
+    # --resume of an empty or new folder starts a new run
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=RUN_LOG):
+        train(bp5_data, tmp_path / "new", epochs=1, resume=True, **OPTS)
+    assert any("starting a new run" in r.getMessage() for r in caplog.records)
+    _assert_same_weights(tmp_path / "new", fresh)
+
+
+def test_unreadable_checkpoints_are_skipped_on_resume(bp5_data, tmp_path, caplog):
+    """A 0-byte last.ckpt and a truncated epoch0001.ckpt (what a kill used to leave)."""
+    ref, run = tmp_path / "ref", tmp_path / "run"
+    train(bp5_data, ref, epochs=2, **OPTS)
+    train(bp5_data, run, epochs=2, **OPTS)
+    checkpoints = run / "checkpoints"
+    (checkpoints / "last.ckpt").write_bytes(b"")
+    half = (checkpoints / "epoch0001.ckpt").read_bytes()
+    (checkpoints / "epoch0001.ckpt").write_bytes(half[: len(half) // 2])
+    (run / "model.pt").unlink()
+    with caplog.at_level(logging.WARNING, logger=RUN_LOG):
+        train(bp5_data, run, epochs=2, resume=True, **OPTS)
+    messages = " | ".join(r.getMessage() for r in caplog.records)
+    assert "last.ckpt cannot be read (truncated or corrupted?): it is empty" in messages
+    assert "epoch0001.ckpt cannot be read" in messages
+    assert f"from {checkpoints / 'epoch0000.ckpt'}" in messages
+    _assert_same_weights(run, ref)  # epoch 2 run again from the end of epoch 1
+    assert _epoch_losses(run) == _epoch_losses(ref)
+    # a finished run whose checkpoints were all deleted is not silently trained again
+    for p in checkpoints.iterdir():
+        p.unlink()
+    with pytest.raises(TrainingInputError, match=r"finished model\.pt but no checkpoint"):
+        train(bp5_data, run, epochs=3, resume=True, **OPTS)
