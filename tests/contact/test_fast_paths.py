@@ -154,14 +154,14 @@ def test_restitution_phase_of_ball_collisions_needs_no_interior_point(monkeypatc
     compression problems still use the interior point)."""
     from diffcontact.contact import cone_qp, impulse
 
-    calls = []
-    original = cone_qp.interior_point_solve
+    calls = []  # problems sent to the interior point (either backend)
+    original = cone_qp._solve
 
-    def counting(A, *args, **kwargs):
-        calls.append(A.shape[0])
-        return original(A, *args, **kwargs)
+    def counting(rows, *args, **kwargs):
+        calls.append(rows.numel())
+        return original(rows, *args, **kwargs)
 
-    monkeypatch.setattr(cone_qp, "interior_point_solve", counting)
+    monkeypatch.setattr(cone_qp, "_solve", counting)
     seen = []
     original_solve = impulse.solve_cone_qp
 
