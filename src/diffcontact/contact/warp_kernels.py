@@ -227,18 +227,13 @@ def _cholesky(M: wp.array3d(dtype=Any), t: int, n: int):
     """In-place lower Cholesky factor of M[t] (lower triangle read); False on failure."""
     zero = type(M[t, 0, 0])(0.0)
     for j in range(n):
-        s = M[t, j, j]
-        for k in range(j):
-            s = s - M[t, j, k] * M[t, j, k]
+        s = M[t, j, j] - _dot(M, t, j, M, t, j, j)
         if not (s > zero):
             return False
         ljj = wp.sqrt(s)
         M[t, j, j] = ljj
         for i in range(j + 1, n):
-            s = M[t, i, j]
-            for k in range(j):
-                s = s - M[t, i, k] * M[t, j, k]
-            M[t, i, j] = s / ljj
+            M[t, i, j] = (M[t, i, j] - _dot(M, t, i, M, t, j, j)) / ljj
     return True
 
 
@@ -246,18 +241,28 @@ def _cholesky(M: wp.array3d(dtype=Any), t: int, n: int):
 def _cholesky_solve(
     M: wp.array3d(dtype=Any), t: int, n: int, vec: wp.array3d(dtype=Any), slot: int
 ):
-    """Solve L L^T x = vec[t, slot] in place."""
+    """Solve L L^T x = vec[t, slot] in place (L in M[t]'s lower triangle, read by rows)."""
     for i in range(n):
-        s = vec[t, slot, i]
-        for k in range(i):
-            s = s - M[t, i, k] * vec[t, slot, k]
-        vec[t, slot, i] = s / M[t, i, i]
+        vec[t, slot, i] = (vec[t, slot, i] - _dot(M, t, i, vec, t, slot, i)) / M[t, i, i]
     for ii in range(n):
         i = n - 1 - ii
-        s = vec[t, slot, i]
-        for k in range(i + 1, n):
-            s = s - M[t, k, i] * vec[t, slot, k]
-        vec[t, slot, i] = s / M[t, i, i]
+        xi = vec[t, slot, i] / M[t, i, i]
+        vec[t, slot, i] = xi
+        for k in range(i):
+            vec[t, slot, k] = vec[t, slot, k] - M[t, i, k] * xi
+
+
+@wp.func
+def _dot(
+    X: wp.array3d(dtype=Any), x0: int, x1: int, Y: wp.array3d(dtype=Any), y0: int, y1: int, n: int
+):
+    """Sum of X[x0, x1, k] Y[y0, y1, k] over k < n, in order. One running sum, so that the
+    entries of padded contacts (zeros) leave it bitwise unchanged wherever they sit: a
+    problem's result does not depend on its padding (partial sums would be faster)."""
+    s = type(X[x0, x1, 0])(0.0)
+    for k in range(n):
+        s = s + X[x0, x1, k] * Y[y0, y1, k]
+    return s
 
 
 @wp.func
@@ -681,10 +686,7 @@ def _interior_point(
             gt = _cone_GT(vec[t, ZL, k], zq, m, d)
             for j in range(d):
                 i = k * d + j
-                s = zero
-                for jj in range(n):
-                    s = s + A[r, i, jj] * vec[t, F_, jj]
-                rx = (s + b[r, i]) + gt[j]
+                rx = (_dot(A, r, i, vec, t, F_, n) + b[r, i]) + gt[j]
                 vec[t, RX, i] = rx
                 if active[r, k]:
                     res = wp.max(res, wp.abs(rx))
@@ -867,10 +869,7 @@ def _z(
     f: int,
 ):
     """Component i of z = f - rho (A f + b), f in row ``f``."""
-    s = type(rho)(0.0)
-    for j in range(n):
-        s = s + A[r, i, j] * vec[t, f, j]
-    return vec[t, f, i] - rho * (s + b[r, i])
+    return vec[t, f, i] - rho * (_dot(A, r, i, vec, t, f, n) + b[r, i])
 
 
 @wp.func
