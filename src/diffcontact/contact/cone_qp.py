@@ -24,6 +24,9 @@ problems or contacts):
    (:mod:`diffcontact.contact.cone`), whose zeros are exactly the minimisers,
    identifies the active constraints and drives ``F`` to rounding level
    (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
+   Steps 2 and 3 run on the backend of ``SolverSettings.backend``: batched torch
+   operations (the reference) or one fused NVIDIA Warp kernel, one thread per problem
+   (:mod:`diffcontact.contact.fused`); the rest is torch for both.
 4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
    on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
    ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),

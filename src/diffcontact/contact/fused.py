@@ -31,9 +31,14 @@ import sys
 import tempfile
 import warnings
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
+
+if TYPE_CHECKING:
+    from diffcontact.contact.cone_qp import SolverSettings
+    from diffcontact.contact.interior_point import InteriorPointResult
 
 BACKENDS = ("auto", "torch", "warp")
 ENV_VAR = "DIFFCONTACT_SOLVER"
@@ -188,8 +193,8 @@ def solve(
     data: tuple[Tensor, ...],
     d: int,
     gap: float,
-    settings,
-):
+    settings: SolverSettings,
+) -> tuple[InteriorPointResult, tuple[Tensor, ...]]:
     """Interior point and polish of the problems ``rows`` in one Warp kernel launch.
 
     The counterpart of the reference's ``interior_point_solve`` followed by ``_polish``
