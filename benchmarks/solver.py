@@ -77,16 +77,18 @@ def leaves(P: dict, B: int, device, dtype) -> tuple[torch.Tensor, ...]:
 # timing
 
 
-def time_ours(P: dict, B: int, device: str, dtype, reps: int) -> tuple[float, torch.Tensor]:
+def time_ours(
+    P: dict, B: int, device: str, dtype, reps: int, backend: str = "auto"
+) -> tuple[float, torch.Tensor]:
     """Median seconds for one batched forward + backward on B problems (after a warm-up),
     and the solution f (B, C) on CPU float64."""
-    from diffcontact.contact import solve_cone_qp
+    from diffcontact.contact import SolverSettings, solve_cone_qp
 
     def once():
         A, b, mu, W = leaves(P, B, device, dtype)
         sync(device)
         t0 = time.perf_counter()
-        f = solve_cone_qp(A, b, mu, D)
+        f = solve_cone_qp(A, b, mu, D, settings=SolverSettings(backend=backend))
         (f * W).sum().backward()
         sync(device)
         return time.perf_counter() - t0, f.detach()
@@ -214,6 +216,12 @@ def main(argv: list[str] | None = None) -> int:
         help="Clarabel's tol_gap_abs/tol_gap_rel/tol_feas inside cvxpylayers (default: its 1e-8)",
     )
     ap.add_argument("--no-baselines", action="store_true", help="time only ours")
+    ap.add_argument(
+        "--backend",
+        choices=("auto", "torch", "warp"),
+        default="auto",
+        help="solver backend of ours (auto: Warp when installed; see the backends suite)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = ap.parse_args(argv)
 
@@ -238,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
 
     print("friction-cone QP, forward + backward (loss = sum(f * W) -> A, b, mu), d = 2")
     header = machine_header(args.device, dtype)
+    from diffcontact.contact import SolverSettings
+
+    backend = SolverSettings(backend=args.backend).resolved(dtype, torch.device(args.device))
+    header.append(f"ours: solver backend {backend.backend}")
     header.append(
         f"cvxpylayers baselines on CPU in float64 (diffcp, {json.dumps(solver_args)})"
         if baselines
@@ -266,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
             build_s = time.perf_counter() - t0
         for B in args.batches:
             try:
-                ours_s, f_ours = time_ours(P, B, args.device, dtype, reps)
+                ours_s, f_ours = time_ours(P, B, args.device, dtype, reps, args.backend)
             except RuntimeError as e:  # e.g. ConeQPError: report it and go on
                 print(f"    ours failed at K={K}, batch={B}: {e}")
                 ours_s, f_ours = None, None

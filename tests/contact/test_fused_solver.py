@@ -353,6 +353,10 @@ def test_backend_names_and_environment(monkeypatch):
     assert SolverSettings(compute_dtype=None).resolved(torch.float16).backend == "torch"
     with pytest.raises(ValueError, match="float32 or float64"):
         SolverSettings(backend="warp", compute_dtype=None).resolved(torch.float16)
+    meta = torch.device("meta")  # neither the CPU nor CUDA
+    assert SolverSettings().resolved(F64, meta).backend == "torch"
+    with pytest.raises(ValueError, match="on the CPU or CUDA, not meta"):
+        SolverSettings(backend="warp").resolved(F64, meta)
     monkeypatch.setenv(fused.ENV_VAR, "torch")
     assert SolverSettings().resolved(F64).backend == "torch"
     assert SolverSettings(backend="warp").resolved(F64).backend == "warp"  # explicit wins

@@ -84,9 +84,10 @@ def resolve_backend(backend: str, dtype: torch.dtype, device: torch.device | Non
     if backend == "torch":
         return "torch"
     supported_dtype = dtype in (torch.float32, torch.float64)
-    supported_device = device is None or torch.device(device).type in ("cpu", "cuda")
+    kind = "cpu" if device is None else torch.device(device).type
     if backend == "auto":
-        if warp_installed() and supported_dtype and supported_device and _warp_loads():
+        usable = warp_installed() and supported_dtype and kind in ("cpu", "cuda")
+        if usable and _warp_loads() and (kind == "cpu" or _warp_cuda()):
             return "warp"
         return "torch"
     where = "SolverSettings(backend='warp')" if explicit else f"{ENV_VAR}=warp"
@@ -97,9 +98,25 @@ def resolve_backend(backend: str, dtype: torch.dtype, device: torch.device | Non
         )
     if not supported_dtype:
         raise ValueError(f"{where}: the Warp solver runs in float32 or float64, not {dtype}")
-    if not supported_device:
+    if kind not in ("cpu", "cuda"):
         raise ValueError(f"{where}: the Warp solver runs on the CPU or CUDA, not {device}")
+    try:
+        _load()
+    except Exception as err:
+        raise ImportError(f"{where}: NVIDIA Warp is installed but failed to load: {err}") from err
+    if kind == "cuda" and not _warp_cuda():
+        raise RuntimeError(
+            f"{where}: Warp cannot use CUDA on this machine (no driver, or too old a one); "
+            "use backend='torch' for CUDA tensors"
+        )
     return "warp"
+
+
+@functools.cache
+def _warp_cuda() -> bool:
+    """Whether Warp can launch CUDA kernels here."""
+    wp, _ = _load()
+    return bool(wp.is_cuda_available())
 
 
 @functools.cache
