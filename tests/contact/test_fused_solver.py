@@ -221,6 +221,28 @@ def test_retries_with_a_tighter_gap_run_on_the_fused_solver():
     assert_agree(ref, out, rtol=1e-7)
 
 
+def test_fast_paths_and_warm_starts_agree():
+    """The fast paths' polish (closed form of one contact, separating problems, warm
+    starts) runs as its own kernel: same answers, statuses and iteration counts (0 where
+    the polish alone finishes) as the reference, from good and from poor guesses."""
+    A, b, mu, lower, active = mixed_family(40, 4, 2, seed=31)
+    active[:10] = False
+    active[:10, 1] = True  # one active contact: the closed form
+    f_c = solve_cone_qp(A, b, mu, 2, None, active, settings=TORCH)
+    cor = torch.rand(40, 4, generator=torch.Generator().manual_seed(2), dtype=F64)
+    lower = cor * f_c[:, ::2]
+    b_r = b + torch.einsum("bij,bj->bi", A, f_c)
+    good = (cor[..., None] * f_c.reshape(40, 4, 2)).reshape(40, 8)
+    poor = good + torch.randn(40, 8, generator=torch.Generator().manual_seed(3), dtype=F64)
+    finished = []
+    for guess in (good, poor):
+        ref, out = both(A, b_r, mu, 2, lower, active, warm_start=guess)
+        assert_agree(ref, out)
+        assert torch.equal(ref[1].iterations == 0, out[1].iterations == 0)
+        finished.append((out[1].iterations == 0).float().mean())
+    assert finished[0] == 1 and finished[1] < 1  # a poor guess leaves some to the IPM
+
+
 def test_float32():
     A, b, mu, lower, active = mixed_family(32, 5, 3, seed=4)
     f64 = solve_cone_qp(A, b, mu, 3, lower, active, settings=TORCH)

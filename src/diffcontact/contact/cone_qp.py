@@ -294,7 +294,7 @@ def _forward(
         guessed = torch.ones_like(guessed)
     if bool(guessed.any()):
         g_rows = rows[guessed]
-        polished = _polish(guess[g_rows], [x[g_rows] for x in data], settings)
+        polished = _polish_rows(guess[g_rows], g_rows, data, settings)
         # kept only at the polish's own target (rounding level), not at ``tol``: a guess
         # must not end less accurate than the interior point and polish would
         kept = polished[1] <= min(settings.polish_tol, settings.tol)
@@ -362,8 +362,15 @@ def _solve(rows: Tensor, ipm_data, data, d: int, gap: float, settings: SolverSet
         active=active,
     )
     c = data[-1]
-    polished = _polish(ipm.f * c[rows, None], [x[rows] for x in data], settings)
-    return ipm, polished
+    return ipm, _polish_rows(ipm.f * c[rows, None], rows, data, settings)
+
+
+def _polish_rows(f: Tensor, rows: Tensor, data, settings: SolverSettings):
+    """:func:`_polish` of the problems ``rows`` (n,) of a batch from ``f`` (n, C), on the
+    backend of ``settings`` (``data`` for the whole batch)."""
+    if settings.backend == "warp":
+        return fused.polish(f, rows, data, settings)
+    return _polish(f, [x[rows] for x in data], settings)
 
 
 def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):

@@ -188,20 +188,82 @@ def _load() -> tuple[ModuleType, ModuleType]:
 
 
 @functools.cache
-def _kernel(dtype: torch.dtype):
-    """The fused kernel instantiated for one float type (launching a concrete overload
-    skips Warp's per-launch type inference)."""
+def _kernel(name: str, dtype: torch.dtype):
+    """Kernel ``name`` of :mod:`~diffcontact.contact.warp_kernels` instantiated for one
+    float type (launching a concrete overload skips Warp's per-launch type inference)."""
     import typing
 
     wp, kernels = _load()
+    kernel = getattr(kernels, name)
     scalar = wp.float64 if dtype == torch.float64 else wp.float32
     types = {}
-    for arg in kernels.fused_solve.adj.args:
+    for arg in kernel.adj.args:
         if wp.types.is_array(arg.type) and arg.type.dtype is typing.Any:
             types[arg.label] = wp.array(dtype=scalar, ndim=arg.type.ndim)
         elif arg.type is typing.Any:
             types[arg.label] = scalar
-    return wp.overload(kernels.fused_solve, types)
+    return wp.overload(kernel, types)
+
+
+class _Polished:
+    """The polish's outputs for n threads, and the scratch memory of the kernels."""
+
+    def __init__(self, n: int, C: int, d: int, dtype: torch.dtype, device: torch.device):
+        from diffcontact.contact.warp_kernels import N_SLOTS
+
+        def scratch(*shape: int) -> Tensor:
+            # the thread index varies fastest on CUDA (coalesced), slowest on the CPU
+            if device.type == "cuda":
+                out = torch.empty(*shape[1:], shape[0], dtype=dtype, device=device)
+                return out.movedim(-1, 0)
+            return torch.empty(*shape, dtype=dtype, device=device)
+
+        self.n, self.C, self.d = n, C, d
+        self.vec, self.V, self.LU = scratch(n, N_SLOTS, C), scratch(n, C, C), scratch(n, C, C)
+        self.f = torch.empty(n, C, dtype=dtype, device=device)
+        self.res = torch.empty(n, dtype=dtype, device=device)
+        self.P = torch.empty(n, C, d, dtype=dtype, device=device)
+        self.dmu = torch.empty(n, C, dtype=dtype, device=device)
+        self.dl = torch.empty(n, C, dtype=dtype, device=device)
+        self.piv = torch.empty(n, C, dtype=torch.int32, device=device)
+
+    def scratch_args(self) -> list[Tensor]:
+        return [self.vec, self.V]
+
+    def output_args(self) -> list[Tensor]:
+        return [self.f, self.res, self.P, self.dmu, self.dl, self.LU, self.piv]
+
+    def result(self) -> tuple[Tensor, ...]:
+        """``(f (n, C), residual (n,), P (n, K, d, d), dmu (n, K, d), dl (n, K, d), LU (n,
+        C, C), pivots (n, C) int32)``, as :func:`~diffcontact.contact.cone_qp._polish`."""
+        n, K, d = self.n, self.C // self.d, self.d
+        return (
+            self.f,
+            self.res,
+            self.P.view(n, K, d, d),
+            self.dmu.view(n, K, d),
+            self.dl.view(n, K, d),
+            self.LU,
+            self.piv,
+        )
+
+
+def _launch(name: str, n: int, arrays_in, scalars, arrays_out, device: torch.device) -> None:
+    """Launch kernel ``name`` on n threads, on torch's current stream."""
+    wp, _ = _load()
+    args = [wp.from_torch(x.contiguous(), return_ctype=True) for x in arrays_in]
+    args += scalars
+    args += [wp.from_torch(x, return_ctype=True) for x in arrays_out]
+    cuda = device.type == "cuda"
+    stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
+    dtype = arrays_out[0].dtype
+    kernel = _kernel(name, dtype)
+    wp.launch(kernel, dim=n, inputs=args, device=wp.device_from_torch(device), stream=stream)
+
+
+def _scalar(dtype: torch.dtype):
+    wp, _ = _load()
+    return wp.float64 if dtype == torch.float64 else wp.float32
 
 
 def solve(
@@ -229,64 +291,62 @@ def solve(
 
     Returns:
         ``(ipm, polished)``: an :class:`~diffcontact.contact.interior_point.
-        InteriorPointResult` of the rows (its ``f`` scaled, as the reference's) and
-        ``(f (n, C), residual (n,), P (n, K, d, d), dmu (n, K, d), dl (n, K, d), LU (n, C,
-        C), pivots (n, C) int32)`` at the polished point, as ``_polish`` returns them.
+        InteriorPointResult` of the rows (its ``f`` scaled, as the reference's) and what
+        :func:`polish` returns.
     """
     from diffcontact.contact.interior_point import InteriorPointResult
 
-    wp, kernels = _load()
-    A_ipm = ipm_data[0]
-    dtype, device = A_ipm.dtype, A_ipm.device
-    n, C, K = rows.numel(), A_ipm.shape[-1], ipm_data[2].shape[-1]
-    scalar = wp.float64 if dtype == torch.float64 else wp.float32
-    finfo = torch.finfo(dtype)
-    cuda = device.type == "cuda"
-
-    def scratch(*shape: int) -> Tensor:
-        # the thread index varies fastest on CUDA (coalesced), slowest on the CPU
-        if cuda:
-            return torch.empty(*shape[1:], shape[0], dtype=dtype, device=device).movedim(-1, 0)
-        return torch.empty(*shape, dtype=dtype, device=device)
-
-    vec = scratch(n, kernels.N_SLOTS, C)
-    V = scratch(n, C, C)
-    LU = scratch(n, C, C)
-    f = torch.empty(n, C, dtype=dtype, device=device)
+    A = data[0]
+    dtype, device = A.dtype, A.device
+    n, C, K = rows.numel(), A.shape[-1], data[2].shape[-1]
+    scalar, finfo = _scalar(dtype), torch.finfo(dtype)
+    out = _Polished(n, C, d, dtype, device)
     f_ipm = torch.empty(n, C, dtype=dtype, device=device)
-    res = torch.empty(n, dtype=dtype, device=device)
-    P = torch.empty(n, C, d, dtype=dtype, device=device)
-    dmu = torch.empty(n, C, dtype=dtype, device=device)
-    dl = torch.empty(n, C, dtype=dtype, device=device)
-    piv = torch.empty(n, C, dtype=torch.int32, device=device)
     iterations = torch.empty(n, dtype=torch.int64, device=device)
     solved = torch.empty(n, dtype=torch.bool, device=device)
     unbounded = torch.empty(n, dtype=torch.bool, device=device)
-    target = min(settings.polish_tol, settings.tol)
-    arrays_in = [rows.to(torch.int32), *ipm_data, *data]
-    arrays_out = [vec, V, f_ipm, f, res, P, dmu, dl, LU, piv, iterations, solved, unbounded]
-    inputs = [wp.from_torch(x.contiguous(), return_ctype=True) for x in arrays_in]
-    inputs += [
+    scalars = [
         d,
         K,
         scalar(gap),
         settings.max_iter,
-        scalar(target),
+        scalar(min(settings.polish_tol, settings.tol)),
         settings.polish_steps,
-        scalar(1e10),
+        scalar(1e10),  # the interior point's blow-up bound, as the reference's
         scalar(finfo.eps),
         scalar(finfo.tiny),
         scalar(float("inf")),
     ]
-    inputs += [wp.from_torch(x, return_ctype=True) for x in arrays_out]
-    stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
-    wp.launch(
-        _kernel(dtype),
-        dim=n,
-        inputs=inputs,
-        device=wp.device_from_torch(device),
-        stream=stream,
-    )
-    ipm = InteriorPointResult(f_ipm, solved, unbounded, iterations)
-    polished = (f, res, P.view(n, K, d, d), dmu.view(n, K, d), dl.view(n, K, d), LU, piv)
-    return ipm, polished
+    arrays_in = [rows.to(torch.int32), *ipm_data, *data]
+    arrays_out = [*out.scratch_args(), f_ipm, *out.output_args()]
+    arrays_out += [iterations, solved, unbounded]
+    _launch("fused_solve", n, arrays_in, scalars, arrays_out, device)
+    return InteriorPointResult(f_ipm, solved, unbounded, iterations), out.result()
+
+
+def polish(f: Tensor, rows: Tensor, data: tuple[Tensor, ...], settings: SolverSettings):
+    """The natural-map polish of the problems ``rows`` from ``f`` (n, C) in one Warp
+    kernel launch: the counterpart of :func:`diffcontact.contact.cone_qp._polish`.
+
+    Args:
+        f: (n, C) starting points, one per row.
+        rows: (n,) int64 indices of the problems.
+        data: the polish's problem for the whole batch, as in :func:`solve`.
+        settings: resolved :class:`~diffcontact.contact.SolverSettings`.
+
+    Returns:
+        ``(f (n, C), residual (n,), P (n, K, d, d), dmu (n, K, d), dl (n, K, d), LU (n, C,
+        C), pivots (n, C) int32)`` at the polished point, as ``_polish`` returns them.
+    """
+    A = data[0]
+    dtype, device = A.dtype, A.device
+    n, C, K = rows.numel(), A.shape[-1], data[2].shape[-1]
+    d = C // K
+    scalar = _scalar(dtype)
+    out = _Polished(n, C, d, dtype, device)
+    target = scalar(min(settings.polish_tol, settings.tol))
+    eps = scalar(torch.finfo(dtype).eps)
+    scalars = [d, K, target, settings.polish_steps, eps]
+    arrays_in = [rows.to(torch.int32), f, *data]
+    _launch("fused_polish", n, arrays_in, scalars, out.scratch_args() + out.output_args(), device)
+    return out.result()

@@ -1064,6 +1064,48 @@ def _polish(
 # --- the kernel ------------------------------------------------------------------------
 
 
+@wp.func
+def _polish_into(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    rho: Any,
+    reg: Any,
+    c: Any,
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    target: Any,
+    polish_steps: int,
+    eps: Any,
+    vec: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    f_out: wp.array2d(dtype=Any),
+    res_out: wp.array(dtype=Any),
+    P_out: wp.array3d(dtype=Any),
+    dmu_out: wp.array2d(dtype=Any),
+    dl_out: wp.array2d(dtype=Any),
+    LU: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+):
+    """Polish from vec[t, F_] and write f, the residual, dPi/dz (blocks (C, d)), dPi/dmu,
+    dPi/dl and the LU factorisation of dF/df (in place in LU, piv) for thread t."""
+    n = K * d
+    res_out[t] = _polish(
+        A, b, mu, lower, r, t, d, K, rho, reg, c, target, polish_steps, eps, vec, LU, V, piv
+    )
+    for i in range(n):
+        f_out[t, i] = vec[t, F_, i]
+        dmu_out[t, i] = vec[t, DMU, i]
+        dl_out[t, i] = vec[t, DL, i]
+    for k in range(K):
+        for a in range(d):
+            for j in range(d):
+                P_out[t, k * d + a, j] = vec[t, P0 + a, k * d + j]
+
+
 @wp.kernel
 def fused_solve(
     rows: wp.array(dtype=wp.int32),
@@ -1142,32 +1184,45 @@ def fused_solve(
     for i in range(n):
         f_ipm[t, i] = vec[t, F_, i]
         vec[t, F_, i] = vec[t, F_, i] * c[r]
-    res = _polish(
-        A,
-        b,
-        mu,
-        lower,
-        r,
-        t,
-        d,
-        K,
-        rho[r],
-        reg[r],
-        c[r],
-        target,
-        polish_steps,
-        eps,
-        vec,
-        LU,
-        V,
-        piv,
-    )
-    res_out[t] = res
-    for i in range(n):
-        f_out[t, i] = vec[t, F_, i]
-        dmu_out[t, i] = vec[t, DMU, i]
-        dl_out[t, i] = vec[t, DL, i]
-    for k in range(K):
-        for a in range(d):
-            for j in range(d):
-                P_out[t, k * d + a, j] = vec[t, P0 + a, k * d + j]
+    _polish_into(
+        A, b, mu, lower, rho[r], reg[r], c[r], r, t, d, K, target, polish_steps, eps, vec, V,
+        f_out, res_out, P_out, dmu_out, dl_out, LU, piv,
+    )  # fmt: skip
+
+
+@wp.kernel
+def fused_polish(
+    rows: wp.array(dtype=wp.int32),
+    f0: wp.array2d(dtype=Any),
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    rho: wp.array(dtype=Any),
+    reg: wp.array(dtype=Any),
+    c: wp.array(dtype=Any),
+    d: int,
+    K: int,
+    target: Any,
+    polish_steps: int,
+    eps: Any,
+    vec: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    f_out: wp.array2d(dtype=Any),
+    res_out: wp.array(dtype=Any),
+    P_out: wp.array3d(dtype=Any),
+    dmu_out: wp.array2d(dtype=Any),
+    dl_out: wp.array2d(dtype=Any),
+    LU: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+):
+    """The polish alone, from the point f0[t] (n, C), for problem rows[t]: the fast paths'
+    guesses and warm starts. Inputs and outputs as :func:`fused_solve`'s."""
+    t = wp.tid()
+    r = int(rows[t])
+    for i in range(K * d):
+        vec[t, F_, i] = f0[t, i]
+    _polish_into(
+        A, b, mu, lower, rho[r], reg[r], c[r], r, t, d, K, target, polish_steps, eps, vec, V,
+        f_out, res_out, P_out, dmu_out, dl_out, LU, piv,
+    )  # fmt: skip
