@@ -208,7 +208,7 @@ class LearnedModel(nn.Module):
         self.hidden = hidden
 
         self.eps_option: float | str | None
-        if self.contact_model == "CM":
+        if self.contact_model != "CMr":
             self.eps_option = None
         elif eps == "learnable":
             self.eps_option = "learnable"
@@ -601,7 +601,8 @@ def _physical_factory(name: str):
     return factory
 
 
-# the registry's built-in entries (registry.py names them "physical:CM_CD_CLNN", ...)
+# the registry's built-in entries (registry.py names them "physical:CM_CD_CLNN", ...),
+# one per name of BUILTIN_MODELS
 CM_CD_CLNN = _physical_factory("CM-CD-CLNN")
 CM_CD_CHNN = _physical_factory("CM-CD-CHNN")
 CMr_CD_CLNN = _physical_factory("CMr-CD-CLNN")

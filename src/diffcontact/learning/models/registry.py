@@ -24,6 +24,7 @@ from diffcontact.registry import Registry
 
 __all__ = [
     "BUILTIN_MODELS",
+    "PHYSICAL_CONTACT_MODELS",
     "create_model",
     "is_physical_model",
     "model_names",
@@ -32,7 +33,12 @@ __all__ = [
     "unregister_model",
 ]
 
-BUILTIN_MODELS = ("CM-CD-CLNN", "CM-CD-CHNN", "CMr-CD-CLNN", "CMr-CD-CHNN")
+# contact models (names in diffcontact.contact.registry) that the physical models
+# "<contact>-CD-CLNN" and "<contact>-CD-CHNN" are built with
+PHYSICAL_CONTACT_MODELS = ("CM", "CMr")
+BUILTIN_MODELS = tuple(
+    f"{contact}-CD-{net}" for contact in PHYSICAL_CONTACT_MODELS for net in ("CLNN", "CHNN")
+)
 _PHYSICAL = "diffcontact.learning.models.physical"
 REGISTRY = Registry(
     "model",
