@@ -1,0 +1,233 @@
+"""Which learned per-contact parameters the data determine: BD5 and BP5 (issue 15).
+
+    python experiments/uncertainty.py --out runs/uncert --doc docs/results.md
+
+For each task (BD5, BP5; one mu and one e_P per contact):
+
+1. ``diffcontact generate TASK`` (800/100/100 trajectories, seed 0) and
+   ``diffcontact train`` of CM-CD-CLNN with the package defaults (80 epochs for
+   BD5, 60 for BP5, as ``experiments/reproduce.py``); reused when finished,
+   resumed when interrupted;
+2. :func:`~diffcontact.learning.evaluation.uncertainty.parameter_uncertainty` on
+   the 800 training chunks (Gauss-Newton standard errors, "determined" flags) and
+   :func:`~diffcontact.learning.evaluation.uncertainty.contact_regimes` (how each
+   contact's training impacts went under the learned model);
+3. a table per task: learned values with their 95 % intervals next to the truth;
+   a parameter is *off* when it misses the truth by more than the tolerance (mu
+   0.01, e_P 0.02, mass ratios 0.5 % relative, the criteria of
+   docs/results.md), and the summary compares the off parameters with the
+   flagged ones.
+
+The tables land in ``OUT/uncertainty.md`` and, with ``--doc``, in a marked
+section of that file (the rest is kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+TASKS = {"BD5": 80, "BP5": 60}
+MODEL = "CM-CD-CLNN"
+BEGIN = "<!-- uncertainty results (experiments/uncertainty.py): begin -->"
+END = "<!-- uncertainty results: end -->"
+
+
+def _write(path: Path, text: str) -> None:
+    from diffcontact.io import atomic_write_bytes
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, text.encode())
+
+
+def train_model(task: str, out: Path, epochs: int) -> tuple[Path, Path, float]:
+    """Generate the data and train CM-CD-CLNN (reused/resumed); ``(data, run, seconds)``."""
+    from diffcontact.learning.data.generate import generate_dataset
+    from diffcontact.learning.training.run import train
+
+    data = out / "data" / task
+    run = out / task
+    if not (data / "metadata.json").is_file():
+        generate_dataset(task, data, n_train=800, n_val=100, n_test=100, progress=False)
+    learned = run / "learned.json"
+    done = learned.is_file() and json.loads(learned.read_text()).get("finished")
+    start = time.perf_counter()
+    if not done:
+        train(data, run, model=MODEL, epochs=epochs, resume=run.exists(), progress=False)
+    return data, run, time.perf_counter() - start
+
+
+def assess(task: str, data: Path, run: Path) -> dict[str, Any]:
+    """Uncertainty, regimes and truth of one trained run (plain data)."""
+    import torch
+
+    from diffcontact.learning.data import load_dataset
+    from diffcontact.learning.evaluation.uncertainty import (
+        contact_regimes,
+        parameter_uncertainty,
+    )
+    from diffcontact.learning.models.storage import load_model
+    from diffcontact.systems import System, load_config
+
+    model = load_model(run).double()
+    chunks = load_dataset(data).split("train", dtype=torch.float64).chunks
+    start = time.perf_counter()
+    u = parameter_uncertainty(model, chunks)
+    seconds = time.perf_counter() - start
+    regimes = contact_regimes(model, chunks)
+    system = System(load_config(task))
+    truth = system.parameters()
+    mass = truth.mass.double()
+    return {
+        "task": task,
+        "uncertainty": u,
+        "regimes": regimes,
+        "seconds": seconds,
+        "contact_names": list(system.contact_names),
+        "truth": {
+            "mass_ratios": (mass[1:] / mass[0]).tolist(),
+            "mu": truth.mu.double().expand(system.n_contacts).tolist(),
+            "cor": truth.cor.double().expand(system.n_contacts).tolist(),
+        },
+    }
+
+
+def _off(kind: str, learned: float, true: float, tol: dict[str, float]) -> bool:
+    if kind == "mass_ratios":
+        return abs(learned / true - 1) > tol["mass_ratio_relative"]
+    return abs(learned - true) > tol[kind]
+
+
+def _cell(entry: dict[str, Any], i: int) -> str:
+    value, ci = entry["value"][i], entry["ci95"][i]
+    flag = "" if entry["determined"][i] else " **?**"
+    if ci is None:
+        return f"{value:.3f} (flat){flag}"
+    return f"{value:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]{flag}"
+
+
+def section(results: list[dict[str, Any]], meta: dict[str, Any]) -> str:
+    """The Markdown section of the report."""
+    lines = [
+        BEGIN,
+        "## Which learned parameters the data determine (BD5, BP5)",
+        "",
+        f"Produced by `python experiments/uncertainty.py --out runs/uncert --doc "
+        f"docs/results.md` ({meta['date']}; torch {meta['torch']}, {meta['machine']}). "
+        "CM-CD-CLNN with one mu and one e_P per contact, trained with the package defaults "
+        "(BD5 80 epochs, BP5 60) on 800 generated trajectories; then "
+        "`diffcontact.learning.evaluation.parameter_uncertainty` on the 800 training chunks: "
+        "Gauss-Newton standard errors with the potential network held fixed "
+        '(docs/evaluation.md, "Parameter uncertainty"). A value is shown with its 95 % '
+        "interval; **?** marks a parameter reported as not determined (interval wider than "
+        'the tolerance, a flat loss, or a value the data would move: "not stable"). '
+        "*Off* means the learned value misses the truth by more than the tolerance "
+        "(mu 0.01, e_P 0.02, mass ratios 0.5 %). Impacts: training states in which the "
+        "contact is active under the learned model, as sliding / sticking / separating.",
+        "",
+    ]
+    for r in results:
+        u, reg, truth = r["uncertainty"], r["regimes"], r["truth"]
+        tol = u["tolerances"]
+        off: set[str] = set()
+        flagged: set[str] = set()
+        for kind, label in (("mass_ratios", "m"), ("mu", "mu"), ("cor", "e_P")):
+            for i, (v, t) in enumerate(zip(u[kind]["value"], truth[kind], strict=True)):
+                name = f"{label}{i + 2}/m1" if kind == "mass_ratios" else f"{label}[{i}]"
+                if _off(kind, v, t, tol):
+                    off.add(name)
+                if not u[kind]["determined"][i]:
+                    flagged.add(name)
+        both, missed, extra = off & flagged, off - flagged, flagged - off
+        lines += [
+            f"### {r['task']}",
+            "",
+            f"{len(off)} parameters off, {len(flagged)} flagged; off and flagged: "
+            f"{', '.join(sorted(both)) or 'none'}; off but not flagged: "
+            f"{', '.join(sorted(missed)) or 'none'}; flagged but not off: "
+            f"{', '.join(sorted(extra)) or 'none'}. Mean absolute residual "
+            f"{u['residual_mean_abs']:.2e} over "
+            f"{u['n_residuals']} residuals, {u['n_parameters']} parameters; "
+            f"{r['seconds']:.0f} s. Training {r['train_seconds'] / 60:.1f} min.",
+            "",
+            "| m_i/m_1 | true | learned [95 %] |",
+            "|---|---|---|",
+        ]
+        for i, t in enumerate(truth["mass_ratios"]):
+            lines.append(f"| m{i + 2}/m1 | {t:.3f} | {_cell(u['mass_ratios'], i)} |")
+        lines += [
+            "",
+            "| k | contact | impacts (slide/stick/sep) | true mu | learned mu [95 %] "
+            "| true e_P | learned e_P [95 %] | why flagged |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for k, name in enumerate(r["contact_names"]):
+            why = "; ".join(
+                f"{lab}: {u[kind]['reason'][k]}"
+                for kind, lab in (("mu", "mu"), ("cor", "e_P"))
+                if u[kind]["reason"][k]
+            )
+            lines.append(
+                f"| {k} | {name} | {reg['impacts'][k]} ({reg['sliding'][k]}/"
+                f"{reg['sticking'][k]}/{reg['separating'][k]}) | {truth['mu'][k]:.2f} | "
+                f"{_cell(u['mu'], k)} | {truth['cor'][k]:.2f} | {_cell(u['cor'], k)} | {why} |"
+            )
+        lines.append("")
+    lines.append(END)
+    return "\n".join(lines)
+
+
+def write_doc(doc: Path, text: str) -> None:
+    """Replace the marked section of ``doc`` (or append it), keeping the rest."""
+    old = doc.read_text() if doc.is_file() else ""
+    if BEGIN in old and END in old:
+        head, rest = old.split(BEGIN, 1)
+        old = head + text + rest.split(END, 1)[1]
+    else:
+        old = old.rstrip() + "\n\n" + text + "\n"
+    _write(doc, old)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="runs/uncert", help="output folder")
+    parser.add_argument("--doc", default=None, help="Markdown file to put the tables into")
+    parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    results = []
+    for task in args.tasks:
+        print(f"{task}: training CM-CD-CLNN ({TASKS[task]} epochs; reused when finished)")
+        data, run, train_seconds = train_model(task, out, TASKS[task])
+        learned = json.loads((run / "learned.json").read_text())
+        train_seconds = float(learned.get("train_seconds", train_seconds))
+        print(f"{task}: parameter uncertainty")
+        r = assess(task, data, run)
+        r["train_seconds"] = train_seconds
+        results.append(r)
+    meta = {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "torch": torch.__version__,
+        "machine": f"{platform.machine()} CPU, one torch thread",
+    }
+    text = section(results, meta)
+    _write(out / "uncertainty.md", text + "\n")
+    _write(out / "uncertainty.json", json.dumps({"meta": meta, "results": results}, indent=1))
+    if args.doc:
+        write_doc(Path(args.doc), text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
