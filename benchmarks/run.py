@@ -6,6 +6,7 @@
     python benchmarks/run.py train [...]     # seconds per training step per task (train.py)
     python benchmarks/run.py control [...]   # one planning iteration, 1 and 64 starts (control.py)
     python benchmarks/run.py backends [...]  # the solver's torch vs Warp backends (backends.py)
+    python benchmarks/run.py contact_models [...]  # one impulse: CM vs CMr vs Coulomb
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -18,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SUITES = ("solver", "simulate", "train", "control", "backends")
+SUITES = ("solver", "simulate", "train", "control", "backends", "contact_models")
 
 
 def main(argv: list[str] | None = None) -> int:

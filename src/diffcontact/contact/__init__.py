@@ -2,6 +2,8 @@
 
 - :func:`solve_cone_qp`: the batched, differentiable friction-cone QP;
 - :func:`two_phase_impulse`: the paper's compression / restitution impulse;
+- :func:`solve_coulomb`, :func:`coulomb_two_phase_impulse`: the same with exact
+  Coulomb friction (De Saxcé's NCP), contact model ``"Coulomb"``;
 - contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase`)
   and their registry (:func:`register_contact_model`, :func:`contact_models`).
 
@@ -29,6 +31,10 @@ _EXPORTS: dict[str, str] = {
     "ImpulseResult": "diffcontact.contact.impulse",
     "penetration_target": "diffcontact.contact.impulse",
     "two_phase_impulse": "diffcontact.contact.impulse",
+    "CoulombSettings": "diffcontact.contact.coulomb",
+    "ExactCoulomb": "diffcontact.contact.coulomb",
+    "coulomb_two_phase_impulse": "diffcontact.contact.coulomb",
+    "solve_coulomb": "diffcontact.contact.coulomb",
     "CM": "diffcontact.contact.models",
     "CMr": "diffcontact.contact.models",
     "ContactModel": "diffcontact.contact.models",
@@ -42,15 +48,19 @@ __all__ = [
     "ConeQPError",
     "ContactModel",
     "ContactParams",
+    "CoulombSettings",
+    "ExactCoulomb",
     "ImpulseResult",
     "PoissonTwoPhase",
     "SolverSettings",
     "SolverStatus",
     "contact_models",
+    "coulomb_two_phase_impulse",
     "create_contact_model",
     "penetration_target",
     "register_contact_model",
     "solve_cone_qp",
+    "solve_coulomb",
     "two_phase_impulse",
     "unregister_contact_model",
 ]

@@ -1,4 +1,4 @@
-"""The contact-model registry: names (``"CM"``, ``"CMr"``, yours) to factories.
+"""The contact-model registry: names (``"CM"``, ``"CMr"``, ``"Coulomb"``, yours) to factories.
 
 Importing this module loads no torch: the CLI builds its ``--contact-model``
 choices from :func:`contact_models` without loading the solver. A factory is
@@ -22,7 +22,11 @@ __all__ = [
 
 REGISTRY = Registry(
     "contact model",
-    {"CM": "diffcontact.contact.models:CM", "CMr": "diffcontact.contact.models:CMr"},
+    {
+        "CM": "diffcontact.contact.models:CM",
+        "CMr": "diffcontact.contact.models:CMr",
+        "Coulomb": "diffcontact.contact.coulomb:Coulomb",
+    },
     entry_point_group="diffcontact.contact_models",
 )
 

@@ -36,8 +36,10 @@ truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
 - CMr's regulariser ``eps``: a fixed number or ``exp(log_eps)`` (learnable,
   initialised at 0.01).
 
-Model names (:data:`~diffcontact.learning.models.names.MODELS`): ``CM-CD-CLNN``,
-``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``.
+Model names (:data:`~diffcontact.learning.models.registry.BUILTIN_MODELS`): ``CM-CD-CLNN``,
+``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``, and ``Coulomb-CD-CLNN``,
+``Coulomb-CD-CHNN`` (exact Coulomb friction, :mod:`diffcontact.contact.coulomb`;
+not in the paper).
 
 Example::
 
@@ -607,3 +609,5 @@ CM_CD_CLNN = _physical_factory("CM-CD-CLNN")
 CM_CD_CHNN = _physical_factory("CM-CD-CHNN")
 CMr_CD_CLNN = _physical_factory("CMr-CD-CLNN")
 CMr_CD_CHNN = _physical_factory("CMr-CD-CHNN")
+Coulomb_CD_CLNN = _physical_factory("Coulomb-CD-CLNN")
+Coulomb_CD_CHNN = _physical_factory("Coulomb-CD-CHNN")

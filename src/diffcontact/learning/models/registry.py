@@ -35,7 +35,7 @@ __all__ = [
 
 # contact models (names in diffcontact.contact.registry) that the physical models
 # "<contact>-CD-CLNN" and "<contact>-CD-CHNN" are built with
-PHYSICAL_CONTACT_MODELS = ("CM", "CMr")
+PHYSICAL_CONTACT_MODELS = ("CM", "CMr", "Coulomb")
 BUILTIN_MODELS = tuple(
     f"{contact}-CD-{net}" for contact in PHYSICAL_CONTACT_MODELS for net in ("CLNN", "CHNN")
 )
