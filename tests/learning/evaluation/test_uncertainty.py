@@ -104,3 +104,39 @@ def test_bad_input_is_named(bp5):
         parameter_uncertainty(torch.nn.Linear(2, 2), chunks)
     with pytest.raises(ValueError, match="step must be a positive number"):
         UncertaintySettings(step=0)
+
+
+def test_flags_on_a_synthetic_loss():
+    """Kinks are one-sided, clamped values the data would move are unstable."""
+    from diffcontact.learning.evaluation.uncertainty import _assess, _Layout
+
+    gen = torch.Generator().manual_seed(1)
+    layout = _Layout(n_mass=1, n_moments=0, n_mu=2, n_cor=1)
+    A = torch.randn(400, 4, generator=gen, dtype=torch.float64)
+    noise = 1e-4 * torch.randn(400, generator=gen, dtype=torch.float64)
+    value = torch.tensor([0.5, 0.2, 0.3, 1.0], dtype=torch.float64)  # log ratio, mu, mu, e_P
+    target = value.clone()
+    target[3] = 0.97  # the data want e_P = 0.97; the clamp holds it at 1
+
+    def residuals(theta):
+        smooth = theta.clone()
+        smooth[2] = (theta[2] - 0.3).clamp_min(0)  # mu[1] matters above 0.3 only
+        ref = target.clone()
+        ref[2] = 0.0
+        return A @ (smooth - ref) + noise
+
+    h = 1e-5
+    plus = torch.tensor([h, h, h, 0.0], dtype=torch.float64)  # e_P = 1: no step up
+    minus = -torch.full((4,), h, dtype=torch.float64)
+    rows = [residuals(value)]
+    rows += [residuals(value + torch.eye(4, dtype=torch.float64)[i] * plus[i]) for i in range(4)]
+    rows += [residuals(value + torch.eye(4, dtype=torch.float64)[i] * minus[i]) for i in range(4)]
+    u = _assess(torch.stack(rows), plus, minus, value, layout, UncertaintySettings())
+    assert u["mass_ratios"]["determined"] == [True], u["mass_ratios"]["reason"]
+    assert u["mass_ratios"]["value"][0] == pytest.approx(math.exp(0.5))
+    assert u["mu"]["determined"] == [True, False]
+    assert "one-sided" in u["mu"]["reason"][1]
+    assert u["cor"]["determined"] == [False] and "not stable" in u["cor"]["reason"][0]
+    assert u["cor"]["step"][0] == pytest.approx(-0.03, rel=0.05)
+    se = u["mu"]["std_error"][0]
+    assert 0 < se < 3e-3  # about b / |A column|: 0.03 * 0.8 / 20

@@ -18,26 +18,40 @@ natural units:
 - ``mu`` and ``e_P`` (one shared value, or one per contact).
 
 The potential network is held fixed, so the errors are *conditional* on it.
-The Jacobian ``J = dr/dtheta`` is taken by central finite differences
-(one-sided at the edge of a range: ``mu = 0``, ``e_P`` in {0, 1}); the perturbed
-rollouts run as one batch with one parameter set per trajectory. The
-Gauss-Newton (Laplace) covariance is ``s^2 (J^T J)^-1`` with
-``s^2 = |r|^2 / (n - p)``; directions whose curvature is below ``rcond`` times
-the largest (after scaling ``J``'s columns to unit norm) are not determined, and
-a parameter with a share of more than ``1e-6`` of its variance in them gets an
-infinite standard error. The loss is a mean absolute error, not least squares,
-and residuals within a chunk are correlated, so the errors are a local,
-optimistic measure: use them to tell determined parameters from undetermined
-ones, not as exact confidence intervals.
+The Jacobian ``J = dr/dtheta`` is taken by finite differences on both sides of
+the learned value (one side only at the edge of a range: ``mu = 0``, ``e_P`` in
+{0, 1}); the perturbed rollouts run as one batch with one parameter set per
+trajectory.
 
-A parameter is **determined** when the half-width of its 95 % interval
-(1.96 standard errors) is within a tolerance (``mass_ratio_tol`` relative,
-``mu_tol`` and ``cor_tol`` absolute: the criteria of docs/results.md) and its
-value is *stable*: the Gauss-Newton step from the learned values, ``-(J^T J)^+
-J^T r`` (within the determined directions), moves it by less than its
-tolerance. An unstable parameter is one the data would move but training did
-not: typically a value held at the edge of its range by the clamp, where the
-optimiser gets no gradient.
+The training loss is a mean absolute error, i.e. the likelihood of Laplace
+noise of scale ``b``, estimated as ``b = mean |r|``. Its Fisher information is
+``J^T J / b^2``, so the Laplace (Gauss-Newton) covariance is
+``b^2 (J^T J)^-1``. Directions whose curvature is below ``rcond`` times the
+largest (after scaling ``J``'s columns to unit norm) are flat, and a parameter
+with a share of more than ``1e-6`` of its variance in them gets an infinite
+standard error. Residuals within a chunk are correlated and the loss is not
+smooth everywhere (contacts switch between sticking and sliding), so the errors
+are a local, optimistic measure: use them to tell determined parameters from
+undetermined ones, not as exact confidence intervals.
+
+A parameter is **determined** unless
+
+- the loss is flat along it (infinite standard error);
+- it is a friction coefficient and no training impact slides (sticking impacts
+  only bound ``mu`` from below; :func:`contact_regimes`);
+- it is *one-sided*: the forward and backward difference quotients differ by
+  more than a factor 2 (``one_sided_ratio``): the learned value sits at a kink
+  of the loss, typically where an impact switches between sticking and sliding,
+  so the data bound it from one side only;
+- the half-width of its 95 % interval (1.96 standard errors) exceeds a
+  tolerance (``mass_ratio_tol`` relative, ``mu_tol`` and ``cor_tol`` absolute:
+  the criteria of docs/results.md);
+- it is *not stable*: a Newton step of the absolute-error loss from the learned
+  values (iteratively reweighted least squares, weights ``1 / |r|``; exact when
+  the residuals are linear in the parameters) moves it by more than its
+  tolerance. That is a value the data would move but training did not,
+  typically one held at the edge of its range by the clamp, where the optimiser
+  gets no gradient.
 
 :func:`contact_regimes` counts, for every candidate contact, the training
 states in which it is active under the learned model, split into sliding
@@ -207,12 +221,13 @@ def parameter_uncertainty(
         progress: print a progress bar over the perturbed rollouts.
 
     Returns:
-        A JSON-ready dict: ``method``, ``n_residuals``, ``n_parameters``,
-        ``residual_rms``, ``mass_ratios`` (``m_i / m_1`` for bodies 2..B),
-        ``mu``, ``cor`` (each a dict with
-        lists ``value``, ``std_error`` (``None`` when not determined at all),
-        ``ci95`` (pairs), ``gauss_newton_step``, ``determined`` (bool) and
-        ``reason`` ("" or why not)), and ``tolerances``.
+        A JSON-ready dict: ``method``, ``n_chunks``, ``n_residuals``,
+        ``n_parameters``, ``residual_mean_abs`` (``b``), ``mass_ratios``
+        (``m_i / m_1`` for bodies 2..B), ``mu``, ``cor`` (each a dict with lists
+        ``value``, ``std_error`` (``None`` where the loss is flat), ``ci95``
+        (pairs or ``None``), ``step`` (the Newton step), ``determined`` (bool)
+        and ``reason`` ("" or why not)), ``tolerances`` and ``regimes``
+        (:func:`contact_regimes`).
 
     Raises:
         ValueError: a model that is not a physical model, chunks of the wrong
