@@ -2,8 +2,10 @@
 
 - :func:`solve_cone_qp`: the batched, differentiable friction-cone QP;
 - :func:`two_phase_impulse`: the paper's compression / restitution impulse;
-- contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase`)
-  and their registry (:func:`register_contact_model`, :func:`contact_models`).
+- contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase` as
+  ``"CM"``/``"CMr"``, :class:`NewtonLCP` as ``"LCP"`` with its batched differentiable
+  LCP solver :func:`solve_lcp`) and their registry (:func:`register_contact_model`,
+  :func:`contact_models`).
 
 Names are imported lazily: ``import diffcontact.contact`` and the registry
 load no torch, so the CLI can list contact models cheaply.
@@ -34,23 +36,33 @@ _EXPORTS: dict[str, str] = {
     "ContactModel": "diffcontact.contact.models",
     "ContactParams": "diffcontact.contact.models",
     "PoissonTwoPhase": "diffcontact.contact.models",
+    "LCP": "diffcontact.contact.lcp",
+    "LCPError": "diffcontact.contact.lcp",
+    "NewtonLCP": "diffcontact.contact.lcp",
+    "lcp_impulse": "diffcontact.contact.lcp",
+    "solve_lcp": "diffcontact.contact.lcp",
 }
 
 __all__ = [
     "CM",
+    "LCP",
     "CMr",
     "ConeQPError",
     "ContactModel",
     "ContactParams",
     "ImpulseResult",
+    "LCPError",
+    "NewtonLCP",
     "PoissonTwoPhase",
     "SolverSettings",
     "SolverStatus",
     "contact_models",
     "create_contact_model",
+    "lcp_impulse",
     "penetration_target",
     "register_contact_model",
     "solve_cone_qp",
+    "solve_lcp",
     "two_phase_impulse",
     "unregister_contact_model",
 ]

@@ -22,7 +22,11 @@ __all__ = [
 
 REGISTRY = Registry(
     "contact model",
-    {"CM": "diffcontact.contact.models:CM", "CMr": "diffcontact.contact.models:CMr"},
+    {
+        "CM": "diffcontact.contact.models:CM",
+        "CMr": "diffcontact.contact.models:CMr",
+        "LCP": "diffcontact.contact.lcp:LCP",
+    },
     entry_point_group="diffcontact.contact_models",
 )
 
