@@ -429,3 +429,31 @@ def test_generate_and_train_with_lcp_through_the_cli(tmp_path, capsys):
     learned = json.loads((run / "learned.json").read_text())
     assert learned["finished"] and learned["global_step"] == 2
     assert all(math.isfinite(x) for x in learned["learned"]["cor"] + learned["learned"]["mu"])
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_degenerate_batches_solve_and_give_finite_gradients(d):
+    """Many duplicate contacts, states at rest, mu = 0, a singular Mhat_inv: all solved,
+    every gradient finite."""
+    g = torch.Generator().manual_seed(d)
+    n, K, D = 48, 4, 6
+    J = torch.randn(n, K, d, D, generator=g, dtype=F64)
+    J[:, 1] = J[:, 0]  # duplicates
+    J[::2, 3] = J[::2, 0]
+    J = J.reshape(n, K * d, D)
+    X = torch.randn(n, D, D, generator=g, dtype=F64)
+    Mi = X @ X.transpose(-1, -2) / D
+    Mi[::3, 0, :] = 0  # singular, like a constrained body
+    Mi[::3, :, 0] = 0
+    v = torch.randn(n, D, generator=g, dtype=F64)
+    v[::4] = 0  # at rest
+    mu = torch.rand(n, K, generator=g, dtype=F64)
+    mu[::5] = 0
+    cor = torch.rand(n, K, generator=g, dtype=F64)
+    active = torch.rand(n, K, generator=g) < 0.8
+    inputs = [x.requires_grad_(True) for x in (J, Mi, v, mu, cor)]
+    res, status = lcp_impulse(*inputs, active, d, return_status=True)
+    assert status.all_converged
+    (res.v_plus.pow(2).sum() + res.f_c.sum()).backward()
+    for x in inputs:
+        assert x.grad is None or bool(torch.isfinite(x.grad).all())
