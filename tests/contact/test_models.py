@@ -36,9 +36,11 @@ def frictionless():
 
 
 def test_builtin_names_and_unknown_name():
-    assert contact_models()[:2] == ["CM", "CMr"]
-    with pytest.raises(ValueError, match=r"unknown contact model 'LCP'; registered .*: CM, CMr"):
-        create_contact_model("LCP")
+    assert contact_models()[:4] == ["CM", "CMr", "LCP", "Coulomb"]
+    with pytest.raises(
+        ValueError, match=r"unknown contact model 'Stribeck'; registered .*: CM, CMr, LCP, Coulomb"
+    ):
+        create_contact_model("Stribeck")
     assert isinstance(create_contact_model("CM"), ContactModel)
     with pytest.raises(ValueError, match=r"has no resolve method|registered name"):
         create_contact_model(42)

@@ -251,8 +251,8 @@ def test_bad_initial_states_are_rejected():
         system.simulate(outside)
     with pytest.raises(ValueError, match=r"steps must be a non-negative integer"):
         system.simulate(z0, steps=-1)
-    with pytest.raises(ValueError, match=r"unknown contact model 'LCP'.*CM, CMr"):
-        system.simulate(z0, steps=1, contact_model="LCP")
+    with pytest.raises(ValueError, match=r"unknown contact model 'Stribeck'.*CM, CMr"):
+        system.simulate(z0, steps=1, contact_model="Stribeck")
     with pytest.raises(ValueError, match=r"dynamics must be one of"):
         system.simulate(z0, steps=1, dynamics="newton")
     rope = dc.load_system("Rope")

@@ -4,8 +4,10 @@
 - :func:`two_phase_impulse`: the paper's compression / restitution impulse;
 - :func:`solve_coulomb`, :func:`coulomb_two_phase_impulse`: the same with exact
   Coulomb friction (De Saxcé's NCP), contact model ``"Coulomb"``;
-- contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase`)
-  and their registry (:func:`register_contact_model`, :func:`contact_models`).
+- contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase` as
+  ``"CM"``/``"CMr"``, :class:`NewtonLCP` as ``"LCP"`` with its batched differentiable
+  LCP solver :func:`solve_lcp`) and their registry (:func:`register_contact_model`,
+  :func:`contact_models`).
 
 Names are imported lazily: ``import diffcontact.contact`` and the registry
 load no torch, so the CLI can list contact models cheaply.
@@ -40,10 +42,16 @@ _EXPORTS: dict[str, str] = {
     "ContactModel": "diffcontact.contact.models",
     "ContactParams": "diffcontact.contact.models",
     "PoissonTwoPhase": "diffcontact.contact.models",
+    "LCP": "diffcontact.contact.lcp",
+    "LCPError": "diffcontact.contact.lcp",
+    "NewtonLCP": "diffcontact.contact.lcp",
+    "lcp_impulse": "diffcontact.contact.lcp",
+    "solve_lcp": "diffcontact.contact.lcp",
 }
 
 __all__ = [
     "CM",
+    "LCP",
     "CMr",
     "ConeQPError",
     "ContactModel",
@@ -51,16 +59,20 @@ __all__ = [
     "CoulombSettings",
     "ExactCoulomb",
     "ImpulseResult",
+    "LCPError",
+    "NewtonLCP",
     "PoissonTwoPhase",
     "SolverSettings",
     "SolverStatus",
     "contact_models",
     "coulomb_two_phase_impulse",
     "create_contact_model",
+    "lcp_impulse",
     "penetration_target",
     "register_contact_model",
     "solve_cone_qp",
     "solve_coulomb",
+    "solve_lcp",
     "two_phase_impulse",
     "unregister_contact_model",
 ]

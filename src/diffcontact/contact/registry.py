@@ -25,6 +25,7 @@ REGISTRY = Registry(
     {
         "CM": "diffcontact.contact.models:CM",
         "CMr": "diffcontact.contact.models:CMr",
+        "LCP": "diffcontact.contact.lcp:LCP",
         "Coulomb": "diffcontact.contact.coulomb:Coulomb",
     },
     entry_point_group="diffcontact.contact_models",

@@ -36,10 +36,12 @@ truth's; only where ``M^-1``, ``V``, ``mu`` and ``e_P`` come from differs:
 - CMr's regulariser ``eps``: a fixed number or ``exp(log_eps)`` (learnable,
   initialised at 0.01).
 
-Model names (:data:`~diffcontact.learning.models.registry.BUILTIN_MODELS`): ``CM-CD-CLNN``,
-``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``, and ``Coulomb-CD-CLNN``,
-``Coulomb-CD-CHNN`` (exact Coulomb friction, :mod:`diffcontact.contact.coulomb`;
-not in the paper).
+Model names (:data:`~diffcontact.learning.models.registry.BUILTIN_MODELS`):
+``CM-CD-CLNN``, ``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``, ``LCP-CD-CLNN``,
+``LCP-CD-CHNN`` (the LCP contact model of :mod:`diffcontact.contact.lcp`: Newton's
+restitution, so ``e_P`` is Newton's coefficient there; no ``eps``), and
+``Coulomb-CD-CLNN``, ``Coulomb-CD-CHNN`` (exact Coulomb friction,
+:mod:`diffcontact.contact.coulomb`; not in the paper).
 
 Example::
 
@@ -157,7 +159,7 @@ def _cor_raw(cor: Tensor) -> Tensor:
 
 
 class LearnedModel(nn.Module):
-    """A CM/CMr-CD-CLNN/CHNN model: a :class:`System` whose parameters are learnable.
+    """A CM/CMr/LCP-CD-CLNN/CHNN model: a :class:`System` whose parameters are learnable.
 
     Args:
         config: the known structure: a built-in task name, a config path, a
@@ -611,3 +613,5 @@ CMr_CD_CLNN = _physical_factory("CMr-CD-CLNN")
 CMr_CD_CHNN = _physical_factory("CMr-CD-CHNN")
 Coulomb_CD_CLNN = _physical_factory("Coulomb-CD-CLNN")
 Coulomb_CD_CHNN = _physical_factory("Coulomb-CD-CHNN")
+LCP_CD_CLNN = _physical_factory("LCP-CD-CLNN")
+LCP_CD_CHNN = _physical_factory("LCP-CD-CHNN")

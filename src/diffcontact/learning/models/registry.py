@@ -4,7 +4,7 @@ Importing this module loads no torch, so the CLI builds its ``--model``
 choices from :func:`model_names` cheaply. A factory is any callable
 ``factory(config, **options) -> DynamicsModel`` (:mod:`.protocol`); the
 built-in physical models (paper-facts.md, "Models compared": contact model
-CM or CMr, true collision detection, constrained Lagrangian or Hamiltonian
+CM, CMr or LCP, true collision detection, constrained Lagrangian or Hamiltonian
 network) are loaded on first use. Third-party packages can also register
 through the entry-point group ``diffcontact.models``.
 
@@ -35,7 +35,7 @@ __all__ = [
 
 # contact models (names in diffcontact.contact.registry) that the physical models
 # "<contact>-CD-CLNN" and "<contact>-CD-CHNN" are built with
-PHYSICAL_CONTACT_MODELS = ("CM", "CMr", "Coulomb")
+PHYSICAL_CONTACT_MODELS = ("CM", "CMr", "LCP", "Coulomb")
 BUILTIN_MODELS = tuple(
     f"{contact}-CD-{net}" for contact in PHYSICAL_CONTACT_MODELS for net in ("CLNN", "CHNN")
 )
@@ -63,7 +63,7 @@ def parse_model_name(name: str) -> tuple[str, str]:
 
 
 def is_physical_model(name: str) -> bool:
-    """Whether ``name`` is one of the built-in CM/CMr physical models."""
+    """Whether ``name`` is one of the built-in CM/CMr/LCP physical models."""
     return name in BUILTIN_MODELS
 
 
