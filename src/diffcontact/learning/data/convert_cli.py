@@ -40,28 +40,61 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
             "--model. Prints checks of the result; see docs/own-data.md."
         ),
     )
-    p.add_argument("source", choices=sorted(SOURCES), metavar="SOURCE",
-                   help="positions, coordinates or mujoco")  # fmt: skip
+    p.add_argument(
+        "source", choices=sorted(SOURCES), metavar="SOURCE", help="positions, coordinates or mujoco"
+    )
     p.add_argument("file", metavar="FILE", help="input .npz (arrays named as above)")
-    p.add_argument("--config", required=True, metavar="CONFIG",
-                   help="the recorded system: built-in task or .yaml/.json config")  # fmt: skip
+    p.add_argument(
+        "--config",
+        required=True,
+        metavar="CONFIG",
+        help="the recorded system: built-in task or .yaml/.json config",
+    )
     p.add_argument("--out", required=True, metavar="OUT.npz", help="output file")
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.add_argument("--threshold", type=float_in(0.0), default=None, metavar="A",
-                   help="positions / coordinates without qdot: the velocity-jump threshold "
-                   "(an acceleration; default automatic)")  # fmt: skip
-    p.add_argument("--omega-frame", choices=("world", "body"), default="world",
-                   help="coordinates, gyroscope: frame of the angular velocity (default world)")  # fmt: skip
+    p.add_argument(
+        "--threshold",
+        type=float_in(0.0),
+        default=None,
+        metavar="A",
+        help="positions / coordinates without qdot: the velocity-jump threshold "
+        "(an acceleration; default automatic)",
+    )
+    p.add_argument(
+        "--omega-frame",
+        choices=("world", "body"),
+        default="world",
+        help="coordinates, gyroscope: frame of the angular velocity (default world)",
+    )
     p.add_argument("--model", metavar="XML", default=None, help="mujoco: the MJCF model file")
-    p.add_argument("--bodies", nargs="+", metavar="NAME", default=None,
-                   help="mujoco: one MuJoCo body name (or site:NAME) per diffcontact body, in "
-                   "its order (default: all bodies but the world, in the model's order)")  # fmt: skip
-    p.add_argument("--plane", default=None, metavar="AB",
-                   help="mujoco, 2D systems: the world axes that become x and y (e.g. xy, xz)")  # fmt: skip
-    p.add_argument("--axes", choices=("inertial", "body"), default="inertial",
-                   help="mujoco: axis points along the principal axes (default) or the body frame")  # fmt: skip
-    p.add_argument("--origin", nargs=3, type=float, metavar=("X", "Y", "Z"), default=None,
-                   help="mujoco: world point that becomes the origin (e.g. a pivot)")  # fmt: skip
+    p.add_argument(
+        "--bodies",
+        nargs="+",
+        metavar="NAME",
+        default=None,
+        help="mujoco: one MuJoCo body name (or site:NAME) per diffcontact body, in "
+        "its order (default: all bodies but the world, in the model's order)",
+    )
+    p.add_argument(
+        "--plane",
+        default=None,
+        metavar="AB",
+        help="mujoco, 2D systems: the world axes that become x and y (e.g. xy, xz)",
+    )
+    p.add_argument(
+        "--axes",
+        choices=("inertial", "body"),
+        default="inertial",
+        help="mujoco: axis points along the principal axes (default) or the body frame",
+    )
+    p.add_argument(
+        "--origin",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "Z"),
+        default=None,
+        help="mujoco: world point that becomes the origin (e.g. a pivot)",
+    )
     p.add_argument("--quiet", action="store_true", help="no summary")
     p.set_defaults(func=run_convert_cli)
     return p
@@ -80,7 +113,9 @@ def _read(path: str, source: str) -> tuple[dict[str, Any], float | None]:
             arrays = {k: data[k] for k in (*names, "dt") if k in keys}
     except (OSError, EOFError, ValueError, KeyError, AttributeError, zipfile.BadZipFile,
             zlib.error) as err:  # fmt: skip
-        raise ValueError(f"cannot read {path} as .npz (truncated or corrupted?): {one_line(err)}")
+        raise ValueError(
+            f"cannot read {path} as .npz (truncated or corrupted?): {one_line(err)}"
+        ) from None
     required = [n for n in names if n != "qdot"]
     missing = [n for n in required if n not in arrays]
     if missing:
@@ -178,8 +213,10 @@ def _cli_convert(args: argparse.Namespace) -> int:
             print(f"  warning: {one_line(w.message)}")
         if "velocity_unreliable" in extra:
             n = int(extra["velocity_unreliable"].sum())
-            print(f"  {n} of {z.shape[0] * z.shape[1]} states have finite-difference velocities "
-                  "next to a velocity jump (saved as velocity_unreliable)")  # fmt: skip
+            print(
+                f"  {n} of {z.shape[0] * z.shape[1]} states have finite-difference velocities "
+                "next to a velocity jump (saved as velocity_unreliable)"
+            )
         print("  checks: " + ", ".join(f"{k} {v:.3g}" for k, v in checks.items()))
         print(f"  next: diffcontact generate --from-arrays {out} --out DATASET_DIR")
     else:
