@@ -7,6 +7,8 @@ Subcommands:
   file, save the trajectories as ``.npz`` and optionally a GIF.
 - ``diffcontact generate``: a train/val/test dataset, simulated or from recorded
   arrays (:mod:`diffcontact.learning.data.cli`);
+- ``diffcontact convert``: recorded positions, generalised coordinates or MuJoCo
+  ``qpos``/``qvel`` to a ``--from-arrays`` file (:mod:`diffcontact.learning.data.convert_cli`);
 - ``diffcontact train``: train a registered model on a dataset
   (:mod:`diffcontact.learning.training.cli`);
 - ``diffcontact evaluate``: metrics, plots and a GIF of a trained run
@@ -126,10 +128,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     # learning subcommands; each module keeps its heavy imports inside its handler
     from diffcontact.learning.data import cli as learning_data
+    from diffcontact.learning.data import convert_cli as learning_convert
     from diffcontact.learning.evaluation import cli as learning_evaluate
     from diffcontact.learning.training import cli as learning_train
 
     learning_data.register_cli(sub)
+    learning_convert.register_cli(sub)
     learning_train.register_cli(sub)
     learning_evaluate.register_cli(sub)
 

@@ -10,7 +10,9 @@ Lightning or matplotlib; the handler imports them when it runs):
 - :mod:`~diffcontact.learning.data` (format in ``docs/data.md``):
   :func:`generate_dataset` simulates train/val/test trajectories of a task and
   chunks them for training; :func:`dataset_from_arrays` writes the same format
-  from trajectories recorded elsewhere; :func:`load_dataset` reads a dataset
+  from trajectories recorded elsewhere, after :func:`trajectories_from_positions`,
+  :func:`trajectories_from_coordinates` or :func:`trajectories_from_mujoco` where
+  they come in another form (``docs/own-data.md``); :func:`load_dataset` reads a dataset
   folder (checksums verified) into a :class:`Dataset`.
 - :mod:`~diffcontact.learning.models`: :class:`LearnedModel`
   (CM/CMr-CD-CLNN/CHNN, a ``System`` whose inertia, potential, mu and e_P are
@@ -30,6 +32,9 @@ _EXPORTS: dict[str, str] = {
     "Dataset": "diffcontact.learning.data.format",
     "DatasetError": "diffcontact.learning.data.format",
     "dataset_from_arrays": "diffcontact.learning.data.arrays",
+    "trajectories_from_coordinates": "diffcontact.learning.data.convert",
+    "trajectories_from_mujoco": "diffcontact.learning.data.mujoco",
+    "trajectories_from_positions": "diffcontact.learning.data.convert",
     "generate_dataset": "diffcontact.learning.data.generate",
     "load_dataset": "diffcontact.learning.data.format",
     "select_chunks": "diffcontact.learning.data.chunks",

@@ -12,6 +12,7 @@ from diffcontact.mechanics.bodies import (
     disk_points_2d,
     kinetic_energy,
     kron_identity,
+    quaternion_to_matrix,
     rigid_body_points_3d,
 )
 from diffcontact.mechanics.constraints import (
@@ -55,6 +56,7 @@ __all__ = [
     "lagrangian_vector_field",
     "linear_constraints",
     "potential_gradient",
+    "quaternion_to_matrix",
     "rigid_body_constraints",
     "rigid_body_points_3d",
     "rk4_38_step",

@@ -30,6 +30,7 @@ __all__ = [
     "disk_points_2d",
     "kinetic_energy",
     "kron_identity",
+    "quaternion_to_matrix",
     "rigid_body_points_3d",
 ]
 
@@ -172,6 +173,27 @@ def disk_points_2d(
     x = torch.stack([centre, centre + e_x, centre + e_y], dim=-2)
     v = torch.stack([velocity, velocity + w * e_y, velocity - w * e_x], dim=-2)
     return torch.stack([x, v], dim=-3)
+
+
+def quaternion_to_matrix(quaternion: Tensor) -> Tensor:
+    """Rotation matrix of a unit quaternion ``(w, x, y, z)`` (scalar first, as MuJoCo).
+
+    Args:
+        quaternion: ``(..., 4)`` unit quaternions (normalised here; ``q`` and ``-q`` give
+            the same rotation).
+
+    Returns:
+        ``(..., 3, 3)`` rotation matrices whose columns are the body axes in world
+        coordinates (``R @ r`` maps body coordinates ``r`` to the world).
+    """
+    q = quaternion / torch.linalg.vector_norm(quaternion, dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
+    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
 
 
 def rigid_body_points_3d(centre: Tensor, R: Tensor, velocity: Tensor, omega: Tensor) -> Tensor:

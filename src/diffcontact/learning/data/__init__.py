@@ -6,6 +6,9 @@
   trajectories;
 - :mod:`.arrays`: :func:`dataset_from_arrays` writes the same format from
   trajectories recorded elsewhere;
+- :mod:`.convert`: converters from positions only (finite differences) and from
+  generalised coordinates; :mod:`.mujoco`: from MuJoCo ``qpos``/``qvel``
+  (``docs/own-data.md``); :mod:`.convert_cli`: ``diffcontact convert``;
 - :mod:`.chunks`: :func:`contact_states`, :func:`select_chunks` (one chunk per
   trajectory, starting out of contact); :mod:`.noise`: :func:`add_chunk_noise`;
 - :mod:`.write`: folder checks and atomic writing; :mod:`.checks`: argument checks;
@@ -33,6 +36,12 @@ _EXPORTS: dict[str, str] = {
     "contact_states": "diffcontact.learning.data.chunks",
     "select_chunks": "diffcontact.learning.data.chunks",
     "dataset_from_arrays": "diffcontact.learning.data.arrays",
+    "finite_difference_velocities": "diffcontact.learning.data.convert",
+    "trajectories_from_coordinates": "diffcontact.learning.data.convert",
+    "trajectories_from_mujoco": "diffcontact.learning.data.mujoco",
+    "trajectories_from_positions": "diffcontact.learning.data.convert",
+    "trajectory_checks": "diffcontact.learning.data.convert",
+    "velocity_jumps": "diffcontact.learning.data.convert",
     "generate_dataset": "diffcontact.learning.data.generate",
     "register_cli": "diffcontact.learning.data.cli",
     "run_generate_cli": "diffcontact.learning.data.cli",
