@@ -211,7 +211,7 @@ def dataset_from_arrays(
         "contact_fraction": contact_fraction,
         "stride": stride,
         "true_parameters": true_parameters,
-        "impact_tol": impact_tol,
+        "impact_tol": None if math.isinf(impact_tol) else impact_tol,  # None: off
         "gap_tol": gap_tol,
     }
     if contact is not None or event_times is not None:
