@@ -225,6 +225,6 @@ def plot_training(
         ax.set_xlabel("epoch")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, lw=0.3, alpha=0.6)
-    note = "dashed: true values" if true is not None else "true values unknown (recorded data)"
+    note = "dashed: true values" if true is not None else "true values unknown: recorded data"
     fig.suptitle(f"{title} ({note})" if title else note, fontsize=10)
     return _save(fig, path)
