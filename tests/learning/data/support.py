@@ -35,9 +35,12 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def window_contact(contact: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+def window_contact(
+    contact: torch.Tensor, start: torch.Tensor, owner: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The flags ``(M, L)`` of chunks starting at ``start`` in trajectories ``owner`` (all)."""
     idx = start[:, None] + torch.arange(L)
-    return contact.gather(1, idx)
+    return (contact if owner is None else contact[owner]).gather(1, idx)
 
 
 def all_trajectories(folder: Path) -> np.ndarray:

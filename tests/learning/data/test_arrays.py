@@ -28,10 +28,13 @@ def test_arrays_round_trip(bp5_dir, tmp_path, capsys):
         index = meta["source_indices"][name]
         seen += index
         assert np.array_equal(split.traj.numpy(), traj[index])
-        window = window_contact(split.contact, split.chunk_start)
+        window = window_contact(split.contact, split.chunk_start, split.chunk_traj)
         assert not window[:, 0].any()
+        assert torch.equal(split.chunk_has_contact, window.any(1))
         idx = split.chunk_start[:, None] + torch.arange(L)
-        assert torch.equal(split.chunks, split.traj[torch.arange(len(split))[:, None], idx])
+        assert torch.equal(split.chunks, split.traj[split.chunk_traj[:, None], idx])
+        # every window (stride 1) that starts out of contact is a chunk
+        assert len(split.chunks) == int((~split.contact[:, : 20 - L + 1]).sum())
     assert sorted(seen) == list(range(12))
     # same arrays and arguments: reused; another seed: refused
     dataset_from_arrays(torch.from_numpy(traj), BP5, out, dt=0.01, seed=4)

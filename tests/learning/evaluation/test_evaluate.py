@@ -135,12 +135,13 @@ def test_evaluate_through_load_model(tmp_path, dataset, capsys):
 
 
 def test_evaluate_a_trained_run(tmp_path):
-    """dataset_from_arrays -> train (1 epoch) -> evaluate, on the real files."""
+    """dataset_from_arrays (true parameters declared) -> train (1 epoch) -> evaluate."""
     system = dc.load_system(TINY)
     traj = system.simulate(system.sample_initial_conditions(6, seed=2))
     data = dataset_from_arrays(
-        traj, TINY, tmp_path / "data", val_fraction=0.2, test_fraction=0.2, progress=False
-    )
+        traj, TINY, tmp_path / "data", val_fraction=0.2, test_fraction=0.2, progress=False,
+        true_parameters=True,  # the config's parameters are those that made the data
+    )  # fmt: skip
     run = tmp_path / "run"
     train(data, run, epochs=1, batch_size=8, hidden=(8,), progress=False)
     metrics = evaluate(run, steps=10, n_gif=0)

@@ -9,8 +9,10 @@
 - :mod:`.convert`: converters from positions only (finite differences) and from
   generalised coordinates; :mod:`.mujoco`: from MuJoCo ``qpos``/``qvel``
   (``docs/own-data.md``); :mod:`.convert_cli`: ``diffcontact convert``;
-- :mod:`.chunks`: :func:`contact_states`, :func:`select_chunks` (one chunk per
-  trajectory, starting out of contact); :mod:`.noise`: :func:`add_chunk_noise`;
+- :mod:`.chunks`: :func:`contact_states`, :func:`contact_flags` (recorded data:
+  gaps, velocity jumps of impacts between samples, given flags and event times),
+  :func:`select_chunks` (one chunk per trajectory, starting out of contact),
+  :func:`window_chunks` (every window); :mod:`.noise`: :func:`add_chunk_noise`;
 - :mod:`.write`: folder checks and atomic writing; :mod:`.checks`: argument checks;
 - :mod:`.cli`: ``diffcontact generate`` (no torch at import).
 
@@ -33,7 +35,10 @@ _EXPORTS: dict[str, str] = {
     "load_dataset": _FORMAT,
     "split_seeds": _FORMAT,
     "add_chunk_noise": "diffcontact.learning.data.noise",
+    "contact_flags": "diffcontact.learning.data.chunks",
     "contact_states": "diffcontact.learning.data.chunks",
+    "impact_intervals": "diffcontact.learning.data.chunks",
+    "window_chunks": "diffcontact.learning.data.chunks",
     "select_chunks": "diffcontact.learning.data.chunks",
     "dataset_from_arrays": "diffcontact.learning.data.arrays",
     "finite_difference_velocities": "diffcontact.learning.data.convert",

@@ -17,12 +17,12 @@ from torch import Tensor
 from diffcontact.cli_args import one_line
 from diffcontact.io import jsonable
 from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
-from diffcontact.learning.data.chunks import chunk_split, contact_states
+from diffcontact.learning.data.chunks import DEFAULT_IMPACT_TOL, chunk_split, contact_flags
 from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
 from diffcontact.learning.data.write import prepare_folder, write_dataset
 from diffcontact.systems import load_system
 
-__all__ = ["dataset_from_arrays", "read_arrays_file"]
+__all__ = ["dataset_from_arrays", "read_arrays_file", "read_flag_entries"]
 
 
 def _as_array(trajectories: Any) -> np.ndarray:
@@ -49,12 +49,22 @@ def dataset_from_arrays(
     chunk_length: int = 5,
     contact_fraction: float = 0.5,
     progress: bool = True,
+    stride: int | None = 1,
+    true_parameters: bool = False,
+    impact_tol: float = DEFAULT_IMPACT_TOL,
+    gap_tol: float = 0.0,
+    contact: Any = None,
+    event_times: Any = None,
 ) -> Path:
     """Write a dataset folder (same format as ``generate_dataset``) from recorded data.
 
-    The trajectories are split at random into train/val/test, marked for
-    contact with the config's geometry and chunked like simulated data (no
-    noise is added: recorded data carries its own).
+    The trajectories are split at random into train/val/test, their states
+    flagged for contact (the config's geometry, velocity jumps of impacts
+    between samples, and the flags or event times given; ``contact_flags``)
+    and cut into chunks: by default every window of ``chunk_length`` states
+    (``stride=1``) that starts out of contact, the contact fraction being a
+    sampling weight in training (no noise is added: recorded data carries its
+    own).
 
     Args:
         trajectories: ``(N, T, 2, P, d)`` array (numpy or torch): positions then
@@ -68,8 +78,26 @@ def dataset_from_arrays(
             test (at least one each when positive; at least one left for train).
         seed: seed of the split (``numpy.random.default_rng([seed, 3])``) and,
             through ``split_seeds``, of the chunk choice.
-        chunk_length, contact_fraction: as in ``generate_dataset``.
+        chunk_length: states per chunk.
+        contact_fraction: the share of training draws that contain a contact
+            (a sampling weight over the windows; with ``stride=None``, the
+            target share of the one chunk per trajectory, as in
+            ``generate_dataset``). A warning says when it cannot be met.
         progress: print messages (e.g. that an existing dataset was reused).
+        stride: states between the starts of the windows cut from every
+            trajectory (1: all windows); ``None``: one chunk per trajectory.
+        true_parameters: declare the config's masses, mu and e_P the true
+            values of the recorded system, so that evaluation compares the
+            learned ones with them (default: unknown, nothing is compared).
+        impact_tol: a velocity jump beyond ``impact_tol`` times the
+            trajectory's RMS speed flags an impact between samples
+            (``impact_intervals``; ``inf``: off).
+        gap_tol: a state with a gap below this (length units) is flagged (0:
+            penetration only).
+        contact: optional ``(N, T)`` bool flags of states in contact (added to
+            the detected ones).
+        event_times: optional ``(N, E)`` impact times in seconds from each
+            trajectory's first state, NaN-padded (``event_states``).
 
     Returns:
         The dataset folder.
@@ -85,6 +113,12 @@ def dataset_from_arrays(
     seed = check_seed(seed)
     chunk_length = int_arg("chunk_length", chunk_length, 2)
     contact_fraction = float_arg("contact_fraction", contact_fraction, 0.0, 1.0)
+    if stride is not None:
+        stride = int_arg("stride", stride, 1)
+    if not isinstance(true_parameters, bool):
+        raise ValueError(f"true_parameters must be True or False, got {true_parameters!r}")
+    impact_tol = float_arg("impact_tol", impact_tol, 0.0, math.inf)
+    gap_tol = float_arg("gap_tol", gap_tol, 0.0, math.inf)
     vf = float_arg("val_fraction", val_fraction, 0.0, 1.0, high_open=True)
     tf = float_arg("test_fraction", test_fraction, 0.0, 1.0, high_open=True)
     if vf + tf >= 1:
@@ -141,7 +175,10 @@ def dataset_from_arrays(
             "(at least one each): no trajectory is left for training"
         )
 
-    contact = contact_states(system, arr)
+    contact, flag_counts = contact_flags(
+        system, arr, gap_tol=gap_tol, impact_tol=impact_tol, contact=contact,
+        event_times=event_times,
+    )  # fmt: skip
     S = T - chunk_length + 1
     stuck = contact[:, :S].all(1)
     if stuck.any():
@@ -151,8 +188,9 @@ def dataset_from_arrays(
         k = int(gaps.argmin())
         listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
         raise ValueError(
-            f"{rows.size} of {N} trajectories ({listed}) are in contact (gap < 0: overlapping "
-            f"bodies or a violated limit) at every state that could start a chunk "
+            f"{rows.size} of {N} trajectories ({listed}) are in contact (gap < {gap_tol:g}: "
+            "overlapping bodies or a violated limit; or flagged by an impact or the flags "
+            f"given) at every state that could start a chunk "
             f"(states 0..{S - 1}), so they cannot be chunked (a chunk must start out of "
             f"contact); e.g. trajectory {rows[0]} state 0: {system.contact_names[k]} "
             f"(gap {float(gaps[k]):.3g}). Drop them, or check that the config's geometry "
@@ -171,7 +209,16 @@ def dataset_from_arrays(
         "seed": seed,
         "chunk_length": chunk_length,
         "contact_fraction": contact_fraction,
+        "stride": stride,
+        "true_parameters": true_parameters,
+        "impact_tol": None if math.isinf(impact_tol) else impact_tol,  # None: off
+        "gap_tol": gap_tol,
     }
+    if contact is not None or event_times is not None:
+        given = [np.asarray(a, dtype=np.float64) for a in (contact, event_times) if a is not None]
+        arguments["flags_sha256"] = hashlib.sha256(
+            b"".join(repr(a.shape).encode() + np.nan_to_num(a, nan=-1.0).tobytes() for a in given)
+        ).hexdigest()
     folder = Path(out_dir)
     if prepare_folder(folder, arguments, progress):
         return folder
@@ -192,12 +239,42 @@ def dataset_from_arrays(
             chunk_length,
             contact_fraction,
             0.0,
+            stride,
+            name,
         )
         for name in SPLITS
     }
     source_indices = {name: index[name].tolist() for name in SPLITS}
-    write_dataset(folder, system, splits, arguments, source_indices=source_indices)
+    write_dataset(
+        folder, system, splits, arguments, source_indices=source_indices,
+        contact_flags=flag_counts,
+    )  # fmt: skip
     return folder
+
+
+def read_flag_entries(path: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The optional entries ``contact (N, T)`` and ``event_times (N, E)`` of an .npz file.
+
+    ``(None, None)`` for an .npy file or when absent (call
+    :func:`read_arrays_file` first: it reports unreadable files).
+    """
+    try:
+        data = np.load(Path(path), allow_pickle=False)
+        if isinstance(data, np.ndarray):
+            return None, None
+        with data:
+            found = {k: data[k] for k in ("contact", "event_times") if k in data.files}
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as err:
+        raise ValueError(
+            f"cannot read {path} as .npz or .npy (truncated or corrupted?): {one_line(err)}"
+        ) from None
+    for key, kinds in (("contact", "biu"), ("event_times", "fiu")):
+        if key in found and found[key].dtype.kind not in kinds:
+            raise ValueError(
+                f"{path}: entry {key!r} must be {'booleans' if key == 'contact' else 'numbers'}, "
+                f"got {found[key].dtype}"
+            )
+    return found.get("contact"), found.get("event_times")
 
 
 def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:

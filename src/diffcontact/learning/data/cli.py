@@ -29,9 +29,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         description=(
             "Simulate full trajectories of a task for the train, val and test splits "
             "(seeds SEED*1000 + 0, 1, 2), pick one chunk per trajectory starting out of "
-            "contact (about half containing a contact), optionally add noise to the "
-            "chunks, and write train.npz, val.npz, test.npz and metadata.json to --out. "
-            "With --from-arrays, split and chunk recorded trajectories instead. "
+            "contact (about half containing a contact; --stride: every window instead), "
+            "optionally add noise to the chunks, and write train.npz, val.npz, test.npz and "
+            "metadata.json to --out. With --from-arrays, split recorded trajectories and "
+            "cut every window into a chunk instead (contact flags from the geometry, "
+            "velocity jumps, and flags or event times in the file). "
             "Re-running with the same arguments reuses the folder; see docs/data.md."
         ),
     )
@@ -70,7 +72,17 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         metavar="F",
         type=float_in(0.0, 1.0),
         default=0.5,
-        help="target share of chunks containing a contact (default 0.5)",
+        help="target share of chunks containing a contact (default 0.5); with windows, the "
+        "share of training draws (a sampling weight); a warning says when it cannot be met",
+    )
+    p.add_argument(
+        "--stride",
+        metavar="K",
+        type=_stride,
+        default=None,
+        help="cut every window starting at states 0, K, 2K, ... into a chunk (default: 1 with "
+        "--from-arrays; 'none' (one chunk per trajectory, the paper's set-up) for simulated "
+        "data); 'none' or 0: one chunk per trajectory",
     )
     p.add_argument(
         "--device", choices=("cpu", "cuda"), default=None, help="where to simulate (default cpu)"
@@ -111,9 +123,39 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         default=None,
         help="with --from-arrays: the recording's time step, checked against the config",
     )
+    p.add_argument(
+        "--true-params",
+        action="store_true",
+        help="with --from-arrays: the config's masses, mu and e_P are the recorded system's "
+        "true values (evaluation compares the learned ones with them; default: unknown)",
+    )
+    p.add_argument(
+        "--impact-tol",
+        metavar="TOL",
+        type=float_in(0.0),
+        default=None,
+        help="with --from-arrays: flag an impact between samples when the velocities jump by "
+        "more than TOL times the trajectory's RMS speed beyond what the neighbouring steps "
+        "show (default 0.2; inf: off)",
+    )
+    p.add_argument(
+        "--gap-tol",
+        metavar="GAP",
+        type=float_in(0.0),
+        default=None,
+        help="with --from-arrays: flag states whose gap (config geometry) is below GAP "
+        "(default 0: penetration only)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress and no summary")
     p.set_defaults(func=run_generate_cli)
     return p
+
+
+def _stride(text: str) -> int:
+    """``--stride``: an integer >= 1, or ``none``/``0`` (0: one chunk per trajectory)."""
+    if text.strip().lower() == "none":
+        return 0
+    return int_at_least(0)(text)
 
 
 def _given(**options: Any) -> dict[str, Any]:
@@ -136,10 +178,16 @@ def _cli_generate(args: argparse.Namespace) -> int:
         "contact_fraction": args.contact_fraction,
         "progress": not quiet,
     }
+    if args.stride is not None:
+        common["stride"] = args.stride or None
     folder = Path(args.out)
     start = time.perf_counter()
     if args.from_arrays is not None:
-        from diffcontact.learning.data.arrays import dataset_from_arrays, read_arrays_file
+        from diffcontact.learning.data.arrays import (
+            dataset_from_arrays,
+            read_arrays_file,
+            read_flag_entries,
+        )
 
         for flag, value in (
             ("--n-train", args.n_train), ("--n-val", args.n_val), ("--n-test", args.n_test),
@@ -152,6 +200,7 @@ def _cli_generate(args: argparse.Namespace) -> int:
                     "--val-fraction/--test-fraction; recorded data gets no noise)"
                 )
         traj, file_dt, file_config = read_arrays_file(args.from_arrays)
+        contact, event_times = read_flag_entries(args.from_arrays)
         if spec is None:
             if file_config is None:
                 raise ValueError(
@@ -165,7 +214,15 @@ def _cli_generate(args: argparse.Namespace) -> int:
             spec,
             folder,
             dt=args.dt if args.dt is not None else file_dt,
-            **_given(val_fraction=args.val_fraction, test_fraction=args.test_fraction),
+            **_given(
+                val_fraction=args.val_fraction,
+                test_fraction=args.test_fraction,
+                impact_tol=args.impact_tol,
+                gap_tol=args.gap_tol,
+            ),
+            true_parameters=args.true_params,
+            contact=contact,
+            event_times=event_times,
             **common,
         )
     else:
@@ -176,6 +233,9 @@ def _cli_generate(args: argparse.Namespace) -> int:
             ("--test-fraction", args.test_fraction),
             ("--dt", args.dt),
             ("--config", args.config if args.task is None else None),
+            ("--impact-tol", args.impact_tol),
+            ("--gap-tol", args.gap_tol),
+            ("--true-params", True if args.true_params else None),
         ):
             if value is not None:
                 raise ValueError(f"{flag} applies only with --from-arrays")
@@ -214,18 +274,30 @@ def _print_summary(folder: Path, reused: bool, elapsed: float) -> None:
     for name in SPLITS:
         st = meta["stats"][name]
         n, c = st["n"], st["chunks_with_contact"]
-        total, with_contact = total + n, with_contact + c
-        share = f"{100 * c / n:.0f}%" if n else "-"
+        m = st.get("n_chunks", n)
+        total, with_contact = total + m, with_contact + c
+        share = f"{100 * c / m:.0f}%" if m else "-"
         k = st["trajectories_with_contact"]
         print(
             f"  {name:5s}: {n} {_plural(n)} x {meta['n_states']} states; {share} of chunks "
-            f"contain a contact ({c}/{n}); {k} {_plural(k)} {'has' if k == 1 else 'have'} one"
+            f"contain a contact ({c}/{m}); {k} {_plural(k)} {'has' if k == 1 else 'have'} one"
         )
     share = f"{100 * with_contact / total:.1f}%" if total else "-"
+    stride = meta.get("stride")
+    cut = "one per trajectory" if stride is None else f"every window, stride {stride}"
     print(
-        f"  chunks of {meta['chunk_length']} states, noise std {meta['noise_std']:g}; "
+        f"  chunks of {meta['chunk_length']} states ({cut}), noise std {meta['noise_std']:g}; "
         f"{share} of all chunks contain a contact"
     )
+    flags = meta.get("contact_flags")
+    if flags:
+        print(
+            f"  states flagged in contact: {flags['total']} (gap {flags['gap']}, velocity jump "
+            f"{flags['impact']}, given {flags['given']}, event times {flags['events']})"
+        )
+    if meta["source"] != "simulated":
+        known = "declared true (--true-params)" if meta.get("parameters_known") else "unknown"
+        print(f"  physical parameters of the config: {known}")
     files = ", ".join(str(folder / f) for f in (*meta["files"], METADATA))
     print(f"  files: {files}")
 

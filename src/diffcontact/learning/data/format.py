@@ -3,9 +3,10 @@
 A dataset is a folder (``docs/conventions.md``, "Learning")::
 
     metadata.json   arguments, config, seeds, counts, sha256 of every file
-    train.npz       traj (N, T, 2, P, d) float64, chunks (N, L, 2, P, d) float64,
-    val.npz         chunk_start (N,) int64, chunk_has_contact (N,) bool,
-    test.npz        contact (N, T) bool
+    train.npz       traj (N, T, 2, P, d) float64, chunks (M, L, 2, P, d) float64,
+    val.npz         chunk_start (M,) int64, chunk_has_contact (M,) bool,
+    test.npz        contact (N, T) bool; with windows (metadata ``stride``):
+                    chunk_traj (M,) int64, else M = N (one chunk per trajectory)
 
 ``metadata.json`` is written last, so a folder without it is unfinished (an
 interrupted run leaves the marker file :data:`MARKER`). It carries its own
@@ -51,6 +52,7 @@ __all__ = [
     "METADATA",
     "METADATA_CHECKSUM",
     "SPLITS",
+    "WINDOW_ARRAYS",
     "DataSplit",
     "Dataset",
     "DatasetError",
@@ -69,6 +71,8 @@ SPLITS = ("train", "val", "test")
 METADATA = "metadata.json"
 METADATA_CHECKSUM = "metadata_sha256"  # the key of metadata.json's own checksum
 ARRAYS = ("traj", "chunks", "chunk_start", "chunk_has_contact", "contact")
+# written when the chunks are windows (metadata "stride" set): the trajectory of each chunk
+WINDOW_ARRAYS = ("chunk_traj",)
 MARKER = ".generating.json"  # arguments of a run in progress; removed after metadata.json
 TMP_NAME = re.compile(r"^\.(train|val|test|metadata|\.generating)\.tmp-")
 # numpy SeedSequence streams derived from one split seed (see split_seeds)
@@ -212,16 +216,20 @@ def read_metadata(folder: Path) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class DataSplit:
-    """One split of a dataset as tensors (``N`` trajectories of ``T`` states, chunks of ``L``).
+    """One split of a dataset as tensors: ``N`` trajectories of ``T`` states, ``M`` chunks of ``L``.
 
     Attributes:
         name: ``"train"``, ``"val"`` or ``"test"``.
         traj: ``(N, T, 2, P, d)`` clean full trajectories.
-        chunks: ``(N, L, 2, P, d)`` training chunks (noisy when the dataset's
-            ``noise_std > 0``).
-        chunk_start: ``(N,)`` int64, index of each chunk's first state in ``traj``.
-        chunk_has_contact: ``(N,)`` bool, the chunk contains a state in contact.
-        contact: ``(N, T)`` bool, states in contact (a contact was resolved there).
+        chunks: ``(M, L, 2, P, d)`` training chunks (noisy when the dataset's
+            ``noise_std > 0``); ``M = N`` (one per trajectory) unless the
+            dataset holds windows (metadata ``stride``).
+        chunk_start: ``(M,)`` int64, index of each chunk's first state in its trajectory.
+        chunk_has_contact: ``(M,)`` bool, the chunk contains a flagged state.
+        contact: ``(N, T)`` bool, states flagged in contact (simulated data: a
+            contact was resolved there; recorded data: ``docs/data.md``, "Contact flags").
+        chunk_traj: ``(M,)`` int64, the trajectory of each chunk (``arange(N)``
+            for one chunk per trajectory).
     """
 
     name: str
@@ -230,6 +238,7 @@ class DataSplit:
     chunk_start: Tensor
     chunk_has_contact: Tensor
     contact: Tensor
+    chunk_traj: Tensor
 
     def __len__(self) -> int:
         return int(self.traj.shape[0])
@@ -304,6 +313,23 @@ class Dataset:
         return self.metadata.get("contact_model", "CM")
 
     @property
+    def stride(self) -> int | None:
+        """States between the starts of windows (the chunks); ``None``: one chunk per trajectory."""
+        value = self.metadata.get("stride")
+        return None if value is None else int(value)
+
+    @property
+    def parameters_known(self) -> bool:
+        """Whether the config's physical parameters are the data's true ones.
+
+        True for simulated data; for recorded data only when declared
+        (``dataset_from_arrays(..., true_parameters=True)``).
+        """
+        if self.metadata.get("source") == "simulated":
+            return True
+        return bool(self.metadata.get("parameters_known", False))
+
+    @property
     def noise_std(self) -> float:
         return float(self.metadata["noise_std"])
 
@@ -362,23 +388,35 @@ class Dataset:
         data = self._read_verified(path)
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                missing = [key for key in ARRAYS if key not in npz.files]
+                wanted = ARRAYS + (WINDOW_ARRAYS if self.stride is not None else ())
+                missing = [key for key in wanted if key not in npz.files]
                 if missing:
                     raise DatasetError(f"{path} lacks the arrays {missing}")
-                arrays = {key: npz[key] for key in ARRAYS}
+                arrays = {key: npz[key] for key in wanted}
         except _NPZ_ERRORS as err:
             raise DatasetError(
                 f"{path} is not a readable .npz file (truncated or corrupted?): {one_line(err)}"
             ) from None
         N, T, L = self.counts[name], self.n_states, self.chunk_length
         shape = arrays["traj"].shape
-        chunk_shape = (N, L, *shape[2:])
-        if len(shape) != 5 or shape[:3] != (N, T, 2) or arrays["chunks"].shape != chunk_shape:
+        if "chunk_traj" not in arrays:
+            arrays["chunk_traj"] = np.arange(N, dtype=np.int64)
+        owner = arrays["chunk_traj"]
+        M = owner.shape[0] if owner.ndim == 1 else -1
+        chunk_shape = (M, L, *shape[2:])
+        if (
+            len(shape) != 5
+            or shape[:3] != (N, T, 2)
+            or arrays["chunks"].shape != chunk_shape
+            or arrays["chunk_start"].shape != (M,)
+            or arrays["chunk_has_contact"].shape != (M,)
+            or (M > 0 and not (0 <= owner.min() and owner.max() < N))
+        ):
             raise DatasetError(
-                f"{path}: traj {shape} / chunks {arrays['chunks'].shape} do not match the "
-                f"metadata (N={N}, T={T}, chunk_length={L})"
+                f"{path}: traj {shape} / chunks {arrays['chunks'].shape} / chunk_traj "
+                f"{owner.shape} do not match the metadata (N={N}, T={T}, chunk_length={L})"
             )
-        out = {key: torch.from_numpy(arrays[key]) for key in ARRAYS}
+        out = {key: torch.from_numpy(arrays[key]) for key in (*ARRAYS, "chunk_traj")}
         return DataSplit(name=name, **out).to(device=device, dtype=dtype)
 
     @property

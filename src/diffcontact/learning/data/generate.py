@@ -35,6 +35,7 @@ def generate_dataset(
     progress: bool = True,
     device: str | torch.device = "cpu",
     contact_model: str = "CM",
+    stride: int | None = None,
 ) -> Path:
     """Simulate, chunk and save a train/val/test dataset of a task (``docs/data.md``).
 
@@ -62,6 +63,11 @@ def generate_dataset(
         contact_model: the registered contact model that simulates the ground
             truth (``diffcontact.contact.contact_models()``); recorded in
             ``metadata.json``, and evaluation re-simulates with it.
+        stride: ``None`` (default, the paper's set-up): one chunk per
+            trajectory; an integer ``k``: every window starting at states
+            ``0, k, 2k, ...`` (out of contact) is a chunk, and
+            ``contact_fraction`` becomes a sampling weight in training
+            (``docs/data.md``, "Windows").
 
     Returns:
         The dataset folder.
@@ -80,6 +86,8 @@ def generate_dataset(
     noise_std = float_arg("noise_std", noise_std, 0.0, math.inf)
     chunk_length = int_arg("chunk_length", chunk_length, 2)
     contact_fraction = float_arg("contact_fraction", contact_fraction, 0.0, 1.0)
+    if stride is not None:
+        stride = int_arg("stride", stride, 1)
     dev = parse_device(device)
     system = load_system(spec)
     if not isinstance(contact_model, str):
@@ -104,6 +112,8 @@ def generate_dataset(
     }
     if contact_model != "CM":  # CM datasets keep the arguments of earlier versions (reuse)
         arguments["contact_model"] = contact_model
+    if stride is not None:  # so do datasets of one chunk per trajectory
+        arguments["stride"] = stride
     folder = Path(out_dir)
     if prepare_folder(folder, arguments, progress):
         return folder
@@ -126,7 +136,8 @@ def generate_dataset(
             traj = traj_t.to(torch.float64).cpu().numpy()
         contact = contact_states(system, traj)
         splits[name] = chunk_split(
-            system, traj, contact, seeds[name], chunk_length, contact_fraction, noise_std
-        )
+            system, traj, contact, seeds[name], chunk_length, contact_fraction, noise_std,
+            stride, name,
+        )  # fmt: skip
     write_dataset(folder, system, splits, arguments, device=str(dev))
     return folder

@@ -25,6 +25,7 @@ from diffcontact.learning.data.format import (
     METADATA_CHECKSUM,
     SPLITS,
     TMP_NAME,
+    WINDOW_ARRAYS,
     DatasetError,
     metadata_checksum,
     read_metadata,
@@ -151,13 +152,15 @@ def write_dataset(
     The metadata records the system, the split sizes and statistics and the
     ``arguments`` the dataset was made with (``source``, ``seed``,
     ``chunk_length``, ``contact_fraction``, ``noise_std`` when noise was
-    added); ``extra`` entries (e.g. the simulation's ``device``) follow
-    ``contact_fraction``.
+    added, ``stride`` when the chunks are windows, ``true_parameters`` when
+    recorded data declares its config's parameters true); ``extra`` entries
+    (e.g. the simulation's ``device``) follow ``parameters_known``.
     """
     files: dict[str, str] = {}
     for name in SPLITS:
         path = folder / f"{name}.npz"
-        atomic_save_npz(path, **{key: splits[name][key] for key in ARRAYS})
+        keys = ARRAYS + tuple(k for k in WINDOW_ARRAYS if k in splits[name])
+        atomic_save_npz(path, **{key: splits[name][key] for key in keys})
         files[path.name] = sha256_file(path)
     seed = arguments["seed"]
     simulated = arguments["source"] == "simulated"
@@ -175,6 +178,8 @@ def write_dataset(
         "noise_std": arguments.get("noise_std", 0.0),
         "chunk_length": arguments["chunk_length"],
         "contact_fraction": arguments["contact_fraction"],
+        "stride": arguments.get("stride"),
+        "parameters_known": simulated or bool(arguments.get("true_parameters", False)),
         **extra,
         "diffcontact_version": __version__,
         "created": _now(),
@@ -193,6 +198,7 @@ def _split_stats(arrays: dict[str, np.ndarray]) -> dict[str, Any]:
     contact = arrays["contact"]
     return {
         "n": int(contact.shape[0]),
+        "n_chunks": int(arrays["chunk_has_contact"].shape[0]),
         "chunks_with_contact": int(arrays["chunk_has_contact"].sum()),
         "trajectories_with_contact": int(contact.any(1).sum()),
         "share_of_states_in_contact": float(contact.mean()) if contact.size else 0.0,

@@ -30,7 +30,9 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         description=(
             "Roll the trained model of RUN_DIR out from every test initial state for "
             "max(horizon, 100 dt), compare with the ground truth and write metrics.json, "
-            "rollout.npz, rel_error.png, energy.png, training.png and rollout.gif."
+            "rollout.npz, rel_error.png, energy.png, training.png and rollout.gif. On "
+            "recorded data the rollout follows the recording and the true parameters and "
+            "energy are unknown unless the dataset declares them (generate --true-params)."
         ),
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="training run directory")
@@ -54,7 +56,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "--steps",
         type=int_at_least(1),
         default=None,
-        help="rollout steps (default max(horizon/dt, 100) - 1)",
+        help="rollout steps (default max(horizon/dt, 100) - 1; recorded data: the recorded "
+        "steps, and at most those)",
     )
     p.add_argument(
         "--n-test", type=int_at_least(1), default=None, help="use the first N test trajectories"
@@ -81,9 +84,18 @@ def _fmt(x: Any) -> str:
 def _param_rows(
     name: str, entry: Mapping[str, Any], labels: Sequence[str], shared: bool = True
 ) -> list[str]:
-    learned, true = entry.get("learned"), entry.get("true") or []
+    learned, true = entry.get("learned"), entry.get("true")
     if learned is None:
         return [f"  {name:<16} {'-':>10} {'(not learned)':>10}"]
+    if true is None:  # recorded data: no known truth
+        if shared and len(set(learned)) <= 1 and learned:
+            return [f"  {name:<16} {learned[0]:>10.4f} {'unknown':>10}"]
+        if len(learned) <= 12:
+            return [
+                f"  {lab:<16} {lv:>10.4f} {'unknown':>10}"
+                for lab, lv in zip(labels, learned, strict=False)
+            ]
+        return [f"  {name:<16} {len(learned)} learned values; true values unknown"]
     if shared and len(set(learned)) <= 1 and len(set(true)) <= 1 and true:
         return [f"  {name:<16} {learned[0]:>10.4f} {true[0]:>10.4f}"]
     if len(learned) == len(true) and len(true) <= 12:
@@ -128,6 +140,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{m['task']}: {m['model']}, {m['n_test']} test trajectories x {m['steps']} steps "
         f"(dt {m['dt']:g} s; ground truth: {m['ground_truth']})"
     )
+    if m.get("rollout_note"):
+        print(f"  note: {m['rollout_note']}")
     if m["n_nonfinite"]:
         print(f"  WARNING: {m['n_nonfinite']} rollouts diverged (non-finite); left out below")
     print(
@@ -135,17 +149,24 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"final step {_fmt(m['rel_err_final'])}"
     )
     drift = m["energy_rel_drift"]
-    print(
-        f"  energy drift     model {_fmt(drift['pred'])}, ground truth {_fmt(drift['true'])} "
-        "(true energy, per mean kinetic energy)"
-    )
+    if "energy" in m.get("unknown", {}):
+        print("  energy drift     unknown (the true masses of the recorded system are unknown)")
+    else:
+        print(
+            f"  energy drift     model {_fmt(drift['pred'])}, ground truth "
+            f"{_fmt(drift['true'])} (true energy, per mean kinetic energy)"
+        )
     print(f"  {'parameter':<16} {'learned':>10} {'true':>10}")
-    n_ratios = len(m["mass_ratios"]["true"])
-    labels = [f"m{i + 2}/m1" for i in range(n_ratios)]
+    if "parameters" in m.get("unknown", {}):
+        print("  (true values unknown: recorded data; declare them with generate --true-params)")
+
+    def count(key: str) -> int:
+        return len(m[key]["true"] if m[key]["true"] is not None else m[key]["learned"] or [])
+
+    labels = [f"m{i + 2}/m1" for i in range(count("mass_ratios"))]
     rows = _param_rows("mass ratios", m["mass_ratios"], labels, shared=False)
     for key, sym in (("mu", "mu"), ("cor", "e_P")):
-        K = len(m[key]["true"])
-        rows += _param_rows(sym, m[key], [f"{sym}[{k}]" for k in range(K)])
+        rows += _param_rows(sym, m[key], [f"{sym}[{k}]" for k in range(count(key))])
     if m.get("eps") is not None:
         rows.append(f"  {'eps (CMr)':<16} {_fmt(m['eps']):>10} {'-':>10}")
     print("\n".join(rows))

@@ -3,9 +3,17 @@
 Protocol (paper-facts.md, "Training set-up"): from the first state of every
 test trajectory, roll the model out for ``max(horizon, 100 dt)`` (that is
 ``max(horizon / dt, 100)`` states, ``steps = states - 1``) and compare with the
-ground truth. When the stored test trajectories are shorter than that (e.g.
-the rope, 20 states), the ground truth is simulated from the same initial
-states with the true system (``load_system(config)``, float64).
+ground truth. When the stored test trajectories of a simulated dataset are
+shorter than that (e.g. the rope, 20 states), the ground truth is simulated
+from the same initial states with the true system (``load_system(config)``,
+float64).
+
+Recorded data (``generate --from-arrays``) has no ground truth but its
+states: the rollout follows the recording (``T - 1`` steps by default, never
+more), nothing is simulated, and unless the dataset declares the config's
+parameters true (``--true-params``) the true parameters and the true energy
+are unknown: ``null`` in ``metrics.json``, with the reason in ``unknown``, and
+no true values in the plots.
 
 The metrics are those of :mod:`~diffcontact.learning.evaluation.metrics`
 (``docs/evaluation.md``); :func:`evaluate` writes ``metrics.json``,
@@ -93,10 +101,14 @@ def _learned(raw: Mapping[str, Any], n_bodies: int) -> dict[str, Any]:
     return out
 
 
-def _compare(learned: list[float] | None, true: list[float], relative: bool) -> dict[str, Any]:
+def _compare(
+    learned: list[float] | None, true: list[float] | None, relative: bool
+) -> dict[str, Any]:
     entry: dict[str, Any] = {"learned": learned, "true": true}
     key = "max_rel_error" if relative else "max_abs_error"
-    if learned is not None and len(learned) == len(true):
+    if true is None:  # no known truth: nothing to compare with
+        entry[key] = None
+    elif learned is not None and len(learned) == len(true):
         if len(true) == 0:
             entry[key] = 0.0
         else:
@@ -153,9 +165,9 @@ def _model_label(model: Any, run: Mapping[str, Any]) -> str:
     return type(model).__name__
 
 
-def _load_test(data_path: Path) -> tuple[np.ndarray, Any, str | None]:
-    """The test trajectories ``(N, T, 2, P, dim)``, the system and the contact model
-    that simulated them (``None`` for recorded data) of a dataset folder."""
+def _load_test(data_path: Path) -> tuple[np.ndarray, Any, Any]:
+    """The test trajectories ``(N, T, 2, P, dim)``, the system and the dataset
+    (its ``contact_model``, ``parameters_known`` and ``metadata["source"]``)."""
     if not data_path.is_dir():
         raise EvaluationInputError(
             f"test data not found: {data_path / 'test.npz'} (missing data directory)"
@@ -164,7 +176,6 @@ def _load_test(data_path: Path) -> tuple[np.ndarray, Any, str | None]:
         dataset = load_dataset(data_path)
         traj = dataset.split("test", dtype=torch.float64).traj.numpy()
         system = dataset.system
-        contact_model = dataset.contact_model
     except ValueError as err:
         raise EvaluationInputError(f"cannot read the test data: {err}") from None
     if len(traj) == 0:
@@ -176,7 +187,7 @@ def _load_test(data_path: Path) -> tuple[np.ndarray, Any, str | None]:
             f"{data_path}/test.npz: states have shape {tuple(traj.shape[2:])}, but the system "
             f"{system.name} has {system.state_shape}"
         )
-    return traj, system, contact_model
+    return traj, system, dataset
 
 
 def _same_path(recorded: Any, path: Path | None) -> bool:
@@ -246,7 +257,8 @@ def evaluate(
             ``run.json``'s ``data_dir`` (as given, else relative to the run).
         n_gif: test trajectories in the GIF (0: no GIF).
         device: ``"cpu"`` or ``"cuda"`` for the rollouts.
-        steps: rollout steps (default ``max(horizon / dt, 100) - 1``).
+        steps: rollout steps (default ``max(horizon / dt, 100) - 1``; for
+            recorded data ``T - 1``, the recorded steps, and at most that).
         n_test: use only the first ``n_test`` test trajectories.
         gif_frames: at most this many GIF frames.
         force: replace the files of another evaluation in ``out_dir`` (one of
@@ -260,8 +272,8 @@ def evaluate(
         EvaluationInputError: missing run directory, checkpoint, test data or
             config; a model or data file that cannot be read, fails its
             checksum or would run code to load; ``out_dir`` holding another
-            evaluation (without ``force``); bad arguments; CUDA requested but
-            unavailable.
+            evaluation (without ``force``); bad arguments (``steps`` beyond
+            the recorded states); CUDA requested but unavailable.
     """
     # ---- arguments and files
     if not isinstance(n_gif, int) or isinstance(n_gif, bool) or n_gif < 0:
@@ -291,7 +303,16 @@ def evaluate(
     elif model is None:
         raise EvaluationInputError("give a run directory or a model")
     data_path = _resolve_data_dir(run_path, run, data_dir)
-    traj, system, contact_model = _load_test(data_path)
+    traj, system, dataset = _load_test(data_path)
+    recorded = dataset.metadata.get("source") != "simulated"
+    known = dataset.parameters_known
+    T_data = traj.shape[1]
+    if recorded and steps is not None and steps > T_data - 1:
+        raise EvaluationInputError(
+            f"steps={steps}: the recorded test trajectories of {data_path} hold {T_data} "
+            f"states, so at most {T_data - 1} steps can be compared (recorded data has no "
+            "ground truth beyond the recording; nothing is simulated)"
+        )
     if out_dir is None:
         if run_path is None:
             raise EvaluationInputError("give out_dir when there is no run directory")
@@ -318,6 +339,13 @@ def evaluate(
 
     # ---- rollouts
     dt = system.dt
+    rollout_note = None
+    if steps is None and recorded:
+        steps = T_data - 1
+        rollout_note = (
+            f"the rollout follows the recorded data: {T_data} states per test trajectory, "
+            f"{steps} steps ({steps * dt:g} s)"
+        )
     steps = rollout_steps(system) if steps is None else steps
     if n_test is not None:
         traj = traj[:n_test]
@@ -326,10 +354,9 @@ def evaluate(
     with torch.no_grad():
         if traj.shape[1] >= steps + 1:
             true = traj[:, : steps + 1]
-            source = "test set"
-        else:
-            # with the contact model that made the data (recorded data: the default CM)
-            true = as_numpy(system.simulate(z0, steps, contact_model=contact_model or "CM"))
+            source = "recorded test set" if recorded else "test set"
+        else:  # simulated data only: its config is the truth
+            true = as_numpy(system.simulate(z0, steps, contact_model=dataset.contact_model))
             source = "simulated (test trajectories shorter than the rollout)"
         pred = as_numpy(model.simulate(z0, steps))
     if pred.shape != true.shape:
@@ -350,12 +377,27 @@ def evaluate(
     else:
         rel_mean = rel_ci = math.nan
         curve_mean = curve_ci = np.full(err.shape[1], np.nan)
-    E_pred, E_true = true_energy(system, pred), true_energy(system, true)
-    E0, scale = E_true[:, 0], energy_scale(system, true)
-    drift_pred, drift_true = relative_drift(E_pred, E0, scale), relative_drift(E_true, E0, scale)
-    gap = np.abs(E_pred - E_true) / scale if scale > 0 else np.full(E_pred.shape, np.nan)
-
-    truth = true_parameters(system)
+    unknown: dict[str, str] = {}
+    if known:
+        E_pred, E_true = true_energy(system, pred), true_energy(system, true)
+        E0, scale = E_true[:, 0], energy_scale(system, true)
+        drift_pred = relative_drift(E_pred, E0, scale)
+        drift_true = relative_drift(E_true, E0, scale)
+        gap = np.abs(E_pred - E_true) / scale if scale > 0 else np.full(E_pred.shape, np.nan)
+        drift = {"pred": finite_mean(drift_pred), "true": finite_mean(drift_true)}
+        energy_error: float | None = finite_mean(gap)
+        truth: dict[str, Any] | None = true_parameters(system)
+    else:
+        unknown["parameters"] = (
+            "recorded data without declared true parameters: the config's masses, mu and "
+            "e_P are placeholders, not the recorded system's values (declare them with "
+            "`diffcontact generate --from-arrays ... --true-params` if they are known)"
+        )
+        unknown["energy"] = (
+            "the true energy needs the true masses (and potential) of the recorded system, "
+            "which are unknown"
+        )
+        drift, energy_error, truth = {"pred": None, "true": None}, None, None
     learned_fn = getattr(model, "learned_parameters", None)  # optional in the protocol
     learned = _learned(learned_fn() if callable(learned_fn) else {}, system.n_bodies)
     task = system.name
@@ -370,18 +412,20 @@ def evaluate(
         "dt": dt,
         "duration": steps * dt,
         "ground_truth": source,
+        "rollout_note": rollout_note,
+        "parameters_known": known,
+        "unknown": unknown,
         "rel_err_mean": rel_mean,
         "rel_err_ci95": rel_ci,
         "rel_err_final": float(np.atleast_1d(curve_mean)[-1]),
         "rel_err_curve": {"mean": curve_mean, "ci95": curve_ci},
-        "energy_rel_drift": {
-            "pred": finite_mean(drift_pred),
-            "true": finite_mean(drift_true),
-        },
-        "energy_rel_error": finite_mean(gap),
-        "mass_ratios": _compare(learned["mass_ratios"], truth["mass_ratios"], relative=True),
-        "mu": _compare(learned["mu"], truth["mu"], relative=False),
-        "cor": _compare(learned["cor"], truth["cor"], relative=False),
+        "energy_rel_drift": drift,
+        "energy_rel_error": energy_error,
+        "mass_ratios": _compare(
+            learned["mass_ratios"], truth and truth["mass_ratios"], relative=True
+        ),
+        "mu": _compare(learned["mu"], truth and truth["mu"], relative=False),
+        "cor": _compare(learned["cor"], truth and truth["cor"], relative=False),
         "eps": learned["eps"],
         "contact_names": list(getattr(system, "contact_names", [])),
         "device": str(device),
@@ -392,21 +436,22 @@ def evaluate(
 
     # ---- files
     files = ["metrics.json", "rollout.npz"]
+    energies = {"energy_pred": E_pred, "energy_true": E_true} if known else {}
     atomic_save_npz(
         out / "rollout.npz",
         compress=True,
         pred=pred,
         true=true,
         rel_err=err,
-        energy_pred=E_pred,
-        energy_true=E_true,
+        **energies,
         t=np.arange(steps + 1, dtype=np.float64) * dt,
     )
     title = f"{task}: {label}"
     plot_rel_error(err_ok if len(err_ok) else err, dt, out / "rel_error.png", title)
     files.append("rel_error.png")
-    plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)
-    files.append("energy.png")
+    if known:
+        plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)
+        files.append("energy.png")
     log_path = None if run_path is None else find_training_log(run_path)
     if log_path is not None:
         log = read_training_log(log_path)
@@ -416,17 +461,21 @@ def evaluate(
         from diffcontact.viz import animate, scene_from_system
 
         k = min(n_gif, N)
+        what = "recorded" if recorded else "truth"
         animate(
             true[:k],
-            scene_from_system(system, title=f"{task}: truth (filled) vs {label} (dashed)"),
+            scene_from_system(system, title=f"{task}: {what} (filled) vs {label} (dashed)"),
             out / "rollout.gif",
             overlay=pred[:k],
             dt=dt,
             max_trajectories=k,
             max_frames=gif_frames,
-            labels=("ground truth", label),
+            labels=("recorded" if recorded else "ground truth", label),
         )
         files.append("rollout.gif")
+    for name in OUTPUT_FILES:  # an earlier evaluation's file that this one does not write
+        if name not in files and name != "metrics.json":
+            (out / name).unlink(missing_ok=True)
     metrics["files"] = sorted(files)
     metrics = jsonable(metrics)
     atomic_write_json(out / "metrics.json", metrics)

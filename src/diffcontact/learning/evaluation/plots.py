@@ -129,9 +129,12 @@ _PANEL_TITLES = {
 
 
 def _training_series(
-    log: Mapping[str, np.ndarray], true: Mapping[str, list[float]], n_bodies: int
+    log: Mapping[str, np.ndarray], true: Mapping[str, list[float]] | None, n_bodies: int
 ) -> dict[str, list[tuple[str, np.ndarray, Any]]]:
-    """Per panel: ``(label, values per epoch, true value, list of them, or None)``."""
+    """Per panel: ``(label, values per epoch, true value, list of them, or None)``.
+
+    ``true=None``: the true values are unknown (recorded data); none is given.
+    """
     groups = classify_columns(log)
     panels: dict[str, list[tuple[str, np.ndarray, Any]]] = {}
     if "loss" in groups:
@@ -149,7 +152,7 @@ def _training_series(
         cols = [masses[k] for k in sorted(masses)]
         series = [(f"m{k + 2}/m1", log[c] / log[cols[0]]) for k, c in enumerate(cols[1:])]
     if series:
-        tr = true["mass_ratios"]
+        tr = [] if true is None else true["mass_ratios"]
         panels["mass_ratios"] = [
             (label, v, tr[k] if len(series) == len(tr) else None)
             for k, (label, v) in enumerate(series)
@@ -157,11 +160,13 @@ def _training_series(
     for cat in ("mu", "cor"):
         if cat not in groups:
             continue
-        tv = true[cat]
+        tv = None if true is None else true[cat]
         items = []
         for idx in sorted(groups[cat], key=lambda k: -1 if k is None else k):
             col = groups[cat][idx]
-            if idx is None or len(groups[cat]) == 1:
+            if tv is None:
+                items.append((cat if idx is None else f"{cat}[{idx}]", log[col], None))
+            elif idx is None or len(groups[cat]) == 1:
                 # one shared learned value: every distinct true value is a reference
                 items.append((cat, log[col], sorted(set(tv))))
             else:
@@ -174,12 +179,16 @@ def _training_series(
 
 def plot_training(
     log: Mapping[str, np.ndarray],
-    true: Mapping[str, list[float]],
+    true: Mapping[str, list[float]] | None,
     n_bodies: int,
     path: Path,
     title: str,
 ) -> Path | None:
-    """Losses and learned parameters per epoch; true values dashed in the same colour."""
+    """Losses and learned parameters per epoch; true values dashed in the same colour.
+
+    ``true=None`` (recorded data without declared parameters): no true values
+    are drawn and the title says that they are unknown.
+    """
     panels = _training_series(log, true, n_bodies)
     if not panels:
         return None
@@ -216,5 +225,6 @@ def plot_training(
         ax.set_xlabel("epoch")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, lw=0.3, alpha=0.6)
-    fig.suptitle(f"{title} (dashed: true values)" if title else "dashed: true values", fontsize=10)
+    note = "dashed: true values" if true is not None else "true values unknown: recorded data"
+    fig.suptitle(f"{title} ({note})" if title else note, fontsize=10)
     return _save(fig, path)

@@ -30,6 +30,7 @@ _EXPORTS: dict[str, str] = {
     "solver_settings_for": _MODULE,
     "ChunkDataModule": _RUN,
     "EpochShuffleSampler": _RUN,
+    "contact_weights": _RUN,
     "read_training_data": _RUN,
     "train": _RUN,
     "register_cli": "diffcontact.learning.training.cli",

@@ -143,6 +143,12 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         help=f"hidden widths of the potential MLP (default {hidden})",
     )  # fmt: skip
     p.add_argument(
+        "--steps-per-epoch", type=positive_int, default=None, metavar="K",
+        help="optimiser steps per epoch (default: one pass over the chunks for one chunk per "
+        "trajectory; for windows, as many steps as one chunk per training trajectory would "
+        "take, windows drawn weighted by the contact fraction)",
+    )  # fmt: skip
+    p.add_argument(
         "--keep-checkpoints", type=positive_int, default=None, metavar="K",
         help="keep only the newest K per-epoch checkpoints (default: all)",
     )  # fmt: skip
@@ -198,6 +204,7 @@ def _train(args: argparse.Namespace) -> int:
         devices=devices,
         num_nodes=args.num_nodes,
         keep_checkpoints=args.keep_checkpoints,
+        steps_per_epoch=args.steps_per_epoch,
     )
     if not args.quiet:
         print(f"wrote {Path(args.out) / 'model.pt'} and {Path(args.out) / 'learned.json'}")

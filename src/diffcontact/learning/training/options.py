@@ -106,6 +106,7 @@ def check_options(
     dtype: str,
     max_time: Any,
     keep_checkpoints: Any,
+    steps_per_epoch: Any = None,
 ) -> None:
     """Check the options of ``train()``; ``physics_lr`` ``None`` stands for ``lr``.
 
@@ -144,3 +145,5 @@ def check_options(
         raise TrainingInputError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if keep_checkpoints is not None:
         _positive_int("keep_checkpoints", keep_checkpoints)
+    if steps_per_epoch is not None:
+        _positive_int("steps_per_epoch", steps_per_epoch)

@@ -79,6 +79,7 @@ from diffcontact.learning.training.stopping import GracefulStop, StopAfter, Stop
 __all__ = [
     "ChunkDataModule",
     "EpochShuffleSampler",
+    "contact_weights",
     "read_training_data",
     "train",
 ]
@@ -90,12 +91,19 @@ log = logging.getLogger(__name__)
 
 
 class EpochShuffleSampler(Sampler[int]):
-    """A random permutation per epoch drawn from ``(seed, epoch)`` only, split across ranks.
+    """Indices per epoch drawn from ``(seed, epoch)`` only, split across ranks.
+
+    By default one random permutation of the ``n`` items per epoch. With
+    ``draws`` (the number of indices per epoch, all ranks together) and no
+    ``weights``, consecutive permutations are drawn and cut to ``draws``
+    (the first one is the default's); with ``weights`` (``(n,)``, not
+    necessarily normalised), ``draws`` indices are drawn with replacement in
+    proportion to them.
 
     Lightning calls :meth:`set_epoch` at the start of every epoch, so a
     resumed run sees exactly the batches an uninterrupted one would. With
-    ``world_size > 1`` (DDP) rank ``r`` takes the permutation's elements
-    ``r, r + W, ...``, after padding it to a multiple of ``W`` with its own
+    ``world_size > 1`` (DDP) rank ``r`` takes the drawn elements
+    ``r, r + W, ...``, after padding them to a multiple of ``W`` with their own
     first elements (what ``torch.utils.data.DistributedSampler`` does to a
     sampler's indices). ``skip=(epoch, k)`` leaves out this rank's first ``k``
     indices in that epoch: where a run stopped in the middle of it resumes.
@@ -109,20 +117,36 @@ class EpochShuffleSampler(Sampler[int]):
         rank: int = 0,
         world_size: int = 1,
         skip: tuple[int, int] = (-1, 0),
+        draws: int | None = None,
+        weights: Tensor | None = None,
     ) -> None:
         self.n = int(n)
         self.seed = int(seed)
         self.epoch = 0
         self.rank, self.world_size = int(rank), int(world_size)
         self.skip = (int(skip[0]), int(skip[1]))
-        self.num_samples = math.ceil(self.n / self.world_size)
+        self.draws = self.n if draws is None else int(draws)
+        if weights is not None:
+            weights = torch.as_tensor(weights, dtype=torch.float64)
+            if weights.shape != (self.n,) or not (weights >= 0).all() or weights.sum() <= 0:
+                raise ValueError(f"weights must be {self.n} non-negative numbers, not all zero")
+        self.weights = weights
+        self.num_samples = math.ceil(self.draws / self.world_size)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
+    def _draw(self, gen: torch.Generator) -> list[int]:
+        if self.weights is not None:
+            return torch.multinomial(self.weights, self.draws, True, generator=gen).tolist()
+        order: list[int] = []
+        while len(order) < self.draws:
+            order += torch.randperm(self.n, generator=gen).tolist()
+        return order[: self.draws]
+
     def __iter__(self):
         gen = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
-        order = torch.randperm(self.n, generator=gen).tolist()
+        order = self._draw(gen)
         if self.world_size > 1:
             total = self.num_samples * self.world_size
             pad = total - len(order)
@@ -145,10 +169,31 @@ def read_training_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any]
     Raises:
         TrainingInputError: a missing or malformed dataset, or a split without chunks.
     """
+    meta, train, val, _ = _read_data(data_dir)
+    return meta, train, val
+
+
+def contact_weights(has_contact: Tensor, contact_fraction: float) -> Tensor | None:
+    """Sampling weights ``(M,)`` under which a draw contains a contact with probability
+    ``contact_fraction``: ``f / M_c`` for each of the ``M_c`` chunks with a contact,
+    ``(1 - f) / M_f`` for the others; ``None`` (uniform) when either kind is missing.
+    """
+    has = torch.as_tensor(has_contact, dtype=torch.bool)
+    n_c = int(has.sum())
+    n_f = len(has) - n_c
+    if n_c == 0 or n_f == 0:
+        return None
+    f = float(contact_fraction)
+    return torch.where(has, f / n_c, (1.0 - f) / n_f).to(torch.float64)
+
+
+def _read_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any], Tensor, Tensor, Tensor]:
+    """``read_training_data`` and the training chunks' contact flags ``(M,)``."""
     folder = Path(data_dir)
     try:
         ds = load_dataset(folder)
-        train = ds.split("train", dtype=torch.float64).chunks
+        split = ds.split("train", dtype=torch.float64)
+        train, has_contact = split.chunks, split.chunk_has_contact
         val = ds.split("val", dtype=torch.float64).chunks
     except ValueError as err:
         raise TrainingInputError(str(err)) from None
@@ -170,7 +215,7 @@ def read_training_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any]
             "step is taken on a batch that holds one",
             folder, bad, len(train),
         )  # fmt: skip
-    return dict(ds.metadata), train, val
+    return dict(ds.metadata), train, val, has_contact
 
 
 class ChunkDataModule(pl.LightningDataModule):
@@ -183,6 +228,14 @@ class ChunkDataModule(pl.LightningDataModule):
         dtype: ``"float32"`` or ``"float64"``.
         resume_at: ``(epoch, batches)``: a run resumed in the middle of
             ``epoch`` leaves out the batches it has done (default: none).
+        steps_per_epoch: optimiser steps per epoch (per rank); ``None``: one
+            pass over the training chunks (``ceil(M / batch_size)``), or,
+            with ``weights``, ``ceil(ceil(n_reference / ranks) / batch_size)``.
+        weights: ``(M,)`` sampling weights of the training chunks (drawn with
+            replacement; :func:`contact_weights`); ``None``: shuffled passes.
+        n_reference: the item count of an epoch with ``weights`` and no
+            ``steps_per_epoch`` (the training trajectories: as many steps as
+            one chunk per trajectory would take).
 
     The samplers split the data across ranks themselves (the Trainer runs
     with ``use_distributed_sampler=False``).
@@ -196,6 +249,9 @@ class ChunkDataModule(pl.LightningDataModule):
         seed: int = DEFAULT_SEED,
         dtype: str = DEFAULT_DTYPE,
         resume_at: tuple[int, int] = (-1, 0),
+        steps_per_epoch: int | None = None,
+        weights: Tensor | None = None,
+        n_reference: int | None = None,
     ) -> None:
         super().__init__()
         self.train_set = TensorDataset(train_chunks.to(DTYPES[dtype]))
@@ -203,6 +259,18 @@ class ChunkDataModule(pl.LightningDataModule):
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.resume_at = resume_at
+        self.steps_per_epoch = steps_per_epoch
+        self.weights = weights
+        self.n_reference = len(self.train_set) if n_reference is None else int(n_reference)
+
+    def draws(self, world: int = 1) -> int | None:
+        """Indices drawn per epoch over all ranks; ``None``: one permutation of the chunks."""
+        steps = self.steps_per_epoch
+        if steps is None and self.weights is None:
+            return None
+        if steps is None:
+            steps = math.ceil(math.ceil(self.n_reference / world) / self.batch_size)
+        return int(steps) * self.batch_size * world
 
     def _ranks(self) -> tuple[int, int]:
         trainer = getattr(self, "trainer", None)
@@ -213,7 +281,8 @@ class ChunkDataModule(pl.LightningDataModule):
         epoch, batches = self.resume_at
         sampler = EpochShuffleSampler(
             len(self.train_set), self.seed, rank=rank, world_size=world,
-            skip=(epoch, batches * self.batch_size),
+            skip=(epoch, batches * self.batch_size), draws=self.draws(world),
+            weights=self.weights,
         )  # fmt: skip
         return DataLoader(self.train_set, batch_size=self.batch_size, sampler=sampler)
 
@@ -296,6 +365,7 @@ def train(
     num_nodes: int = 1,
     keep_checkpoints: int | None = None,
     callbacks: Sequence[pl.Callback] = (),
+    steps_per_epoch: int | None = None,
 ) -> Any:
     """Train a learned model on a dataset folder and write a run directory.
 
@@ -337,6 +407,14 @@ def train(
         keep_checkpoints: keep only the newest this many per-epoch checkpoints
             (``None``: all; ``last.ckpt`` is always written).
         callbacks: extra Lightning callbacks.
+        steps_per_epoch: optimiser steps per epoch, so that the schedule does
+            not change with the amount of data. ``None``: for a dataset of one
+            chunk per trajectory, one shuffled pass (``ceil(N / batch_size)``
+            steps, the paper's set-up); for a dataset of windows (metadata
+            ``stride``), as many steps as one chunk per training trajectory
+            would take, the windows drawn with replacement, weighted so that
+            a draw contains a contact with probability ``contact_fraction``
+            (:func:`contact_weights`; uniform when one kind is missing).
 
     Returns:
         The trained model (on the CPU).
@@ -355,12 +433,16 @@ def train(
     check_options(
         model=model, epochs=epochs, batch_size=batch_size, lr=lr, physics_lr=physics_lr,
         weight_decay=weight_decay, schedule=schedule, seed=seed, device=device, dtype=dtype,
-        max_time=max_time, keep_checkpoints=keep_checkpoints,
+        max_time=max_time, keep_checkpoints=keep_checkpoints, steps_per_epoch=steps_per_epoch,
     )  # fmt: skip
     physics_lr = lr if physics_lr is None else physics_lr
     data_path = Path(data_dir).resolve()
     out = Path(out_dir)
-    meta, train_chunks, val_chunks = read_training_data(data_path)
+    meta, train_chunks, val_chunks, has_contact = _read_data(data_path)
+    windows = meta.get("stride") is not None
+    weights = contact_weights(has_contact, meta.get("contact_fraction", 0.5)) if windows else None
+    if windows and weights is None:
+        weights = torch.ones(len(train_chunks), dtype=torch.float64)
     # seeded first, so that the model's initialisation depends on the seed only
     pl.seed_everything(seed, workers=True, verbose=False)
     options = dict(model_options or {})
@@ -399,6 +481,8 @@ def train(
         "schedule": schedule,
         "dtype": dtype,
         "device": str(device),
+        **({} if steps_per_epoch is None else {"steps_per_epoch": int(steps_per_epoch)}),
+        **({"sampling": "windows weighted by contact_fraction"} if windows else {}),
         "loss": "mean absolute error of the rolled-out chunk (states 1..L-1)",
         "optimizer": "AdamW",
         "versions": {
@@ -432,7 +516,8 @@ def train(
     resume_at = (point.epoch, point.batches_in_epoch) if point and point.mid_epoch else (-1, 0)
     datamodule = ChunkDataModule(
         train_chunks, val_chunks, batch_size=batch_size, seed=seed, dtype=dtype,
-        resume_at=resume_at,
+        resume_at=resume_at, steps_per_epoch=steps_per_epoch, weights=weights,
+        n_reference=int(meta.get("n_train", len(train_chunks))),
     )  # fmt: skip
 
     from lightning.pytorch.callbacks import ModelCheckpoint

@@ -50,7 +50,7 @@ METRICS = "metrics.csv"
 # run.json keys that must match to resume a run
 _RUN_IDENTITY = (
     "model_format", "model", "options", "data_dir", "seed",
-    "batch_size", "lr", "weight_decay", "physics_lr", "schedule", "dtype",
+    "batch_size", "lr", "weight_decay", "physics_lr", "schedule", "dtype", "steps_per_epoch",
 )  # fmt: skip
 # what a run that stopped before its first checkpoint may have left (removed on a restart)
 _PARTIAL = ("learned.json", f"{LOG_DIR}/{METRICS}", f"{LOG_DIR}/hparams.yaml")
