@@ -140,3 +140,24 @@ def test_flags_on_a_synthetic_loss():
     assert u["cor"]["step"][0] == pytest.approx(-0.03, rel=0.05)
     se = u["mu"]["std_error"][0]
     assert 0 < se < 3e-3  # about b / |A column|: 0.03 * 0.8 / 20
+
+
+def test_evaluate_writes_and_prints_the_uncertainty(tmp_path, dataset, capsys):
+    """``diffcontact evaluate`` assesses a physical model; --no-uncertainty skips it."""
+    import json
+
+    from .support import TINY, cli, run_dir
+
+    run = run_dir(tmp_path, dataset, log=False)
+    LearnedModel(TINY, hidden=(4,)).double().save(run / "model.pt")
+    out = tmp_path / "evaluation"
+    argv = ["evaluate", str(run), "--steps", "3", "--n-gif", "0", "--out", str(out)]
+    assert cli(argv) == 0
+    printed = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    u = m["uncertainty"]
+    assert set(u) >= {"mass_ratios", "mu", "cor", "regimes", "residual_mean_abs"}
+    assert len(u["mu"]["determined"]) == len(u["mu"]["value"])
+    assert "95 % interval" in printed
+    assert cli([*argv, "--no-uncertainty"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["uncertainty"] is None

@@ -4,6 +4,8 @@
   true parameters, rollout length (numpy; torch only for energies);
 - :mod:`.log`: the training log (Lightning's ``metrics.csv``) per epoch;
 - :mod:`.plots`: the PNG plots (matplotlib);
+- :mod:`.uncertainty`: how well the data determine the learned parameters
+  (:func:`parameter_uncertainty`, :func:`contact_regimes`);
 - :mod:`.evaluate`: ``evaluate()``, the whole protocol on a run
   (``from diffcontact.learning.evaluation.evaluate import evaluate``: the
   function is not re-exported here, where the name is its module's);
@@ -19,6 +21,7 @@ from diffcontact.learning._lazy import lazy_exports
 
 _METRICS = "diffcontact.learning.evaluation.metrics"
 _LOG = "diffcontact.learning.evaluation.log"
+_UNCERTAINTY = "diffcontact.learning.evaluation.uncertainty"
 _EXPORTS: dict[str, str] = {
     "energy_rel_drift": _METRICS,
     "energy_scale": _METRICS,
@@ -32,6 +35,9 @@ _EXPORTS: dict[str, str] = {
     "read_training_log": _LOG,
     "EvaluationInputError": "diffcontact.learning.evaluation.evaluate",
     "register_cli": "diffcontact.learning.evaluation.cli",
+    "UncertaintySettings": _UNCERTAINTY,
+    "contact_regimes": _UNCERTAINTY,
+    "parameter_uncertainty": _UNCERTAINTY,
 }
 
 __all__ = sorted(_EXPORTS)

@@ -71,6 +71,12 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         help="replace the files of another evaluation in the output folder (those of an "
         "evaluation of the same run and data are always replaced)",
     )
+    p.add_argument(
+        "--no-uncertainty",
+        action="store_true",
+        help="skip the assessment of how well the training data determine the learned "
+        "mass ratios, mu and e_P (physical models; docs/evaluation.md)",
+    )
     p.set_defaults(func=_cmd_evaluate)
     return p
 
@@ -81,27 +87,58 @@ def _fmt(x: Any) -> str:
     return f"{x:.4g}"
 
 
+def _interval(unc: Mapping[str, Any] | None, i: int) -> str:
+    """``[lo, hi]`` of the 95 % interval, ``?`` (with the reason's head) when not determined."""
+    if unc is None:
+        return ""
+    i = 0 if len(unc["value"]) == 1 else i  # one shared value
+    ci, ok = unc["ci95"][i], unc["determined"][i]
+    text = "flat" if ci is None else f"[{ci[0]:.4g}, {ci[1]:.4g}]"
+    if ok:
+        return f"  {text}"
+    return f"  {text} ? {unc['reason'][i].split(':')[0]}"
+
+
 def _param_rows(
-    name: str, entry: Mapping[str, Any], labels: Sequence[str], shared: bool = True
+    name: str,
+    entry: Mapping[str, Any],
+    labels: Sequence[str],
+    shared: bool = True,
+    unc: Mapping[str, Any] | None = None,
+) -> list[str]:
+    rows = _param_rows_plain(name, entry, labels, shared, unc)
+    summarised = len(rows) == 1 and ("see metrics.json" in rows[0] or "learned values" in rows[0])
+    if unc is not None and summarised:
+        bad = len(unc["determined"]) - sum(unc["determined"])
+        rows[0] += f"; {bad} of {len(unc['determined'])} not determined by the data"
+    return rows
+
+
+def _param_rows_plain(
+    name: str,
+    entry: Mapping[str, Any],
+    labels: Sequence[str],
+    shared: bool,
+    unc: Mapping[str, Any] | None,
 ) -> list[str]:
     learned, true = entry.get("learned"), entry.get("true")
     if learned is None:
         return [f"  {name:<16} {'-':>10} {'(not learned)':>10}"]
     if true is None:  # recorded data: no known truth
         if shared and len(set(learned)) <= 1 and learned:
-            return [f"  {name:<16} {learned[0]:>10.4f} {'unknown':>10}"]
+            return [f"  {name:<16} {learned[0]:>10.4f} {'unknown':>10}{_interval(unc, 0)}"]
         if len(learned) <= 12:
             return [
-                f"  {lab:<16} {lv:>10.4f} {'unknown':>10}"
-                for lab, lv in zip(labels, learned, strict=False)
+                f"  {lab:<16} {lv:>10.4f} {'unknown':>10}{_interval(unc, i)}"
+                for i, (lab, lv) in enumerate(zip(labels, learned, strict=False))
             ]
         return [f"  {name:<16} {len(learned)} learned values; true values unknown"]
     if shared and len(set(learned)) <= 1 and len(set(true)) <= 1 and true:
-        return [f"  {name:<16} {learned[0]:>10.4f} {true[0]:>10.4f}"]
+        return [f"  {name:<16} {learned[0]:>10.4f} {true[0]:>10.4f}{_interval(unc, 0)}"]
     if len(learned) == len(true) and len(true) <= 12:
         return [
-            f"  {lab:<16} {lv:>10.4f} {tv:>10.4f}"
-            for lab, lv, tv in zip(labels, learned, true, strict=True)
+            f"  {lab:<16} {lv:>10.4f} {tv:>10.4f}{_interval(unc, i)}"
+            for i, (lab, lv, tv) in enumerate(zip(labels, learned, true, strict=True))
         ]
     err = entry.get("max_abs_error", entry.get("max_rel_error"))
     return [
@@ -134,6 +171,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         steps=args.steps,
         n_test=args.n_test,
         force=args.force,
+        uncertainty=not args.no_uncertainty,
     )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
     print(
@@ -156,7 +194,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"  energy drift     model {_fmt(drift['pred'])}, ground truth "
             f"{_fmt(drift['true'])} (true energy, per mean kinetic energy)"
         )
-    print(f"  {'parameter':<16} {'learned':>10} {'true':>10}")
+    unc = m.get("uncertainty")
+    header = f"  {'parameter':<16} {'learned':>10} {'true':>10}"
+    print(header + ("  95 % interval (? = not determined by the data)" if unc else ""))
     if "parameters" in m.get("unknown", {}):
         print("  (true values unknown: recorded data; declare them with generate --true-params)")
 
@@ -164,9 +204,14 @@ def _evaluate(args: argparse.Namespace) -> int:
         return len(m[key]["true"] if m[key]["true"] is not None else m[key]["learned"] or [])
 
     labels = [f"m{i + 2}/m1" for i in range(count("mass_ratios"))]
-    rows = _param_rows("mass ratios", m["mass_ratios"], labels, shared=False)
+    rows = _param_rows(
+        "mass ratios", m["mass_ratios"], labels, shared=False,
+        unc=unc and unc["mass_ratios"],
+    )  # fmt: skip
     for key, sym in (("mu", "mu"), ("cor", "e_P")):
-        rows += _param_rows(sym, m[key], [f"{sym}[{k}]" for k in range(count(key))])
+        rows += _param_rows(
+            sym, m[key], [f"{sym}[{k}]" for k in range(count(key))], unc=unc and unc[key]
+        )
     if m.get("eps") is not None:
         rows.append(f"  {'eps (CMr)':<16} {_fmt(m['eps']):>10} {'-':>10}")
     print("\n".join(rows))

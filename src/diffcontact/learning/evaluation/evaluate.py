@@ -229,6 +229,24 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
 # ---------------------------------------------------------------------------
 
 
+def _uncertainty(model: Any, dataset: Any, wanted: bool) -> dict[str, Any] | None:
+    """:func:`parameter_uncertainty` and contact regimes on the training chunks, or ``None``."""
+    from diffcontact.learning.evaluation.uncertainty import (
+        parameter_uncertainty,
+        supports_uncertainty,
+    )
+
+    if not (wanted and supports_uncertainty(model)):
+        return None
+    try:
+        chunks = dataset.split("train", dtype=torch.float64).chunks
+    except ValueError:
+        return None  # no training split: nothing to assess against
+    if chunks.shape[0] == 0 or chunks.shape[1] < 2:
+        return None
+    return parameter_uncertainty(model, chunks)
+
+
 def evaluate(
     run_dir: str | os.PathLike[str] | None,
     out_dir: str | os.PathLike[str] | None = None,
@@ -241,6 +259,7 @@ def evaluate(
     n_test: int | None = None,
     gif_frames: int = 100,
     force: bool = False,
+    uncertainty: bool = True,
 ) -> dict[str, Any]:
     """Evaluate a learned model on the test set and write metrics, plots and a GIF.
 
@@ -264,6 +283,10 @@ def evaluate(
         force: replace the files of another evaluation in ``out_dir`` (one of
             another run or data set; those of the same run and data set are
             always replaced).
+        uncertainty: assess how well the training data determine the learned
+            mass ratios, ``mu`` and ``e_P`` (physical models only;
+            :func:`~diffcontact.learning.evaluation.uncertainty.parameter_uncertainty`
+            on the training chunks), written under ``uncertainty``.
 
     Returns:
         The metrics dict written to ``metrics.json`` (see ``docs/evaluation.md``).
@@ -398,6 +421,7 @@ def evaluate(
             "which are unknown"
         )
         drift, energy_error, truth = {"pred": None, "true": None}, None, None
+    uncertainty_result = _uncertainty(model, dataset, uncertainty)
     learned_fn = getattr(model, "learned_parameters", None)  # optional in the protocol
     learned = _learned(learned_fn() if callable(learned_fn) else {}, system.n_bodies)
     task = system.name
@@ -427,6 +451,7 @@ def evaluate(
         "mu": _compare(learned["mu"], truth and truth["mu"], relative=False),
         "cor": _compare(learned["cor"], truth and truth["cor"], relative=False),
         "eps": learned["eps"],
+        "uncertainty": uncertainty_result,
         "contact_names": list(getattr(system, "contact_names", [])),
         "device": str(device),
         "run_dir": None if run_path is None else str(run_path),
