@@ -519,6 +519,14 @@ KEPT_SECTIONS = [
         "<!-- control results (experiments/control.py): begin -->",
         "<!-- control results: end -->",
     ),
+    (  # experiments/coulomb.py (quoted by hand)
+        "<!-- coulomb results (experiments/coulomb.py): begin -->",
+        "<!-- coulomb results: end -->",
+    ),
+    (  # experiments/uncertainty.py
+        "<!-- uncertainty results (experiments/uncertainty.py): begin -->",
+        "<!-- uncertainty results: end -->",
+    ),
 ]
 
 

@@ -51,7 +51,11 @@ A parameter is **determined** unless
   the residuals are linear in the parameters) moves it by more than its
   tolerance. That is a value the data would move but training did not,
   typically one held at the edge of its range by the clamp, where the optimiser
-  gets no gradient.
+  gets no gradient;
+- it is a friction coefficient *not at its best* (only with
+  ``UncertaintySettings(scan=...)``): a one-dimensional scan of the loss over
+  multiples of its learned value finds a lower valley that the local analysis
+  cannot see (the loss is not convex in ``mu``: training can stop on a plateau).
 
 :func:`contact_regimes` counts, for every candidate contact, the training
 states in which it is active under the learned model, split into sliding
@@ -94,6 +98,13 @@ class UncertaintySettings:
             quotients (norms over the residuals) differ by more than this factor
             sits at a kink of the loss: the data bound it from one side only.
         max_states: states per batched rollout (perturbations x chunks).
+        scan: factors of a one-dimensional scan of every ``mu`` (e.g.
+            ``(0, 0.25, 0.5, 0.75, 1.5, 2)`` times its learned value), or
+            ``None`` (off, the default). The local analysis cannot see a lower
+            valley of the loss away from the learned value; the scan can, and a
+            ``mu`` whose loss is lower somewhere on it (by more than 0.1 %) is
+            flagged "not at its best". It costs one rollout of the chunks per
+            factor and coefficient.
     """
 
     step: float = 1e-5
@@ -103,12 +114,17 @@ class UncertaintySettings:
     cor_tol: float = 0.02
     one_sided_ratio: float = 0.5
     max_states: int = 8192
+    scan: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("step", "rcond", "mass_ratio_tol", "mu_tol", "cor_tol", "one_sided_ratio"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if self.scan is not None and not (
+            len(self.scan) > 0 and all(math.isfinite(f) and f >= 0 for f in self.scan)
+        ):
+            raise ValueError(f"scan must be non-negative factors, got {self.scan!r}")
         if not isinstance(self.max_states, int) or self.max_states < 1:
             raise ValueError(f"max_states must be a positive integer, got {self.max_states!r}")
 
@@ -266,10 +282,17 @@ def parameter_uncertainty(
     minus = torch.where(value - h >= lo, -h, 0.0)
     eye = torch.eye(p, dtype=torch.float64)
     deltas = torch.cat([eye.new_zeros(1, p), eye * plus[:, None], eye * minus[:, None]])
+    scan_values = None
+    if settings.scan is not None and layout.n_mu:
+        factors = torch.tensor(settings.scan, dtype=torch.float64)
+        scan_values = mu0[:, None] * factors[None, :]  # (n_mu, F)
+        rows = eye[smu].repeat_interleave(len(factors), dim=0)  # (n_mu * F, p)
+        shift = (scan_values - mu0[:, None]).reshape(-1)
+        deltas = torch.cat([deltas, rows * shift[:, None]])
     deltas = deltas.to(device)
 
     if progress:
-        print(f"parameter uncertainty: {2 * p + 1} rollouts of {chunks.shape[0]} chunks")
+        print(f"parameter uncertainty: {deltas.shape[0]} rollouts of {chunks.shape[0]} chunks")
     r_all = _residuals(model, chunks, base, layout, mu0, cor0, deltas, settings.max_states)
     r_all = r_all.double().cpu()
     if not torch.isfinite(r_all).all():
@@ -278,13 +301,26 @@ def parameter_uncertainty(
     sliding = torch.tensor(regimes["sliding"], dtype=torch.long)
     if layout.n_mu == 1:  # one shared mu: every contact's sliding impacts count
         sliding = sliding.sum().reshape(1)
-    result = _assess(r_all, plus, minus, value, layout, settings, (sliding > 0).tolist())
+    better = None
+    if scan_values is not None:
+        loss0 = float(r_all[0].abs().sum())
+        losses = r_all[1 + 2 * p :].abs().sum(1).reshape(scan_values.shape)
+        best = losses.argmin(1)
+        better = [
+            (float(scan_values[j, i]), float(losses[j, i]) / loss0 - 1)
+            if float(losses[j, i]) < loss0 * (1 - 1e-3)
+            else None
+            for j, i in enumerate(best.tolist())
+        ]
+        r_all = r_all[: 1 + 2 * p]
+    result = _assess(r_all, plus, minus, value, layout, settings, (sliding > 0).tolist(), better)
     return {"n_chunks": int(chunks.shape[0]), **result, "regimes": regimes}
 
 
 def _assess(
     r_all: Tensor, plus: Tensor, minus: Tensor, value: Tensor, layout: _Layout,
     settings: UncertaintySettings, mu_slides: list[bool] | None = None,
+    mu_better: list[tuple[float, float] | None] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """The statistics of :func:`parameter_uncertainty` from the residuals.
 
@@ -295,6 +331,8 @@ def _assess(
         value: ``(p,)`` the learned values (natural units).
         mu_slides: per friction coefficient, whether some training impact slides
             (``None``: do not use the regimes).
+        mu_better: per friction coefficient, ``(value, relative change of the
+            loss)`` of a scanned value that fits better, or ``None``.
     """
     p = layout.p
     r0, r_plus, r_minus = r_all[0], r_all[1 : p + 1], r_all[p + 1 :]
@@ -341,7 +379,9 @@ def _assess(
     grad = Dw_inv * (J.T @ torch.sign(r0))
     step = -Dw_inv * (V_w @ (inv_w * (V_w.T @ grad)))
 
-    def report(sl: slice, kind: str, slides: list[bool] | None = None) -> dict[str, Any]:
+    def report(
+        sl: slice, kind: str, slides: list[bool] | None = None, better: list[Any] | None = None
+    ) -> dict[str, Any]:
         out: dict[str, list[Any]] = {
             key: [] for key in ("value", "std_error", "ci95", "step", "determined", "reason")
         }
@@ -378,6 +418,9 @@ def _assess(
                 reason = "not determined: 95 % interval wider than the tolerance"
             elif abs(st) > tol:
                 reason = "not stable: the data would move it beyond the tolerance"
+            elif better is not None and better[i] is not None:
+                where, change = better[i]
+                reason = f"not at its best: the loss is {-100 * change:.1f} % lower at {where:.3g}"
             else:
                 reason = ""
             out["determined"].append(reason == "")
@@ -394,7 +437,7 @@ def _assess(
         "n_parameters": p,
         "residual_mean_abs": b,
         "mass_ratios": report(sm_, "mass_ratios"),  # bodies 2..B
-        "mu": report(smu, "mu", mu_slides),
+        "mu": report(smu, "mu", mu_slides, mu_better),
         "cor": report(scor, "cor"),
         "tolerances": {
             "mass_ratio_relative": settings.mass_ratio_tol,
