@@ -33,6 +33,7 @@ _EXPORTS: dict[str, str] = {
     "CMr": "diffcontact.contact.models",
     "ContactModel": "diffcontact.contact.models",
     "ContactParams": "diffcontact.contact.models",
+    "ContactState": "diffcontact.contact.models",
     "PoissonTwoPhase": "diffcontact.contact.models",
 }
 
@@ -42,6 +43,7 @@ __all__ = [
     "ConeQPError",
     "ContactModel",
     "ContactParams",
+    "ContactState",
     "ImpulseResult",
     "PoissonTwoPhase",
     "SolverSettings",
