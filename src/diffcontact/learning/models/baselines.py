@@ -8,7 +8,7 @@ Each replaces one stage of the simulator, never forks it (DESIGN.md):
   stage is :class:`ContactMLP`, a learnable contact model. For every active
   contact an MLP maps the local pre-impact state (positions and velocities of
   the contact's points, the contact Jacobian restricted to them, ``J_C v``,
-  the gap, the contact-space inverse inertia ``J_C Mhat^-1 J_C^T`` and a
+  the gap over ``dt``, the contact-space inverse inertia ``J_C Mhat^-1 J_C^T`` and a
   learned embedding of the candidate) to an impulse on those points; the
   velocity jump is ``Mhat^-1`` times the summed impulses, so it keeps joints
   and rigid bodies intact.
@@ -224,6 +224,7 @@ class _GraphTables(nn.Module):
         bodies, P = graph.bodies, graph.n_points
         B, K = len(bodies), system.n_contacts
         self.n_bodies, self.n_points, self.dim, self.d = B, P, system.dim, system.d
+        self.dt = system.dt
         Pb = max(len(b.points) for b in bodies)
         body_points = torch.zeros(B, Pb, dtype=torch.long)
         body_point_mask = torch.zeros(B, Pb, dtype=torch.bool)
@@ -392,13 +393,15 @@ def _contact_features(
     v: Tensor,
     state: ContactState,
     d: int,
+    dt: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Local features of the padded contacts of one step.
 
     Returns:
         ``features (n, Ka, F)``: the contact's points' positions and velocities
         ``(Pe, dim)`` each, its Jacobian on them ``(d, Pe, dim)``, ``J_C v (d)``,
-        its gap (differentiable in ``x``) and ``A_kk (d, d)``; the points'
+        its gap divided by ``dt`` (a velocity, like ``J_C v``: penetrating within a step
+        is ``gap / dt + v_C,n < 0``; differentiable in ``x``) and ``A_kk (d, d)``; the points'
         indices ``(n, Ka, Pe)`` and their mask ``(n, Ka, Pe)``.
     """
     x, idx = state.x, state.contact_index
@@ -411,7 +414,7 @@ def _contact_features(
     v_e = torch.where(keep[..., None], gather_points(vp, pts), zero)
     J_e = tables.restrict(J_C.reshape(n, Ka, d, P, dim), idx)
     v_C = (J_C @ v.unsqueeze(-1)).reshape(n, Ka, d)
-    gap = state.geometry.gaps(x).gather(-1, idx).unsqueeze(-1)
+    gap = state.geometry.gaps(x).gather(-1, idx).unsqueeze(-1) / dt
     A = _contact_space_inertia(J_C, Mhat_inv, n, Ka, d)
     feats = torch.cat(
         [x_e.flatten(2), v_e.flatten(2), J_e.flatten(2), v_C, gap, A.flatten(2)], dim=-1
@@ -425,7 +428,7 @@ class ContactMLP(nn.Module):
 
     For each active contact ``k`` the MLP reads its local pre-impact state
     (see :func:`_contact_features`: positions and velocities of its points,
-    its Jacobian on them, ``J_C v``, the gap, ``A_kk``) and a learned
+    its Jacobian on them, ``J_C v``, the gap over ``dt``, ``A_kk``) and a learned
     embedding of the candidate (so contacts with different, unknown
     properties can differ) and outputs an impulse ``p_k: (Pe, dim)`` on the
     contact's points. The velocity jump is ``Mhat^-1 sum_k p_k``; padded
@@ -468,7 +471,8 @@ class ContactMLP(nn.Module):
         """
         if state is None:
             raise ValueError("ContactMLP.resolve needs state= (System.simulate passes it)")
-        feats, pts, keep = _contact_features(self.tables, J_C, Mhat_inv, v, state, d)
+        t = self.tables
+        feats, pts, keep = _contact_features(t, J_C, Mhat_inv, v, state, d, t.dt)
         n, Ka = active.shape
         if self.embedding is not None:
             emb = self.embedding.to(feats)[state.contact_index]
@@ -536,7 +540,7 @@ class ContactIN(nn.Module):
         x = state.x
         n, Ka = active.shape
         vp = v.reshape(n, t.n_points, t.dim)
-        feats, _, _ = _contact_features(t, J_C, Mhat_inv, v, state, d)
+        feats, _, _ = _contact_features(t, J_C, Mhat_inv, v, state, d, t.dt)
         Es = t.n_struct
         struct = torch.cat(
             [t.kind_onehot(t.struct_kind, x), x.new_zeros(Es, self.n_contact)], dim=-1
@@ -814,7 +818,7 @@ class INSPCP(nn.Module):
     positions and velocities of the body's points, radius, the true log mass
     and the true external force (gravity ``m g``) from the config. Edge
     features: kind, relative centre position and velocity, and for contacts
-    ``J_C v``, the gap and the contact Jacobian on the contact's points. The
+    ``J_C v``, the gap over ``dt`` and the contact Jacobian on the contact's points. The
     decoder gives per point ``(dx, dv)``; the step is
     ``v' = v + dv``, ``x' = x + dt (v' + dx)`` (with zero output: free flight).
 
@@ -913,7 +917,7 @@ class INSPCP(nn.Module):
             keep[..., None], gather_points(v, pts), torch.zeros((), dtype=x.dtype, device=x.device)
         )
         v_C = (J_e * v_e.unsqueeze(2)).sum((-1, -2))  # (n, K, d)
-        gap = geometry.gaps(x).unsqueeze(-1)
+        gap = geometry.gaps(x).unsqueeze(-1) / self.dt  # a velocity, like v_C
         Es = t.n_struct
         struct = torch.cat(
             [t.kind_onehot(t.struct_kind, x), x.new_zeros(Es, self.n_contact)], dim=-1
