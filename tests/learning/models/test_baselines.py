@@ -317,3 +317,20 @@ def test_train_and_evaluate_through_the_cli(name, cp3_data, tmp_path, capsys):
     else:
         assert len(metrics["mass_ratios"]["learned"]) == 2
         assert "m2/m1" in out
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("name", BASELINE_MODELS)
+def test_cuda_rollout_matches_cpu(name):
+    """The same weights roll out on CUDA as on the CPU (float64), gradients included."""
+    model = build(name, "BD5").double()
+    z0 = contact_states("BD5")
+    cpu = model.simulate(z0, 3, check_overlap=False)
+    cuda_model = build(name, "BD5").double().cuda()
+    cuda_model.load_state_dict(model.state_dict())
+    gpu = cuda_model.simulate(z0.cuda(), 3, check_overlap=False)
+    assert gpu.device.type == "cuda"
+    torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-9, atol=1e-10)
+    gpu.square().sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in cuda_model.parameters())
