@@ -38,7 +38,7 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import SolverSettings
 from diffcontact.contact.impulse import ImpulseResult, two_phase_impulse
 
-__all__ = ["CM", "CMr", "ContactModel", "ContactParams", "PoissonTwoPhase"]
+__all__ = ["CM", "CMr", "ContactModel", "ContactParams", "ContactState", "PoissonTwoPhase"]
 
 
 @dataclass(frozen=True)
@@ -61,9 +61,42 @@ class ContactParams:
         return dataclasses.replace(self, **changes)
 
 
+@dataclass(frozen=True)
+class ContactState:
+    """Where the contacts of a step are, for models that look beyond the contact problem.
+
+    Learned contact models (the MLP and interaction-network baselines of
+    :mod:`diffcontact.learning.models.baselines`) need the positions of the
+    bodies and which candidate each padded contact is. The simulator passes
+    one as ``resolve(..., state=...)`` to models whose class sets
+    ``needs_contact_state = True``; other models are called exactly as before.
+
+    Attributes:
+        x: ``(n, P, dim)`` positions of the states with an active contact
+            (after the smooth step, with their graph).
+        gaps: ``(n, Ka)`` gaps of the padded contacts as detected (detached;
+            padded entries are those of an inactive candidate).
+        contact_index: ``(n, Ka)`` long, the candidate index of each padded
+            contact (active ones first, in candidate order).
+        batch_index: ``(n,)`` long, which of the ``N`` simulated states each row is.
+        geometry: the system's contact geometry on ``x``'s device
+            (``gaps(x)``, ``jacobian_sparse(x, idx)``), for differentiable gaps.
+    """
+
+    x: Tensor
+    gaps: Tensor
+    contact_index: Tensor
+    batch_index: Tensor
+    geometry: Any
+
+
 @runtime_checkable
 class ContactModel(Protocol):
-    """What the simulator asks of a contact model."""
+    """What the simulator asks of a contact model.
+
+    A model whose class sets ``needs_contact_state = True`` is also given
+    ``state=``:class:`ContactState` (a keyword argument only those models get).
+    """
 
     def resolve(
         self,

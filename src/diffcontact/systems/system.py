@@ -38,7 +38,7 @@ from torch import Tensor
 
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings
 from diffcontact.contact.impulse import penetration_target
-from diffcontact.contact.models import ContactModel, ContactParams
+from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
 from diffcontact.geometry import RimPlane, circles_2d, rope_limits
 from diffcontact.mechanics import (
@@ -789,6 +789,9 @@ class System:
 
         mu, cor = pick(ctx.mu), pick(ctx.cor)
         contact_params = ContactParams(mu=mu, cor=cor, eps=ctx.select(ctx.eps, 0, b))
+        extra: dict[str, Any] = {}
+        if getattr(model, "needs_contact_state", False):  # learned contact models
+            extra["state"] = ContactState(xs, gaps[b].gather(-1, idx), idx, b, ctx.geometry)
         try:
             res = model.resolve(
                 J,
@@ -799,6 +802,7 @@ class System:
                 d,
                 v_C_star=v_star if fraction > 0 else None,
                 settings=self._inner_settings(settings),
+                **extra,
             )
         except ConeQPError as err:  # name the states (rows of this step's contact batch)
             status = err.status

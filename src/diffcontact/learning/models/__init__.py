@@ -4,6 +4,7 @@
 - :mod:`.registry` (torch-free): :func:`register_model`, :func:`model_names`,
   :func:`create_model`;
 - :mod:`.physical`: :class:`LearnedModel`, the CM/CMr-CD-CLNN/CHNN models;
+- :mod:`.baselines`: the baselines MLP-CD-CLNN, IN-CP-CLNN and IN-SP-CP;
 - :mod:`.storage`: :func:`save_model`, :func:`load_model` for any registered model.
 
 Names are imported lazily, so the command line lists the models without torch.
@@ -20,6 +21,10 @@ _EXPORTS: dict[str, str] = {
     "DynamicsModel": "diffcontact.learning.models.protocol",
     "OptimizerSettings": "diffcontact.learning.models.protocol",
     "BUILTIN_MODELS": "diffcontact.learning.models.registry",
+    "BASELINE_MODELS": "diffcontact.learning.models.registry",
+    "INCPCLNN": "diffcontact.learning.models.baselines",
+    "INSPCP": "diffcontact.learning.models.baselines",
+    "MLPCDCLNN": "diffcontact.learning.models.baselines",
     "create_model": "diffcontact.learning.models.registry",
     "model_names": "diffcontact.learning.models.registry",
     "parse_model_name": "diffcontact.learning.models.registry",

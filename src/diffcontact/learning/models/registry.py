@@ -4,8 +4,9 @@ Importing this module loads no torch, so the CLI builds its ``--model``
 choices from :func:`model_names` cheaply. A factory is any callable
 ``factory(config, **options) -> DynamicsModel`` (:mod:`.protocol`); the
 built-in physical models (paper-facts.md, "Models compared": contact model
-CM, CMr or LCP, true collision detection, constrained Lagrangian or Hamiltonian
-network) are loaded on first use. Third-party packages can also register
+CM, CMr, LCP or Coulomb, true collision detection, constrained Lagrangian or
+Hamiltonian network) and the baselines (MLP-CD-CLNN, IN-CP-CLNN, IN-SP-CP) are loaded
+on first use. Third-party packages can also register
 through the entry-point group ``diffcontact.models``.
 
 Example::
@@ -23,6 +24,7 @@ from typing import Any
 from diffcontact.registry import Registry
 
 __all__ = [
+    "BASELINE_MODELS",
     "BUILTIN_MODELS",
     "PHYSICAL_CONTACT_MODELS",
     "create_model",
@@ -39,10 +41,17 @@ PHYSICAL_CONTACT_MODELS = ("CM", "CMr", "LCP", "Coulomb")
 BUILTIN_MODELS = tuple(
     f"{contact}-CD-{net}" for contact in PHYSICAL_CONTACT_MODELS for net in ("CLNN", "CHNN")
 )
+# the paper's baselines (diffcontact.learning.models.baselines): an MLP or an interaction
+# network replaces the impulse (MLP-CD-CLNN, IN-CP-CLNN) or the whole step (IN-SP-CP)
+BASELINE_MODELS = ("MLP-CD-CLNN", "IN-CP-CLNN", "IN-SP-CP")
 _PHYSICAL = "diffcontact.learning.models.physical"
+_BASELINES = "diffcontact.learning.models.baselines"
 REGISTRY = Registry(
     "model",
-    {name: f"{_PHYSICAL}:{name.replace('-', '_')}" for name in BUILTIN_MODELS},
+    {
+        **{name: f"{_PHYSICAL}:{name.replace('-', '_')}" for name in BUILTIN_MODELS},
+        **{name: f"{_BASELINES}:{name.replace('-', '_')}" for name in BASELINE_MODELS},
+    },
     entry_point_group="diffcontact.models",
 )
 REQUIRED = ("simulate", "param_groups", "metrics", "options")

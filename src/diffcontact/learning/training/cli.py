@@ -63,10 +63,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     hidden = ",".join(map(str, options.DEFAULT_HIDDEN))
     p = subparsers.add_parser(
         "train",
-        help="train a CM/CMr-CD-CLNN/CHNN model on a dataset",
+        help="train a CM/CMr-CD-CLNN/CHNN model or a baseline on a dataset",
         description=(
             "Train a learned model (contact model CM or CMr, true collision detection, "
-            "constrained Lagrangian or Hamiltonian dynamics) on the chunks of a dataset "
+            "constrained Lagrangian or Hamiltonian dynamics; or a baseline: MLP-CD-CLNN, "
+            "IN-CP-CLNN, IN-SP-CP, docs/training.md) on the chunks of a dataset "
             "folder with the rollout loss (MAE) and AdamW. Writes run.json, checkpoints/ "
             "(last.ckpt and one per epoch), logs/metrics.csv, learned.json (every epoch) "
             "and model.pt (at the end) to --out, which must be new, empty or a run of ours. "
@@ -140,7 +141,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "--hidden", type=_cli_hidden, default=None, metavar="W,W,...",
-        help=f"hidden widths of the potential MLP (default {hidden})",
+        help=f"hidden widths of the potential MLP (default {hidden}); for IN-SP-CP, of "
+        "its network's MLPs (default 128,128)",
     )  # fmt: skip
     p.add_argument(
         "--steps-per-epoch", type=positive_int, default=None, metavar="K",

@@ -44,7 +44,11 @@ from diffcontact import __version__
 from diffcontact.io import jsonable
 from diffcontact.learning.data.format import load_dataset
 from diffcontact.learning.models.physical import FORMAT_VERSION as MODEL_FORMAT_VERSION
-from diffcontact.learning.models.registry import create_model, is_physical_model
+from diffcontact.learning.models.registry import (
+    BASELINE_MODELS,
+    create_model,
+    is_physical_model,
+)
 from diffcontact.learning.models.storage import save_model
 from diffcontact.learning.training.checkpoints import LAST, SafeCheckpointIO, resume_point
 from diffcontact.learning.training.module import DTYPES, RolloutModule, write_learned
@@ -373,8 +377,9 @@ def train(
         data_dir: a dataset (``diffcontact generate``; ``docs/conventions.md``).
         out_dir: the run directory (created).
         model: a registered model name (``diffcontact.learning.model_names()``):
-            ``CM-CD-CLNN``, ``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN`` or one
-            added with :func:`~diffcontact.learning.register_model`.
+            ``CM-CD-CLNN``, ``CM-CD-CHNN``, ``CMr-CD-CLNN``, ``CMr-CD-CHNN``, the
+            baselines ``MLP-CD-CLNN``, ``IN-CP-CLNN``, ``IN-SP-CP`` or one added with
+            :func:`~diffcontact.learning.register_model`.
         epochs: total number of epochs (a resumed run continues up to it).
         batch_size, lr, weight_decay: batching, and AdamW for the potential network.
         physics_lr: AdamW learning rate of the physical parameters (masses,
@@ -386,10 +391,12 @@ def train(
         eps: CMr's regulariser (a positive number or ``"learnable"``; default 0.01).
         heterogeneous: one mu/e_P per contact; ``None``: the config's
             ``contact_parameters`` key.
-        hidden: hidden widths of the potential MLP (default 256, 256, 256).
+        hidden: hidden widths of the potential MLP (default 256, 256, 256); the
+            baselines' ``hidden`` option (the potential MLP's, or IN-SP-CP's network's).
         model_options: further options of the model's factory (for a
-            registered model, all of them; ``eps``, ``heterogeneous`` and
-            ``hidden`` are options of the physical models only).
+            registered model, all of them; ``eps`` and ``heterogeneous`` are
+            options of the physical models only, ``hidden`` of the physical
+            models and the baselines).
         dtype: ``"float64"`` (default, see docs/training.md) or ``"float32"``.
         resume: continue the run in ``out_dir`` from ``checkpoints/last.ckpt``
             (else from the newest readable per-epoch checkpoint; the run's
@@ -450,6 +457,11 @@ def train(
     if is_physical_model(model):
         defaults = {"eps": DEFAULT_EPS, "heterogeneous": None, "hidden": DEFAULT_HIDDEN}
         options = {k: defaults[k] if v is None else v for k, v in physical.items()} | options
+    elif model in BASELINE_MODELS and eps is None and heterogeneous is None:
+        if hidden is not None:  # the baselines' "hidden" option, as for the physical models
+            if "hidden" in options:
+                raise TrainingInputError("hidden given twice (hidden and model_options)")
+            options["hidden"] = list(hidden)
     elif any(v is not None for v in physical.values()):
         given = ", ".join(k for k, v in physical.items() if v is not None)
         raise TrainingInputError(
