@@ -12,7 +12,11 @@ the restitution phase got its warm start (issue 11): a rope state's restitution
 problem has many weakly active limits, and the polish from ``e_P f_c`` stops at a
 point whose scaled natural-map residual is within rounding (<= 1e-13) but not the
 interior point's; the rollouts moved by 3e-11 (2e-11 relative to their scale), the
-solver's accuracy on these ill-conditioned problems, not a change of physics.
+solver's accuracy on these ill-conditioned problems, not a change of physics. They
+were rewritten again when the solver started equilibrating problems whose contacts
+differ in scale by more than 1e3 (``cone_qp._contact_scales``, issue 11's scale
+robustness): the rope's limit problems are such problems, and the rollouts moved by
+3e-11 (Rope) and 1.7e-11 (Rope-D100), again the solver's accuracy on them.
 
 ``tests/test_reference_values.py`` compares against it.
 """

@@ -471,3 +471,35 @@ def test_separating_problems_skip_the_interior_point(d):
     assert_gradients_close(
         lambda b_: solve_cone_qp(A.detach()[:6], b_, mu.detach()[:6], d), (b.detach()[:6],)
     )
+
+
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_contacts_of_very_different_scales_are_solved(backend):
+    """Two contacts of bodies with masses 1e-6 and 1e6: bounded, and solved as such.
+
+    The problem is the one BP5 with masses 1e-6..1e6 met (it was reported unbounded:
+    its curvature along the heavy contact is 1e-12 of the light one's). Per-contact
+    equilibration solves it; the answer is checked against the closed form of the
+    decoupled contacts (A is diagonal) and the status is converged.
+    """
+    if backend == "warp":
+        pytest.importorskip("warp")
+    A = torch.diag(torch.tensor([1e6, 1e6, 1e-6, 1e-6], dtype=torch.float64))[None]
+    b = torch.tensor([[-1.337277, 0.126539, -1.218436, -0.328941]], dtype=torch.float64)
+    mu = torch.tensor([[0.6, 0.1]], dtype=torch.float64)
+    settings = SolverSettings(backend=backend)
+    f, status = solve_cone_qp(A, b, mu, 2, return_status=True, settings=settings)
+    assert bool(status.converged.all()) and not bool(status.unbounded.any())
+    # contact 1: -b / a is inside the cone (|f_t| = 0.095 <= 0.6 * 1.34)
+    torch.testing.assert_close(f[0, :2], -b[0, :2] / 1e6, rtol=1e-9, atol=0)
+    # contact 2: the objective 0.5 a |f|^2 + b'f is isotropic, so f is the projection of
+    # -b / a onto the cone; that point is outside it: f_n = (-b_n + mu |b_t|) / (a (1 + mu^2))
+    a, bn, bt = 1e-6, -1.218436, -0.328941
+    fn = (-bn + 0.1 * abs(bt)) / (a * (1 + 0.1**2))
+    expected = torch.tensor([fn, 0.1 * fn * (1 if bt < 0 else -1)], dtype=torch.float64)
+    torch.testing.assert_close(f[0, 2:], expected, rtol=1e-9, atol=0)
+    # gradients pass through the equilibration
+    A_ = A.clone().requires_grad_()
+    b_ = b.clone().requires_grad_()
+    solve_cone_qp(A_, b_, mu, 2, settings=settings).sum().backward()
+    assert torch.isfinite(A_.grad).all() and torch.isfinite(b_.grad).all()

@@ -15,7 +15,10 @@ problems or contacts):
 1. Inactive contacts are decoupled (identity block, a separating velocity) so
    their impulse is exactly zero and they do not touch the others; ``mu = 0``
    tangential components are decoupled for the interior-point phase.
-2. The problem is scaled (diag(A) ~ 1, |b| ~ 1) and a primal-dual interior-point
+2. A problem whose contacts differ in scale by more than 1e3 (masses orders of
+   magnitude apart) is first equilibrated contact by contact (``S A S``; the cones
+   are invariant; :func:`_contact_scales`). The problem is scaled (diag(A) ~ 1,
+   |b| ~ 1) and a primal-dual interior-point
    method (Mehrotra predictor-corrector, Nesterov-Todd scaling;
    :mod:`diffcontact.contact.interior_point`) approaches the solution to ``gap``;
    problems leave the batch as they finish. Problems the polish cannot finish are
@@ -371,6 +374,34 @@ def _polish_rows(f: Tensor, rows: Tensor, data, settings: SolverSettings):
     if settings.backend == "warp":
         return fused.polish(f, rows, data, settings)
     return _polish(f, [x[rows] for x in data], settings)
+
+
+# contacts whose blocks of A differ in scale by more than this factor are equilibrated
+_EQUILIBRATE_ABOVE = 1e3
+
+
+def _contact_scales(A: Tensor, active: Tensor, d: int) -> Tensor:
+    """Per-contact scales that equilibrate badly scaled problems, (B, C) detached.
+
+    A problem whose contacts' normal diagonals ``A_nn,k`` differ by more than
+    :data:`_EQUILIBRATE_ABOVE` (bodies whose masses differ by orders of magnitude)
+    is solved as ``A' = S A S``, ``b' = S b``, ``lower' = lower / s``, ``f = S f'``
+    with ``s_k = (max_j A_nn,j / A_nn,k)^(1/2)`` on every component of contact ``k``:
+    the friction cone is invariant under a positive scale of a contact's impulse, so
+    the problems are the same, but the scaled one has unit-order curvature in every
+    contact, which the solver's single scale per problem and its unboundedness
+    certificate (relative to the largest curvature) need. Other problems keep
+    ``s = 1`` exactly. The scales are constants of the transformation, so gradients
+    flow through ``S A S`` and ``S f'`` unchanged.
+    """
+    with torch.no_grad():
+        a = A.diagonal(dim1=-2, dim2=-1)[:, ::d]  # (B, K) normal diagonals
+        ok = active & (a > 0)
+        top = torch.where(ok, a, 0).amax(-1, keepdim=True)
+        low = torch.where(ok, a, torch.inf).amin(-1, keepdim=True)
+        spread = ok.any(-1, keepdim=True) & (top > _EQUILIBRATE_ABOVE * low)
+        s = torch.where(ok & spread, (top / torch.where(ok, a, 1)).sqrt(), 1.0)
+        return s.repeat_interleave(d, dim=-1)
 
 
 def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):
@@ -729,10 +760,17 @@ def solve_cone_qp(
     )
     if warm_start is not None:
         warm_start = warm_start.expand(*batch, C).reshape(n, C)
+    s_c = _contact_scales(flat[0], flat[4], d)  # (n, C), detached
+    A_f, b_f, mu_f, lower_f, act_f = flat
+    A_f = A_f * (s_c[:, :, None] * s_c[:, None, :])
+    b_f = b_f * s_c
+    lower_f = lower_f / s_c[:, ::d]
+    if warm_start is not None:
+        warm_start = warm_start / s_c
     f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(
-        *flat, d, resolved, warm_start
+        A_f, b_f, mu_f, lower_f, act_f, d, resolved, warm_start
     )
-    f = f.reshape(*batch, C)
+    f = (f * s_c).reshape(*batch, C)
     status = SolverStatus(
         converged=converged.reshape(batch),
         unbounded=unbounded.reshape(batch),
