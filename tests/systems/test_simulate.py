@@ -229,6 +229,11 @@ def test_a_step_too_large_is_a_clear_error_naming_the_states():
     z0 = system.sample_initial_conditions(4, seed=0)
     with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 4 .*state \d at step"):
         system.simulate(z0, 9)
+    # with these 8 states a blown-up state first meets the SVD of the penetration target
+    # (it raised a raw LinAlgError); it is named the same way
+    z0 = system.sample_initial_conditions(8, seed=0)
+    with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 8 .*state \d at step"):
+        system.simulate(z0, 20)
     from diffcontact.mechanics.dynamics import _solve_spd
 
     A = torch.stack([torch.eye(2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)])

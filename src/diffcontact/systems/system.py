@@ -1005,8 +1005,12 @@ class System:
             z1 = self._integrate(z, ctx, dynamics)
             try:
                 z = self._resolve(z1, ctx, model, fraction, solver_settings).z
-            except ValueError as err:
-                if "NaN or infinite" not in str(err):
+            except (ValueError, torch.linalg.LinAlgError) as err:
+                # a state that blew up inside the step fails in the first linear algebra
+                # that meets it (the solver's input check, or an SVD / factorisation of
+                # the penetration target): say which states and why
+                nonfinite = not bool(torch.isfinite(z1.detach()).all())
+                if "NaN or infinite" not in str(err) and not nonfinite:
                     raise
                 states.append(z1)
                 raise ValueError(self._nonfinite_message(states, step + 1)) from err
