@@ -232,3 +232,26 @@ def test_generate_and_train_through_the_cli(tmp_path, capsys):
     learned = json.loads((run / "learned.json").read_text())
     assert learned["finished"] and learned["global_step"] == 2
     assert all(math.isfinite(x) for x in learned["learned"]["mu"])
+
+
+def test_high_friction_two_contact_problem_converges():
+    """A BD5 contact problem (two disk contacts, mu 1.4 and 0.9, the active block of A
+    positive definite; recorded by ``benchmarks/run.py contact_models`` from a CM rollout)
+    on which Newton's point fed back into the fixed point stalled at a residual of 0.15:
+    the fixed point on its own iterate converges."""
+    from pathlib import Path
+
+    data = torch.load(Path(__file__).parent / "data" / "coulomb_bd5_hard.pt")
+    params = dc.contact.ContactParams(mu=data["mu"], cor=data["cor"])
+    model = dc.contact.create_contact_model("Coulomb")  # raises if it does not converge
+    out = model.resolve(
+        data["J"], data["M"], data["v"], params, data["active"], 2, v_C_star=data["vs"]
+    )
+    assert torch.isfinite(out.v_plus).all()
+    # the restitution impulse meets Poisson's bound, the impulses are in the cones
+    f_c, f_r = out.f_c.reshape(-1, 2), out.f_r.reshape(-1, 2)
+    act = data["active"].reshape(-1)
+    mu = data["mu"].reshape(-1)
+    for f in (f_c, f_r):
+        assert bool((f[act, 1].abs() <= mu[act] * f[act, 0] + 1e-9).all())
+    assert bool((f_r[act, 0] >= data["cor"].reshape(-1)[act] * f_c[act, 0] - 1e-9).all())
