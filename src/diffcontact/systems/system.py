@@ -87,20 +87,30 @@ def list_tasks() -> list[str]:
 
 
 def _read_file(path: Path) -> Any:
-    text = path.read_text()
-    if path.suffix.lower() == ".json":
-        import json
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"cannot read config file {path}: {err}") from None
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+    try:
+        if kind == "JSON":
+            import json
+
+            try:
+                return json.loads(text)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"cannot parse {path} as JSON: {err}") from None
+        import yaml
 
         try:
-            return json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"cannot parse {path} as JSON: {err}") from None
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ValueError(f"cannot parse {path} as YAML: {err}") from None
+            return yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise ValueError(f"cannot parse {path} as YAML: {err}") from None
+    except RecursionError:
+        raise ValueError(
+            f"cannot parse {path} as {kind}: nested too deeply (a config is a mapping of "
+            "numbers, lists and small mappings)"
+        ) from None
 
 
 def load_config(spec: Any, **overrides: Any):
