@@ -261,7 +261,7 @@ def evaluate(
     device: str = "cpu",
     steps: int | None = None,
     n_test: int | None = None,
-    gif_frames: int = 100,
+    gif_frames: int = 40,
     force: bool = False,
     uncertainty: bool = True,
 ) -> dict[str, Any]:
