@@ -7,7 +7,9 @@ error the temporary file is removed and the destination is left untouched.
 
 :func:`jsonable` turns results (numpy and torch values, paths, non-finite
 floats) into plain JSON data; :func:`read_json_object` reads a JSON file with
-one-line errors; :func:`parse_device` checks a device name. torch is imported
+one-line errors; :func:`read_npz` reads ``.npz``/``.npy`` arrays after checking
+that each array's header agrees with the bytes stored (a crafted header cannot
+make it allocate terabytes); :func:`parse_device` checks a device name. torch is imported
 only inside the functions that take tensors or devices.
 
 Output folders are written only through these renames, so a symbolic link
@@ -26,9 +28,10 @@ import os
 import re
 import tempfile
 import zipfile
-from collections.abc import Iterator, Mapping
+import zlib
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -43,6 +46,7 @@ __all__ = [
     "jsonable",
     "parse_device",
     "read_json_object",
+    "read_npz",
     "remove_orphan_temporaries",
 ]
 
@@ -226,6 +230,116 @@ def atomic_write_json(path: str | os.PathLike[str], data: Any) -> Path:
     return atomic_write_bytes(path, json_bytes(data))
 
 
+def _physical_memory() -> int | None:
+    """Bytes of physical memory, or ``None`` where the platform does not say."""
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _gib(n: int) -> str:
+    """A byte count for people: ``"14.6 TiB"``, ``"96 bytes"``."""
+    for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n:,} bytes"
+
+
+def _checked_header(fh: IO[bytes], stored: int, name: str) -> None:
+    """Read an ``.npy`` header from ``fh`` and check it against ``stored`` bytes in all.
+
+    Raises:
+        ValueError: not an ``.npy`` header, an object dtype, or a shape whose
+            data would not be the bytes stored (or would not fit in memory).
+    """
+    fmt = np.lib.format
+    version = fmt.read_magic(fh)
+    if version == (1, 0):
+        shape, _, dtype = fmt.read_array_header_1_0(fh)
+    elif version in ((2, 0), (3, 0)):
+        shape, _, dtype = fmt.read_array_header_2_0(fh)
+    else:  # pragma: no cover - read_magic accepts only these
+        raise ValueError(f"{name}: unsupported .npy format version {version}")
+    if dtype.hasobject:
+        raise ValueError(f"{name}: holds Python objects (dtype {dtype}); only numbers are read")
+    data = stored - fh.tell()
+    claimed = math.prod(shape) * dtype.itemsize
+    memory = _physical_memory()
+    if claimed != data or (memory is not None and claimed > memory):
+        shown = "x".join(map(str, shape)) or "scalar"
+        why = (
+            f"more than this machine's memory ({_gib(memory)})"
+            if memory is not None and claimed > memory and claimed == data
+            else f"but {_gib(max(data, 0))} of data are stored (truncated or forged header)"
+        )
+        raise ValueError(
+            f"{name}: its header claims a {shown} array of {dtype} ({_gib(claimed)}), {why}; "
+            "not read"
+        )
+
+
+def read_npz(
+    source: str | os.PathLike[str] | IO[bytes], names: Iterable[str] | None = None
+) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Arrays of an ``.npz`` file (or one ``.npy`` array, named ``""``), read safely.
+
+    Before an array is read, its ``.npy`` header (shape, dtype) is checked
+    against the size the file (or zip member) actually has, so a forged header
+    that claims a huge shape is refused instead of allocating it; object arrays
+    (pickles) are refused.
+
+    Args:
+        source: a path or a binary file object (e.g. ``io.BytesIO``).
+        names: the arrays to read (absent ones are skipped); ``None``: all.
+
+    Returns:
+        ``(arrays, members)``: the arrays read by name, and the names of all
+        arrays in the file.
+
+    Raises:
+        ValueError: (one line) the file is not a readable ``.npz``/``.npy``
+            (truncated, corrupted, forged header, object array); the message
+            names the array.
+        OSError: the file cannot be opened.
+    """
+    wanted = None if names is None else set(names)
+    fh: IO[bytes]
+    close = False
+    if isinstance(source, (str, os.PathLike)):
+        fh, close = open(source, "rb"), True  # closed below
+    else:
+        fh = source
+    try:
+        start = fh.tell()
+        is_zip = fh.read(4) == b"PK\x03\x04"
+        fh.seek(start)
+        if not is_zip:
+            size = fh.seek(0, os.SEEK_END) - start
+            fh.seek(start)
+            _checked_header(fh, size, "the .npy array")
+            fh.seek(start)
+            arr = np.lib.format.read_array(fh, allow_pickle=False)
+            return {"": arr}, [""]
+        arrays: dict[str, np.ndarray] = {}
+        with zipfile.ZipFile(fh) as zf:
+            infos = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            members = [i.filename[: -len(".npy")] for i in infos]
+            for info, name in zip(infos, members, strict=True):
+                if wanted is not None and name not in wanted:
+                    continue
+                with zf.open(info) as member:
+                    _checked_header(member, info.file_size, f"array {name!r}")
+                with zf.open(info) as member:
+                    arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
+        return arrays, members
+    except (EOFError, KeyError, zipfile.BadZipFile, zlib.error, RuntimeError) as err:
+        raise ValueError(f"{type(err).__name__}: {err}") from None
+    finally:
+        if close:
+            fh.close()
+
+
 def read_json_object(
     path: str | os.PathLike[str], what: str, error: type[Exception] = ValueError
 ) -> dict[str, Any]:
@@ -241,6 +355,8 @@ def read_json_object(
         raise error(f"cannot read {what} {path}: {err.strerror or err}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise error(f"{what} {path} is not valid JSON: {err}") from None
+    except RecursionError:
+        raise error(f"{what} {path} is nested too deeply to be read") from None
     if not isinstance(data, dict):
         raise error(f"{what} {path} does not hold a JSON object")
     return data

@@ -17,11 +17,15 @@ list, e.g. ``{pairs: [...], walls: 0.1}``.
 from __future__ import annotations
 
 import math
+import os
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
 __all__ = [
+    "ALLOW_LARGE_ENV",
+    "MAX_STATES",
+    "MAX_STATE_BYTES",
     "SYSTEM_TYPES",
     "BouncingDisksConfig",
     "BouncingMassesConfig",
@@ -31,11 +35,15 @@ __all__ = [
     "RopeConfig",
     "SystemConfig",
     "parse_config",
+    "state_bytes",
 ]
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+# strict: a number must be a number (YAML's "5" or true is an error, not 5.0 or 1.0);
+# integers are accepted where a float is expected
+Real = Annotated[float, Field(strict=True)]
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False, strict=True)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False, strict=True)]
+Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
 Line = tuple[Finite, Finite, Finite]
 Plane = tuple[Finite, Finite, Finite, Finite]
 Pair = tuple[Finite, Finite]
@@ -53,13 +61,13 @@ class ContactGroups(_Strict):
     ``bending`` and ``stretch`` for the rope.
     """
 
-    pairs: float | list[float] | None = None
-    walls: float | list[float] | None = None
-    bending: float | list[float] | None = None
-    stretch: float | list[float] | None = None
+    pairs: Real | list[Real] | None = None
+    walls: Real | list[Real] | None = None
+    bending: Real | list[Real] | None = None
+    stretch: Real | list[Real] | None = None
 
 
-PerContact = float | list[float] | ContactGroups
+PerContact = Real | list[Real] | ContactGroups
 
 
 # --------------------------------------------------------------- initial conditions
@@ -137,6 +145,38 @@ class RopeInitialConditions(_Strict):
         return self
 
 
+# ----------------------------------------------------------------------- sizes
+MAX_STATES = 1_000_000
+"""Most states per trajectory (``horizon / dt``) a config may ask for (built-in tasks: 100)."""
+MAX_STATE_BYTES = 2**30
+"""Most bytes of the dense matrices that resolving one state's contacts may need (1 GiB;
+built-in tasks: at most 8.5 MiB, Rope-D400)."""
+ALLOW_LARGE_ENV = "DIFFCONTACT_ALLOW_LARGE"
+"""Set this environment variable to 1 to lift :data:`MAX_STATES` and :data:`MAX_STATE_BYTES`."""
+
+
+def _bytes(n: float) -> str:
+    for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n:,.0f} bytes"
+
+
+def _large_allowed() -> bool:
+    return os.environ.get(ALLOW_LARGE_ENV, "").strip().lower() in ("1", "true", "yes")
+
+
+def state_bytes(n_points: int, dim: int, n_contacts: int) -> int:
+    """Bytes of the dense matrices resolving one state's contacts needs, all contacts active.
+
+    ``8 ((K d)^2 + K d D + D^2)`` with ``D = P d`` coordinates and ``K`` candidate
+    contacts: the contact-space Delassus matrix ``J_C Mhat_inv J_C^T``, the contact
+    Jacobian ``J_C`` and the constrained inverse inertia ``Mhat_inv``, in float64.
+    """
+    D, C = n_points * dim, n_contacts * dim
+    return 8 * (C * C + C * D + D * D)
+
+
 # ----------------------------------------------------------------------- systems
 class _SystemBase(_Strict):
     name: str | None = None
@@ -146,7 +186,7 @@ class _SystemBase(_Strict):
     gravity: NonNegFloat = 0.0
     mu: PerContact = 0.0
     cor: PerContact = 1.0
-    penetration_fraction: Annotated[float, Field(ge=0, le=1)] = 0.125
+    penetration_fraction: Annotated[float, Field(ge=0, le=1, strict=True)] = 0.125
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
     # the fourth-order Runge-Kutta rule of the smooth dynamics: classic, or the 3/8 rule
     # (torchdiffeq's "rk4", used by the paper's released code)
@@ -170,6 +210,10 @@ class _SystemBase(_Strict):
         """States per trajectory, ``horizon / dt``."""
         return round(self.horizon / self.dt)
 
+    def points_and_dim(self) -> tuple[int, int]:
+        """``(P, d)``: the points of the system's state and their dimension."""
+        raise NotImplementedError
+
     def per_contact(self, key: str) -> list[float]:
         """``mu`` or ``cor`` expanded to one value per candidate contact."""
         return _expand(key, getattr(self, key), self.contact_groups())
@@ -183,6 +227,8 @@ class _SystemBase(_Strict):
                 f"dt={self.dt} (ratio {ratio:g})"
             )
         self._check_sizes()
+        if not _large_allowed():
+            self._check_cost(round(ratio))
         if self.n_contacts < 1:
             raise ValueError("the system has no candidate contacts (add walls or bodies)")
         for key, low, high in (("mu", 0.0, math.inf), ("cor", 0.0, 1.0)):
@@ -195,6 +241,27 @@ class _SystemBase(_Strict):
 
     def _check_sizes(self) -> None:
         pass
+
+    def _check_cost(self, n_states: int) -> None:
+        """Refuse sizes that would run for days or exhaust memory (with the estimate)."""
+        P, d = self.points_and_dim()
+        lift = f"set the environment variable {ALLOW_LARGE_ENV}=1 to allow it"
+        if n_states > MAX_STATES:
+            raise ValueError(
+                f"horizon / dt = {n_states:,} states per trajectory (horizon={self.horizon:g}, "
+                f"dt={self.dt:g}): simulating one trajectory takes {n_states - 1:,} steps and "
+                f"storing it {_bytes(16.0 * n_states * P * d)}; the limit is {MAX_STATES:,} "
+                f"states (is dt in seconds?); {lift}"
+            )
+        K = self.n_contacts
+        need = state_bytes(P, d, K)
+        if need > MAX_STATE_BYTES:
+            raise ValueError(
+                f"{P:,} points in {d}D ({P * d:,} coordinates) with {K:,} candidate contacts: "
+                f"resolving one state's contacts needs dense matrices of about {_bytes(need)} "
+                f"(float64 (K d)^2 + K d D + D^2), above the limit of "
+                f"{_bytes(MAX_STATE_BYTES)} per state; {lift}"
+            )
 
 
 def _expand(key: str, value: PerContact, groups: list[tuple[str, int]]) -> list[float]:
@@ -271,6 +338,9 @@ class BouncingMassesConfig(_CircleBodies):
     type: Literal["bouncing_masses"]
     initial_conditions: BallInitialConditions = Field(default_factory=BallInitialConditions)
 
+    def points_and_dim(self) -> tuple[int, int]:
+        return len(self.masses), 2
+
 
 class BouncingDisksConfig(_CircleBodies):
     """Uniform rigid disks (3-point extended bodies) in 2D."""
@@ -286,6 +356,9 @@ class BouncingDisksConfig(_CircleBodies):
                 f"second_moments: expected {len(self.masses)} pairs (one per body), "
                 f"got {len(self.second_moments)}"
             )
+
+    def points_and_dim(self) -> tuple[int, int]:
+        return 3 * len(self.masses), 2
 
     def body_second_moments(self) -> list[tuple[float, float]]:
         """Second moments per unit mass along the body axes (default r^2/4 each)."""
@@ -312,6 +385,9 @@ class ChainPendulumConfig(_SystemBase):
     def contact_groups(self) -> list[tuple[str, int]]:
         return [("walls", len(self.masses) * len(self.walls))]
 
+    def points_and_dim(self) -> tuple[int, int]:
+        return len(self.masses), 2
+
     def _check_sizes(self) -> None:
         n = len(self.masses)
         for key in ("link_lengths", "radii"):
@@ -337,6 +413,9 @@ class GyroscopeConfig(_SystemBase):
     def contact_groups(self) -> list[tuple[str, int]]:
         return [("walls", 1)]
 
+    def points_and_dim(self) -> tuple[int, int]:
+        return 4, 3
+
     def _check_sizes(self) -> None:
         _check_lines("wall", [self.wall], 3)
 
@@ -345,11 +424,11 @@ class RopeConfig(_SystemBase):
     """Point masses joined by springs to a fixed anchor, with bending and stretch limits."""
 
     type: Literal["rope"]
-    n_points: int = Field(ge=2)
+    n_points: int = Field(ge=2, strict=True)
     mass: PositiveFloat | list[PositiveFloat]
     rest_length: PositiveFloat
     stiffness: NonNegFloat
-    max_angle: Annotated[float, Field(gt=0, le=math.pi)] = 0.2
+    max_angle: Annotated[float, Field(gt=0, le=math.pi, strict=True)] = 0.2
     min_ratio: NonNegFloat = 0.8
     max_ratio: PositiveFloat = 1.2
     anchor: Pair = (0.0, 0.0)
@@ -358,6 +437,9 @@ class RopeConfig(_SystemBase):
 
     def contact_groups(self) -> list[tuple[str, int]]:
         return [("bending", self.n_points - 1), ("stretch", self.n_points)]
+
+    def points_and_dim(self) -> tuple[int, int]:
+        return self.n_points, 2
 
     def point_masses(self) -> list[float]:
         if isinstance(self.mass, list):
@@ -388,14 +470,34 @@ SYSTEM_TYPES = ("bouncing_masses", "bouncing_disks", "chain_pendulum", "gyroscop
 _ADAPTER: TypeAdapter = TypeAdapter(SystemConfig)
 
 
+# pydantic's names of union branches in error locations, and its wrong-type errors
+_BRANCHES = {
+    "float",
+    "list[float]",
+    "constrained-float",
+    "list[constrained-float]",
+    "ContactGroups",
+}
+_TYPE_ERRORS = {
+    "float_type",
+    "int_type",
+    "list_type",
+    "tuple_type",
+    "string_type",
+    "model_type",
+    "dict_type",
+}
+
+
 def _format_error(err: ValidationError, source: str) -> str:
     lines = []
+    typed: set[str] = set()
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
         # drop the discriminator tag and pydantic's union-branch names
         if loc and loc[0] in SYSTEM_TYPES:
             loc = loc[1:]
-        loc = [p for p in loc if p not in {"float", "list[float]", "ContactGroups"}]
+        loc = [p for p in loc if p not in _BRANCHES]
         msg = e["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
@@ -409,10 +511,33 @@ def _format_error(err: ValidationError, source: str) -> str:
         if e["type"] == "union_tag_not_found":
             msg = f"missing key 'type' (one of {list(SYSTEM_TYPES)})"
         key = ".".join(loc)
+        if e["type"] in _TYPE_ERRORS:
+            if key in typed:  # one wrong-type message per key, not one per union branch
+                continue
+            typed.add(key)
+            msg = f"{msg} (got {e['input']!r}; numbers are not read from strings or booleans)"
         line = f"{key}: {msg}" if key else msg
         if line not in lines:
             lines.append(line)
     return f"invalid system config{source}:\n  " + "\n  ".join(lines)
+
+
+MAX_DEPTH = 16
+"""Deepest nesting of mappings and lists a config may have (the schema needs 4)."""
+
+
+def _depth(data: Any, stop: int) -> int:
+    """Nesting depth of dicts and lists in ``data`` (iterative; stops counting at ``stop``)."""
+    deepest, todo = 0, [(data, 0)]
+    while todo:
+        item, level = todo.pop()
+        if isinstance(item, (dict, list, tuple)):
+            level += 1
+            deepest = max(deepest, level)
+            if deepest >= stop:
+                return deepest
+            todo.extend((v, level) for v in (item.values() if isinstance(item, dict) else item))
+    return deepest
 
 
 def parse_config(
@@ -439,6 +564,11 @@ def parse_config(
     if not isinstance(data, dict):
         raise ValueError(
             f"invalid system config{source}: expected a mapping of keys, got {type(data).__name__}"
+        )
+    if _depth(data, MAX_DEPTH + 1) > MAX_DEPTH:
+        raise ValueError(
+            f"invalid system config{source}: nested more than {MAX_DEPTH} levels deep "
+            "(a config is a mapping of numbers, lists and small mappings)"
         )
     try:
         return _ADAPTER.validate_python(data)

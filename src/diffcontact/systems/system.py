@@ -40,7 +40,7 @@ from diffcontact.contact.cone_qp import ConeQPError, SolverSettings
 from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
-from diffcontact.geometry import RimPlane, circles_2d, rope_limits
+from diffcontact.geometry import RimPlane, circles_2d, jacobian_matvec, rope_limits
 from diffcontact.mechanics import (
     INTEGRATORS,
     EqualityConstraints,
@@ -87,20 +87,30 @@ def list_tasks() -> list[str]:
 
 
 def _read_file(path: Path) -> Any:
-    text = path.read_text()
-    if path.suffix.lower() == ".json":
-        import json
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"cannot read config file {path}: {err}") from None
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
+    try:
+        if kind == "JSON":
+            import json
+
+            try:
+                return json.loads(text)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"cannot parse {path} as JSON: {err}") from None
+        import yaml
 
         try:
-            return json.loads(text)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"cannot parse {path} as JSON: {err}") from None
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ValueError(f"cannot parse {path} as YAML: {err}") from None
+            return yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise ValueError(f"cannot parse {path} as YAML: {err}") from None
+    except RecursionError:
+        raise ValueError(
+            f"cannot parse {path} as {kind}: nested too deeply (a config is a mapping of "
+            "numbers, lists and small mappings)"
+        ) from None
 
 
 def load_config(spec: Any, **overrides: Any):
@@ -644,6 +654,20 @@ class System:
         """Signed gaps ``(..., K)`` of all candidate contacts at positions ``(..., P, dim)``."""
         geometry, _ = self._static_on(x.device)
         return geometry.gaps(x)
+
+    def contact_velocities(self, z: Tensor) -> Tensor:
+        """Contact-space velocities ``J_C v``: ``(..., K, d)`` of all candidates at ``z``.
+
+        ``z``: states ``(..., 2, P, dim)``. Component 0 is the normal velocity (the
+        rate of the gap; negative: approaching), components ``1..d-1`` the
+        tangential ones (none for the rope's one-row limits), in the contact
+        frames of ``docs/conventions.md``.
+        """
+        geometry, _ = self._static_on(z.device)
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        K = self.n_contacts
+        idx = torch.arange(K, device=z.device).expand(*x.shape[:-2], K)
+        return jacobian_matvec(geometry.jacobian_sparse(x, idx), v)
 
     # -------------------------------------------------------------- validation
     def _check_state_shape(self, z: Tensor, name: str, batched: bool = True) -> None:

@@ -56,9 +56,13 @@ def test_evaluate_truth_as_model(tmp_path, dataset):
             "energy.png",
             "training.png",
             "rollout.gif",
+            "impacts.png",
         ]
     )
-    for name in ("rel_error.png", "energy.png", "training.png"):
+    # the truth's step from an observed pre-impact state is the observed post-impact state
+    impacts = metrics["impacts"]
+    assert impacts["n"] >= 1 and impacts["ratio_error_abs_mean"] == pytest.approx(0, abs=1e-9)
+    for name in ("rel_error.png", "energy.png", "training.png", "impacts.png"):
         with Image.open(out / name) as im:
             assert im.format == "PNG" and im.width >= 400 and im.height >= 200
         assert (out / name).stat().st_size > 10_000

@@ -5,8 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +13,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.cli_args import one_line
-from diffcontact.io import jsonable
+from diffcontact.io import jsonable, read_npz
 from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
 from diffcontact.learning.data.chunks import DEFAULT_IMPACT_TOL, chunk_split, contact_flags
 from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
@@ -259,12 +257,10 @@ def read_flag_entries(path: str) -> tuple[np.ndarray | None, np.ndarray | None]:
     :func:`read_arrays_file` first: it reports unreadable files).
     """
     try:
-        data = np.load(Path(path), allow_pickle=False)
-        if isinstance(data, np.ndarray):
+        found, members = read_npz(Path(path), ("contact", "event_times"))
+        if members == [""]:  # an .npy file
             return None, None
-        with data:
-            found = {k: data[k] for k in ("contact", "event_times") if k in data.files}
-    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as err:
+    except (OSError, ValueError) as err:
         raise ValueError(
             f"cannot read {path} as .npz or .npy (truncated or corrupted?): {one_line(err)}"
         ) from None
@@ -287,13 +283,10 @@ def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
     if not p.is_file():
         raise ValueError(f"--from-arrays file {path!r} does not exist")
     try:
-        data = np.load(p, allow_pickle=False)
-        if isinstance(data, np.ndarray):
-            return data, None, None
-        with data:
-            keys = list(data.files)
-            entries = {k: data[k] for k in ("traj", "dt", "config") if k in keys}
-    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as err:
+        entries, keys = read_npz(p, ("traj", "dt", "config"))
+        if keys == [""]:  # an .npy file: the trajectories
+            return entries[""], None, None
+    except (OSError, ValueError) as err:
         raise ValueError(
             f"cannot read {path} as .npz or .npy (truncated or corrupted?): {one_line(err)}"
         ) from None
@@ -315,4 +308,6 @@ def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
             config = json.loads(str(entries["config"]))
         except json.JSONDecodeError as err:
             raise ValueError(f"{path}: entry 'config' is not JSON: {err}") from None
+        except RecursionError:
+            raise ValueError(f"{path}: entry 'config' is nested too deeply to be read") from None
     return traj, dt, config

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -101,18 +99,18 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _read(path: str, source: str) -> tuple[dict[str, Any], float | None]:
-    import numpy as np
+    from diffcontact.io import read_npz
 
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"input file {path!r} does not exist")
     names = SOURCES[source]
+
     try:
-        with np.load(p, allow_pickle=False) as data:
-            keys = list(data.files)
-            arrays = {k: data[k] for k in (*names, "dt") if k in keys}
-    except (OSError, EOFError, ValueError, KeyError, AttributeError, zipfile.BadZipFile,
-            zlib.error) as err:  # fmt: skip
+        arrays, keys = read_npz(p, (*names, "dt"))
+        if keys == [""]:
+            raise ValueError("an .npy file holds one array; save named arrays with numpy.savez")
+    except (OSError, ValueError) as err:
         raise ValueError(
             f"cannot read {path} as .npz (truncated or corrupted?): {one_line(err)}"
         ) from None

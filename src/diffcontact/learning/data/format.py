@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.cli_args import one_line
-from diffcontact.io import jsonable, read_json_object
+from diffcontact.io import jsonable, read_json_object, read_npz
 from diffcontact.systems import System, load_config, load_system
 
 __all__ = [
@@ -387,16 +387,15 @@ class Dataset:
         path = self.path / f"{name}.npz"
         data = self._read_verified(path)
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-                wanted = ARRAYS + (WINDOW_ARRAYS if self.stride is not None else ())
-                missing = [key for key in wanted if key not in npz.files]
-                if missing:
-                    raise DatasetError(f"{path} lacks the arrays {missing}")
-                arrays = {key: npz[key] for key in wanted}
+            wanted = ARRAYS + (WINDOW_ARRAYS if self.stride is not None else ())
+            arrays, _ = read_npz(io.BytesIO(data), wanted)
         except _NPZ_ERRORS as err:
             raise DatasetError(
                 f"{path} is not a readable .npz file (truncated or corrupted?): {one_line(err)}"
             ) from None
+        missing = [key for key in wanted if key not in arrays]
+        if missing:
+            raise DatasetError(f"{path} lacks the arrays {missing}")
         N, T, L = self.counts[name], self.n_states, self.chunk_length
         shape = arrays["traj"].shape
         if "chunk_traj" not in arrays:

@@ -17,7 +17,9 @@ no true values in the plots.
 
 The metrics are those of :mod:`~diffcontact.learning.evaluation.metrics`
 (``docs/evaluation.md``); :func:`evaluate` writes ``metrics.json``,
-``rollout.npz``, the plots of :mod:`~diffcontact.learning.evaluation.plots`
+``rollout.npz``, the plots of :mod:`~diffcontact.learning.evaluation.plots`,
+``impacts.png`` (:mod:`~diffcontact.learning.evaluation.impacts`: observed vs
+predicted normal velocity ratios of the first impact of each test trajectory)
 and a GIF (:data:`OUTPUT_FILES`). It does not replace the files of another
 evaluation (of another run or data set) without ``force``.
 """
@@ -43,6 +45,7 @@ from diffcontact.io import (
     read_json_object,
 )
 from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.evaluation.impacts import impact_ratios, impact_summary, plot_impacts
 from diffcontact.learning.evaluation.log import find_training_log, read_training_log
 from diffcontact.learning.evaluation.metrics import (
     as_numpy,
@@ -62,6 +65,7 @@ __all__ = ["METRICS_FORMAT_VERSION", "OUTPUT_FILES", "EvaluationInputError", "ev
 METRICS_FORMAT_VERSION = 1
 OUTPUT_FILES = (
     "metrics.json", "rollout.npz", "rel_error.png", "energy.png", "training.png", "rollout.gif",
+    "impacts.png",
 )  # fmt: skip
 
 
@@ -257,7 +261,7 @@ def evaluate(
     device: str = "cpu",
     steps: int | None = None,
     n_test: int | None = None,
-    gif_frames: int = 100,
+    gif_frames: int = 40,
     force: bool = False,
     uncertainty: bool = True,
 ) -> dict[str, Any]:
@@ -421,6 +425,7 @@ def evaluate(
             "which are unknown"
         )
         drift, energy_error, truth = {"pred": None, "true": None}, None, None
+    impacts = impact_ratios(system, model, true, dev)  # the first impact of each trajectory
     uncertainty_result = _uncertainty(model, dataset, uncertainty)
     learned_fn = getattr(model, "learned_parameters", None)  # optional in the protocol
     learned = _learned(learned_fn() if callable(learned_fn) else {}, system.n_bodies)
@@ -452,6 +457,7 @@ def evaluate(
         "cor": _compare(learned["cor"], truth and truth["cor"], relative=False),
         "eps": learned["eps"],
         "uncertainty": uncertainty_result,
+        "impacts": impact_summary(impacts),
         "contact_names": list(getattr(system, "contact_names", [])),
         "device": str(device),
         "run_dir": None if run_path is None else str(run_path),
@@ -477,6 +483,9 @@ def evaluate(
     if known:
         plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)
         files.append("energy.png")
+    if impacts["trajectory"].size:
+        plot_impacts(impacts, out / "impacts.png", f"{title}: normal velocity ratio of impacts")
+        files.append("impacts.png")
     log_path = None if run_path is None else find_training_log(run_path)
     if log_path is not None:
         log = read_training_log(log_path)
