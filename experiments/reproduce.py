@@ -175,7 +175,7 @@ def train_and_evaluate(
         metrics_file.stat().st_mtime >= (run / "model.pt").stat().st_mtime
     )
     if not fresh:
-        evaluate(run, n_gif=2)
+        evaluate(run, n_gif=2, uncertainty=False)  # experiments/uncertainty.py does that
         (run / "evaluation" / "seconds.txt").write_text(f"{time.perf_counter() - t0:.1f}\n")
     return {**summarise(task, model, data_dir, run), "trained": trained, "evaluated": not fresh}
 

@@ -162,6 +162,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from diffcontact.learning.evaluation.evaluate import evaluate
 
+    if not args.no_uncertainty:
+        print(
+            "evaluating; for a physical model this includes the parameter uncertainty "
+            "(2 rollouts of the training chunks per parameter; --no-uncertainty skips it)",
+            flush=True,
+        )
     m = evaluate(
         args.run_dir,
         args.out,
