@@ -410,7 +410,12 @@ def _header(experiment: str, meta: dict[str, Any], runs: list[dict[str, Any]]) -
         r["eval_seconds"] + sum(o["eval_seconds"] for o in r.get("also_on", {}).values())
         for r in runs
     )
-    walls = " + ".join(f"{_minutes(c['wall_seconds'])} (`{c['command']}`)" for c in calls)
+    walls = " + ".join(
+        f"{_minutes(c['wall_seconds'])} (`{c['command']}`"
+        + ("" if c.get("finished", True) else ", interrupted")
+        + ")"
+        for c in calls
+    )
     return [
         f"Produced by `{calls[-1]['command']}` ({meta['date']}; diffcontact {meta['version']}, "
         f"torch {meta['torch']}, {meta['cpus']} CPU cores, one torch thread per run). "
@@ -773,6 +778,63 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _meta(
+    args: argparse.Namespace,
+    argv: list[str],
+    old: dict[str, Any] | None,
+    results: dict[str, Any],
+    runs: list[Run],
+    wall: float,
+    finished: bool,
+) -> dict[str, Any]:
+    """The results file's ``meta``: set-up, the rows asked for, the invocations so far.
+
+    An invocation that trained nothing adds nothing to the record; one still
+    running (or interrupted) is recorded with ``finished: false`` and its wall time
+    so far, so ``--report-only`` can show the rows it finished (a rerun of the
+    command then resumes and adds its own record).
+    """
+    import torch
+
+    from diffcontact import __version__
+
+    this_call = {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "wall_seconds": wall,
+        "command": "python experiments/compare.py " + " ".join(argv),
+        "trained": sum(bool(results[r.key].get("trained")) for r in runs if r.key in results),
+        "finished": finished,
+    }
+    calls = list((old or {}).get("invocations", []))
+    calls += [this_call] if this_call["trained"] or not calls else []
+    quick = QUICK if args.quick else {}
+    experiment = args.experiment
+    return {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "version": __version__,
+        "torch": torch.__version__,
+        "cpus": os.cpu_count() or 1,
+        "jobs": args.jobs,
+        "python": platform.python_version(),
+        "sizes": [args.n_train, args.n_val, args.n_test],
+        "invocations": calls,
+        "keys": [r.key for r in runs],
+        "tasks": list(args.tasks or DEFAULT_TASKS.get(experiment, ())),
+        "models": list(args.models or (ALL_MODELS if experiment == "models" else SCALE_MODELS)),
+        "noise": list(args.noise or NOISE_STDS),
+        "eps": list(args.eps or ABLATION_EPS),
+        "parts": list(args.parts or quick.get("parts", SCALE_PARTS)),
+        "size_task": args.size_task or quick.get("size_task", SIZE_TASK),
+        "n_list": list(args.sizes or quick.get("sizes", SIZES)),
+    }
+
+
+def _shown(results: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
+    """The report's data: the rows of the last invocation (the file may hold more)."""
+    wanted = set(meta.get("keys", results))
+    return {"runs": {k: v for k, v in results.items() if k in wanted}, "meta": meta}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -784,7 +846,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not results_file.is_file():
             print(f"compare.py: error: {results_file} does not exist", file=sys.stderr)
             return 2
-        write_report(out, experiment, args.doc, json.loads(results_file.read_text()))
+        stored = json.loads(results_file.read_text())
+        write_report(out, experiment, args.doc, _shown(stored["runs"], stored["meta"]))
         return 0
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
@@ -857,47 +920,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"({time.perf_counter() - t0:.0f} s)",
                 flush=True,
             )
-            _atomic_write(
-                results_file, json.dumps({"runs": results, "meta": stored.get("meta")}, indent=1)
-            )
+            meta = _meta(
+                args, argv, stored.get("meta"), results, runs, time.perf_counter() - t0,
+                finished=False,
+            )  # fmt: skip
+            _atomic_write(results_file, json.dumps({"runs": results, "meta": meta}, indent=1))
     wall = time.perf_counter() - t0
-    import torch
-
-    from diffcontact import __version__
-
-    old = stored.get("meta") or {}
-    this_call = {
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "wall_seconds": wall,
-        "command": "python experiments/compare.py " + " ".join(argv),
-        "trained": sum(bool(results[r.key].get("trained")) for r in runs if r.key in results),
-    }
-    calls = old.get("invocations", []) + ([this_call] if this_call["trained"] else [])
-    if not calls:
-        calls = [this_call]
-    quick = QUICK if args.quick else {}
-    meta = {
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-        "version": __version__,
-        "torch": torch.__version__,
-        "cpus": cpus,
-        "jobs": args.jobs,
-        "python": platform.python_version(),
-        "sizes": list(sizes),
-        "invocations": calls,
-        "tasks": list(args.tasks or DEFAULT_TASKS.get(experiment, ())),
-        "models": list(args.models or (ALL_MODELS if experiment == "models" else SCALE_MODELS)),
-        "noise": list(args.noise or NOISE_STDS),
-        "eps": list(args.eps or ABLATION_EPS),
-        "parts": list(args.parts or quick.get("parts", SCALE_PARTS)),
-        "size_task": args.size_task or quick.get("size_task", SIZE_TASK),
-        "n_list": list(args.sizes or quick.get("sizes", SIZES)),
-    }
-    # the report shows this invocation's rows (the results file may hold more)
-    wanted = {r.key for r in runs}
-    data = {"runs": {k: v for k, v in results.items() if k in wanted}, "meta": meta}
+    meta = _meta(args, argv, stored.get("meta"), results, runs, wall, finished=True)
     _atomic_write(results_file, json.dumps({"runs": results, "meta": meta}, indent=1))
-    write_report(out, experiment, args.doc, data)
+    write_report(out, experiment, args.doc, _shown(results, meta))
     print(f"wall time {wall / 60:.1f} min")
     for line in failed:
         print(f"FAILED {line}", file=sys.stderr)

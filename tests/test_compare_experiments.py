@@ -132,6 +132,19 @@ def test_tables_of_rows_not_run_show_the_paper(compare):
     assert "| CP3 | 0.1 | not run | not run | 0.501, 0.180 |" in ablation
 
 
+def test_an_interrupted_invocation_is_reported(compare, shared, capsys):
+    """The results file carries its meta after every run: --report-only shows the rows
+    finished so far and says the invocation was interrupted."""
+    out, doc = shared
+    stored = json.loads((out / "results-noise.json").read_text())
+    stored["meta"]["invocations"][-1]["finished"] = False
+    (out / "results-noise.json").write_text(json.dumps(stored))
+    assert compare.main(["noise", "--out", str(out), "--doc", str(doc), "--report-only"]) == 0
+    body = _section(doc, "noise")
+    assert ", interrupted)" in body and "| BP5-e | 0.05 | " in body
+    capsys.readouterr()
+
+
 def test_scalability_subset_marks_rows_not_run(compare, shared, capsys):
     out, doc = shared
     argv = ["scalability", "--parts", "size", "rope", "--size-task", "Rope", "--sizes", "3",
