@@ -165,6 +165,58 @@ _S10 = {
 PAPER_ROPE = {m: {d: row[i] for d, row in _S10.items()} for i, m in enumerate(SCALE_MODELS)}
 
 
+# explanations for the models table (the method's known behaviour; evidence named)
+MODELS_NOTES = (
+    "Every model gets the same package-default budget (60 epochs of 4 steps of 200 chunks, "
+    "cosine decay to 1 % of the learning rate). The baselines learn the contact (IN-SP-CP "
+    "the whole step) from data; their training losses end one to several orders of "
+    "magnitude above the physical models' and fell only a few % over the last 10 epochs "
+    "at the decayed rate (loss column). Whether a longer schedule narrows the gap was not "
+    "tested here; the paper does not state its baselines' budget.",
+    "CMr (eps = 0.01) is biased on BP5-e: its regulariser shrinks every impulse of a body "
+    "of mass m to 1 / (1 + eps m) of CM's, and with e_P pinned at 1 nothing absorbs that "
+    "(reproduce.py's notes, `python experiments/cmr_mass_scale.py runs/repro/data/BP5-e`).",
+    "LCP-CD-CLNN is Newton's restitution with a polyhedral friction cone trained on data of "
+    "CM (Poisson's hypothesis). The two coincide for frictionless point masses (BP5-e, "
+    'docs/contact-models.md, "Where LCP and CM agree"), where its error is of the order of '
+    "CM's; with friction and rigid bodies (CP3, Gyro) they differ and no LCP parameters "
+    "reproduce the data. The paper's LCP never trained (NaN gradients, appendix J).",
+    "CP3 is chaotic: errors over 100 steps grow with any error of the learned potential, "
+    "the last part to converge; the paper's 2.34e-5 needs far longer training (the "
+    "rel-error table of reproduce.py has the same 4e-2 after 60 epochs).",
+    "In the run of 2026-11-24, CM-CD-CHNN on Gyro stalled in a local minimum (loss flat at "
+    "0.14 from epoch 10; learned second moments 0.076, 0.121, 0.095 instead of 0.24, 0.24, "
+    "0.04; 6 of its first 16 steps skipped as gradient spikes) while CMr-CD-CHNN from the "
+    "same initialisation converged (`runs/compare/runs/Gyro/*/learned.json`, "
+    "`logs/metrics.csv`): a failed optimisation, not a limit of the model.",
+    "IN-SP-CP on BP5-e took 26 s per epoch against 1-6 s for it on CP3 and Gyro (epoch "
+    "times in its `logs/metrics.csv`); its loss hardly moved (0.081 to 0.073).",
+)
+
+MISMATCH_NOTES = (
+    "Newton's (LCP) and Poisson's (CM) hypotheses give the same impulses for frictionless "
+    "point masses (BP5-e; docs/contact-models.md) and differ with friction and for rigid "
+    "bodies: there the LCP data have no exact CM explanation, and the learned mu and e_P "
+    "are the CM values that fit them best, not the LCP data's.",
+    "The gyroscope's training can stall with its second moments near their initial value "
+    "(rim_radius^2 = 0.09 on every axis, against the truth 0.24, 0.24, 0.04), the loss flat "
+    "from about epoch 10 while mu and e_P absorb what they can. In the runs of 2026-11-24 "
+    "this happened to CM-CD-CLNN on the LCP data of Gyro (second moments 0.079, 0.110, "
+    "0.073; `runs/compare/runs/Gyro_LCP/CM-CD-CLNN/learned.json`) and to CM-CD-CHNN on "
+    "the CM data (models section), not to CM-CD-CLNN on the CM data: a failed "
+    "optimisation from the default initialisation, which the Gyro rows carry.",
+)
+
+SCALABILITY_NOTES = (
+    "A failed run is reported in the command's output and shows here as `not run`. In "
+    "the --quick run of 2026-11-24, CM-CD-CLNN at N = 100 trained but its evaluation "
+    "failed: the learned model's contact solve did not converge for 1 of the 100 test "
+    "trajectories (step 65; solve_cone_qp residual 3.3e-4 against 1e-7), and evaluate "
+    "raises instead of counting the trajectory as diverged.",
+    "On the 10-point rope the baselines' rollouts diverge (errors far above 1): with "
+    "batches of 200 chunks, N <= 200 is one optimiser step per epoch, 60 in all.",
+)
+
 # ---------------------------------------------------------------- what to run
 
 
@@ -359,6 +411,7 @@ def train_and_evaluate(
         )
         evaluated = evaluated or now
     return {
+        **_losses(run),
         "key": r.key,
         "task": r.data.task,
         "data": r.data.key,
@@ -373,6 +426,29 @@ def train_and_evaluate(
         "also_on": others,
         "trained": trained,
         "evaluated": evaluated,
+    }
+
+
+def _losses(run: Path) -> dict[str, float]:
+    """Training loss of the first and last epoch, and its drop over the last 10 epochs.
+
+    A drop well above zero at the end says the run was still learning when the
+    schedule ended.
+    """
+    import numpy as np
+
+    from diffcontact.learning.evaluation.log import read_training_log
+
+    loss = read_training_log(run / "logs" / "metrics.csv").get("train/loss_epoch")
+    loss = np.asarray([] if loss is None else loss, dtype=float)
+    loss = loss[np.isfinite(loss)]
+    if loss.size == 0:
+        return {"loss_first": math.nan, "loss_last": math.nan, "loss_drop_last10": math.nan}
+    before = loss[max(0, loss.size - 11)]
+    return {
+        "loss_first": float(loss[0]),
+        "loss_last": float(loss[-1]),
+        "loss_drop_last10": float(1 - loss[-1] / before) if before > 0 else math.nan,
     }
 
 
@@ -440,7 +516,7 @@ def _figure(results: dict[str, Any], path: Path, tasks: list[str], models: list[
     import matplotlib.pyplot as plt
     import numpy as np
 
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(tasks) + 2), 4.2))
+    fig, ax = plt.subplots(figsize=(max(7.5, 1.3 * len(tasks) + 3.5), 4.2))
     width = 0.8 / max(1, len(models))
     cmap = plt.get_cmap("tab10")
     for j, model in enumerate(models):
@@ -461,7 +537,7 @@ def _figure(results: dict[str, Any], path: Path, tasks: list[str], models: list[
     ax.set_xticklabels(tasks)
     ax.set_ylabel("test rollout relative error")
     ax.set_title("Comparison of models (95 % CI)")
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(axis="y", which="both", alpha=0.3)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -490,9 +566,13 @@ def render_models(results: dict[str, Any], meta: dict[str, Any], figure: str | N
             if r is None:
                 continue
             paper = PAPER_REL_ERR.get(task) if model == OURS else None
+            loss = "-"
+            if r.get("loss_first") is not None and math.isfinite(r["loss_first"]):
+                drop = r["loss_drop_last10"]
+                loss = f"{_e(r['loss_first'])}, {_e(r['loss_last'])} ({_f(100 * drop, 1)} %)"
             lines.append(
                 f"| {task} | {model} | {_err(r)} | {_err(paper)} | {r['epochs']} "
-                f"| {r['skipped_steps']} | {_times(r)} |"
+                f"| {r['skipped_steps']} | {loss} | {_times(r)} |"
             )
     lines.append("")
     # the question of the issue: is our model below every baseline?
@@ -520,6 +600,7 @@ def render_models(results: dict[str, Any], meta: dict[str, Any], figure: str | N
         ]
     if figure:
         lines += [f"![relative error of every model, log scale]({figure})", ""]
+    lines += ["Notes:", ""] + [f"- {note}" for note in MODELS_NOTES] + [""]
     return "\n".join(lines)
 
 
@@ -563,10 +644,11 @@ def render_mismatch(results: dict[str, Any], meta: dict[str, Any], figure: str |
             ("LCP / CM", on_cm, PAPER_LCP_ON_CM[task], lcp),
             ("LCP / LCP", lcp, PAPER_LCP_ON_LCP[task], lcp),
         ):
-            t = _times(r) if r and label != "LCP / CM" else "(above)" if r else "-"
+            t = _times(r) if r and label != "LCP / CM" else "(next row)" if r else "-"
             lines.append(
                 f"| {task} | {label} | {_err(got) if got else 'not run'} | {_err(paper)} | {t} |"
             )
+    lines += ["", "Notes:", ""] + [f"- {note}" for note in MISMATCH_NOTES]
     lines.append("")
     return "\n".join(lines)
 
@@ -680,6 +762,7 @@ def render_scalability(results: dict[str, Any], meta: dict[str, Any], figure: st
             f"{cell(f'Rope-D{d}/{m}')} | {paper_cell(PAPER_ROPE, m, d)}" for m in models
         )
         lines.append(f"| {d} | {cells} |")
+    lines += ["", "Notes:", ""] + [f"- {note}" for note in SCALABILITY_NOTES]
     lines.append("")
     return "\n".join(lines)
 
