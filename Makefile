@@ -10,7 +10,7 @@ CONSTRAINTS ?= constraints.txt
 PIP_C := $(if $(CONSTRAINTS),-c $(CONSTRAINTS),)
 PY := $(VENV)/bin/python
 
-.PHONY: demo test test-slow lint bench reproduce clean
+.PHONY: demo test test-slow lint bench reproduce compare clean
 
 $(VENV)/.base: pyproject.toml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -41,6 +41,11 @@ bench: $(VENV)/.dev
 # the paper's learning tables (docs/results.md): about an hour on 2 CPU cores
 reproduce: $(VENV)/.base
 	$(PY) experiments/reproduce.py --out runs/repro --doc docs/results.md
+
+# the comparison of all models on BP5-e, CP3 and Gyro (docs/experiments.md, docs/results.md)
+compare: $(VENV)/.base
+	$(PY) experiments/compare.py models --tasks BP5-e CP3 Gyro --out runs/compare \
+		--doc docs/results.md --jobs 2
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .ruff_cache

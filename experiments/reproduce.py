@@ -527,6 +527,13 @@ KEPT_SECTIONS = [
         "<!-- uncertainty results (experiments/uncertainty.py): begin -->",
         "<!-- uncertainty results: end -->",
     ),
+    *(  # experiments/compare.py, one section per experiment
+        (
+            f"<!-- compare {name} results (experiments/compare.py): begin -->",
+            f"<!-- compare {name} results: end -->",
+        )
+        for name in ("models", "mismatch", "noise", "ablation", "scalability")
+    ),
 ]
 
 
