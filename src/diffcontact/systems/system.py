@@ -1039,8 +1039,11 @@ class System:
                 states.append(z1)
                 raise ValueError(self._nonfinite_message(states, step + 1)) from err
             except ConeQPError as err:
-                raise ConeQPError(self._solver_failure_message(err, z0, z1, step + 1),
-                                  err.status) from err  # fmt: skip
+                failure = ConeQPError(
+                    self._solver_failure_message(err, z0, z1, step + 1), err.status
+                )
+                failure.states = err.states  # trajectory indices, for callers that go on
+                raise failure from err
             states.append(z)
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step

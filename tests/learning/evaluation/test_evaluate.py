@@ -177,3 +177,33 @@ def test_evaluate_reads_the_test_data_through_the_dataset_reader(tmp_path, datas
     (folder / "test.npz").write_bytes(bytes(raw))
     with pytest.raises(EvaluationInputError, match=r"test\.npz does not match its sha256"):
         evaluate(None, tmp_path / "out", model=SystemModel(TINY), data_dir=folder, n_gif=0)
+
+
+def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
+    """A learned model whose contact solve fails on one test trajectory: that trajectory
+    is left out (NaN, ``n_nonfinite``, ``solver_failures``); the others are evaluated."""
+    from diffcontact.contact import ConeQPError
+    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.systems import System, load_config
+
+    system = System(load_config(TINY))
+    bad = 1  # the second test trajectory
+
+    class Failing:
+        def __init__(self):
+            self.first = None
+
+        def simulate(self, z0, steps):
+            if self.first is None:
+                self.first = z0[bad].clone()
+            hit = (z0 - self.first).flatten(1).abs().amax(-1) == 0
+            if bool(hit.any()):
+                err = ConeQPError("solve failed", None)
+                err.states = hit.nonzero().flatten().tolist()
+                raise err
+            return system.simulate(z0, steps)
+
+    m = evaluate(None, tmp_path / "out", model=Failing(), data_dir=dataset, n_gif=0, steps=5)
+    assert m["solver_failures"] == [bad]
+    assert m["n_nonfinite"] == 1
+    assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)  # the truth's own rollouts

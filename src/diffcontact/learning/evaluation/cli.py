@@ -188,6 +188,11 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"  note: {m['rollout_note']}")
     if m["n_nonfinite"]:
         print(f"  WARNING: {m['n_nonfinite']} rollouts diverged (non-finite); left out below")
+    if m.get("solver_failures"):
+        print(
+            f"  (of those, {len(m['solver_failures'])} stopped on a failed contact solve: "
+            f"test trajectories {m['solver_failures'][:10]})"
+        )
     print(
         f"  relative error   {_fmt(m['rel_err_mean'])} ± {_fmt(m['rel_err_ci95'])} (95% CI), "
         f"final step {_fmt(m['rel_err_final'])}"

@@ -233,6 +233,31 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
 # ---------------------------------------------------------------------------
 
 
+def _rollouts(model: Any, z0: torch.Tensor, steps: int) -> tuple[np.ndarray, list[int]]:
+    """``model.simulate(z0, steps)`` as numpy; a trajectory whose contact solve fails
+    (``ConeQPError`` naming its states) is left out and returned as NaN, so that it
+    counts as diverged (``n_nonfinite``) instead of stopping the evaluation."""
+    from diffcontact.contact import ConeQPError
+
+    keep = torch.arange(z0.shape[0], device=z0.device)
+    failed: list[int] = []
+    while True:
+        try:
+            out = model.simulate(z0[keep], steps)
+            break
+        except ConeQPError as err:
+            if not err.states or len(keep) == len(err.states):
+                raise
+            drop = torch.as_tensor(err.states, dtype=torch.long, device=z0.device)
+            failed += keep[drop].tolist()
+            mask = torch.ones(len(keep), dtype=torch.bool, device=z0.device)
+            mask[drop] = False
+            keep = keep[mask]
+    pred = np.full((z0.shape[0], steps + 1, *z0.shape[1:]), np.nan)
+    pred[keep.cpu().numpy()] = as_numpy(out)
+    return pred, sorted(failed)
+
+
 def _uncertainty(model: Any, dataset: Any, wanted: bool) -> dict[str, Any] | None:
     """:func:`parameter_uncertainty` and contact regimes on the training chunks, or ``None``."""
     from diffcontact.learning.evaluation.uncertainty import (
@@ -385,7 +410,7 @@ def evaluate(
         else:  # simulated data only: its config is the truth
             true = as_numpy(system.simulate(z0, steps, contact_model=dataset.contact_model))
             source = "simulated (test trajectories shorter than the rollout)"
-        pred = as_numpy(model.simulate(z0, steps))
+        pred, failed = _rollouts(model, z0, steps)
     if pred.shape != true.shape:
         raise RuntimeError(
             f"model.simulate returned shape {pred.shape}, expected {true.shape} "
@@ -425,7 +450,9 @@ def evaluate(
             "which are unknown"
         )
         drift, energy_error, truth = {"pred": None, "true": None}, None, None
-    impacts = impact_ratios(system, model, true, dev)  # the first impact of each trajectory
+    impacts = impact_ratios(  # the first impact of each trajectory
+        system, model, true, dev, simulate=lambda z, n: _rollouts(model, z, n)[0]
+    )
     uncertainty_result = _uncertainty(model, dataset, uncertainty)
     learned_fn = getattr(model, "learned_parameters", None)  # optional in the protocol
     learned = _learned(learned_fn() if callable(learned_fn) else {}, system.n_bodies)
@@ -437,6 +464,7 @@ def evaluate(
         "model": label,
         "n_test": N,
         "n_nonfinite": n_bad,
+        "solver_failures": failed,
         "steps": steps,
         "dt": dt,
         "duration": steps * dt,

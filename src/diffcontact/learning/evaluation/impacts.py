@@ -96,7 +96,7 @@ def first_impacts(system: Any, traj: np.ndarray) -> ImpactSteps:
 
 
 def impact_ratios(
-    system: Any, model: Any, traj: np.ndarray, device: Any = "cpu"
+    system: Any, model: Any, traj: np.ndarray, device: Any = "cpu", simulate: Any = None
 ) -> dict[str, np.ndarray]:
     """Observed and predicted normal velocity ratios of each test trajectory's first impact.
 
@@ -105,6 +105,9 @@ def impact_ratios(
         model: has ``simulate(z0, steps)`` (``(M, 2, P, dim)`` -> ``(M, steps + 1, ...)``).
         traj: ``(N, T, 2, P, dim)`` observed test trajectories.
         device: where the model runs.
+        simulate: ``simulate(z0, steps) -> (M, steps + 1, 2, P, dim)`` used instead of
+            ``model.simulate`` (evaluation passes one that returns NaN for states whose
+            contact solve fails).
 
     Returns:
         Arrays of shape ``(M,)``, one entry per impact: ``trajectory``, ``step``,
@@ -129,7 +132,8 @@ def impact_ratios(
     rows, steps, k = (torch.from_numpy(a) for a in (found.trajectory, found.step, found.contact))
     z_pre, z_post = z[rows, steps], z[rows, steps + 1]  # (M, 2, P, dim)
     with torch.no_grad():
-        pred = model.simulate(z_pre.to(device), 1)[:, 1].detach().to("cpu", torch.float64)
+        run = model.simulate if simulate is None else simulate
+        pred = torch.as_tensor(run(z_pre.to(device), 1))[:, 1].detach().to("cpu", torch.float64)
         take = k[:, None]
         u_pre = system.contact_velocities(z_pre)[torch.arange(M), k]  # (M, d)
         u_post = system.contact_velocities(z_post).gather(
