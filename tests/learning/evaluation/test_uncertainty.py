@@ -161,3 +161,22 @@ def test_evaluate_writes_and_prints_the_uncertainty(tmp_path, dataset, capsys):
     assert "95 % interval" in printed
     assert cli([*argv, "--no-uncertainty"]) == 0
     assert json.loads((out / "metrics.json").read_text())["uncertainty"] is None
+
+
+def test_evaluate_reports_an_uncertainty_it_cannot_assess(tmp_path, dataset, monkeypatch):
+    """A failure of the assessment is recorded in metrics.json, not a crashed evaluation."""
+    from diffcontact.learning.evaluation import evaluate as evaluate_module
+
+    def failing(model, chunks):
+        raise ValueError("the learned model's rollouts of the training chunks are not finite")
+
+    monkeypatch.setattr(
+        "diffcontact.learning.evaluation.uncertainty.parameter_uncertainty", failing
+    )
+    from .support import TINY
+
+    model = LearnedModel(TINY, hidden=(4,)).double()
+    m = evaluate_module.evaluate(
+        None, tmp_path / "out", model=model, data_dir=dataset, n_gif=0, steps=3
+    )
+    assert m["uncertainty"]["error"].startswith("parameter uncertainty not assessed: ")

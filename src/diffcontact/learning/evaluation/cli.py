@@ -206,6 +206,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{_fmt(drift['true'])} (true energy, per mean kinetic energy)"
         )
     unc = m.get("uncertainty")
+    if unc and "error" in unc:
+        print(f"  note: {unc['error']}")
+        unc = None
     header = f"  {'parameter':<16} {'learned':>10} {'true':>10}"
     print(header + ("  95 % interval (? = not determined by the data)" if unc else ""))
     if "parameters" in m.get("unknown", {}):

@@ -273,7 +273,12 @@ def _uncertainty(model: Any, dataset: Any, wanted: bool) -> dict[str, Any] | Non
         return None  # no training split: nothing to assess against
     if chunks.shape[0] == 0 or chunks.shape[1] < 2:
         return None
-    return parameter_uncertainty(model, chunks)
+    from diffcontact.contact import ConeQPError
+
+    try:
+        return parameter_uncertainty(model, chunks)
+    except (ValueError, ConeQPError) as err:  # e.g. a training chunk the model cannot roll out
+        return {"error": f"parameter uncertainty not assessed: {err}"}
 
 
 def evaluate(

@@ -234,7 +234,7 @@ def parameter_uncertainty(
         chunks: ``(n, L, 2, P, dim)`` training chunks (float64 recommended);
             chunks holding NaN are dropped.
         settings: :class:`UncertaintySettings`.
-        progress: print a progress bar over the perturbed rollouts.
+        progress: print one line saying how many rollouts it runs.
 
     Returns:
         A JSON-ready dict: ``method``, ``n_chunks``, ``n_residuals``,
