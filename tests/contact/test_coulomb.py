@@ -241,7 +241,7 @@ def test_high_friction_two_contact_problem_converges():
     the fixed point on its own iterate converges."""
     from pathlib import Path
 
-    data = torch.load(Path(__file__).parent / "data" / "coulomb_bd5_hard.pt")
+    data = torch.load(Path(__file__).parent / "data" / "coulomb_bd5_hard.pt", weights_only=True)
     params = dc.contact.ContactParams(mu=data["mu"], cor=data["cor"])
     model = dc.contact.create_contact_model("Coulomb")  # raises if it does not converge
     out = model.resolve(

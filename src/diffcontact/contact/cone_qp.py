@@ -376,6 +376,32 @@ def _polish_rows(f: Tensor, rows: Tensor, data, settings: SolverSettings):
     return _polish(f, [x[rows] for x in data], settings)
 
 
+def flatten_batch(
+    batch: tuple[int, ...], A: Tensor, b: Tensor, mu: Tensor, lower: Tensor, active: Tensor,
+    warm_start: Tensor | None = None,
+) -> tuple[tuple[Tensor, Tensor, Tensor, Tensor, Tensor], Tensor | None]:  # fmt: skip
+    """Broadcast a contact problem to ``batch`` and flatten it to one batch dimension.
+
+    Returns ``((A (n,C,C), b (n,C), mu (n,K), lower (n,K), active (n,K)), warm_start
+    (n,C) or None)`` with ``n = prod(batch)``; shared by the solvers that take
+    ``solve_cone_qp``'s arguments (the Coulomb solver too).
+    """
+    C, K = b.shape[-1], mu.shape[-1]
+    n = 1
+    for s in batch:
+        n *= s
+    flat = (
+        A.expand(*batch, C, C).reshape(n, C, C),
+        b.expand(*batch, C).reshape(n, C),
+        mu.expand(*batch, K).reshape(n, K),
+        lower.expand(*batch, K).reshape(n, K),
+        active.expand(*batch, K).reshape(n, K),
+    )
+    if warm_start is not None:
+        warm_start = warm_start.expand(*batch, C).reshape(n, C)
+    return flat, warm_start
+
+
 # contacts whose blocks of A differ in scale by more than this factor are equilibrated
 _EQUILIBRATE_ABOVE = 1e3
 
@@ -748,18 +774,8 @@ def solve_cone_qp(
         except RuntimeError as err:
             raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
     resolved = settings.resolved(A.dtype, A.device)
-    n = 1
-    for s in batch:
-        n *= s
-    flat = (
-        A.expand(*batch, C, C).reshape(n, C, C),
-        b.expand(*batch, C).reshape(n, C),
-        mu.expand(*batch, K).reshape(n, K),
-        lower.expand(*batch, K).reshape(n, K),
-        active.expand(*batch, K).reshape(n, K),
-    )
-    if warm_start is not None:
-        warm_start = warm_start.expand(*batch, C).reshape(n, C)
+    flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)
+    n = flat[1].shape[0]
     s_c = _contact_scales(flat[0], flat[4], d)  # (n, C), detached
     A_f, b_f, mu_f, lower_f, act_f = flat
     A_f = A_f * (s_c[:, :, None] * s_c[:, None, :])

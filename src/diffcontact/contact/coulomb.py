@@ -79,7 +79,13 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone import project_contact_set
-from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus, solve_cone_qp
+from diffcontact.contact.cone_qp import (
+    ConeQPError,
+    SolverSettings,
+    SolverStatus,
+    flatten_batch,
+    solve_cone_qp,
+)
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.interior_point import add_block_diag
 
@@ -450,18 +456,7 @@ def solve_coulomb(
             batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
     except RuntimeError as err:
         raise ValueError(f"solve_coulomb: batch dimensions do not broadcast: {err}") from None
-    n = 1
-    for s in batch:
-        n *= s
-    flat = (
-        A.expand(*batch, C, C).reshape(n, C, C),
-        b.expand(*batch, C).reshape(n, C),
-        mu.expand(*batch, K).reshape(n, K),
-        lower.expand(*batch, K).reshape(n, K),
-        active.expand(*batch, K).reshape(n, K),
-    )
-    if warm_start is not None:
-        warm_start = warm_start.expand(*batch, C).reshape(n, C)
+    flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)
     resolved = settings.resolved(A.dtype, A.device)
     f, conv, unb, its, res, _ = _CoulombFunction.apply(*flat, d, resolved, coulomb, warm_start)
     status = SolverStatus(
