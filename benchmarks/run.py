@@ -7,6 +7,7 @@
     python benchmarks/run.py control [...]   # one planning iteration, 1 and 64 starts (control.py)
     python benchmarks/run.py backends [...]  # the solver's torch vs Warp backends (backends.py)
     python benchmarks/run.py contact_models [...]  # one impulse: CM vs CMr vs Coulomb
+    python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -19,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SUITES = ("solver", "simulate", "train", "control", "backends", "contact_models")
+SUITES = ("solver", "simulate", "train", "control", "backends", "contact_models", "threads")
 
 
 def main(argv: list[str] | None = None) -> int:

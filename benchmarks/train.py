@@ -3,6 +3,13 @@
     python benchmarks/run.py train [--quick] [--device cpu|cuda] [--dtype float64|float32]
                                    [--model CM-CD-CLNN] [--batch-size 200]
     python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
+    python benchmarks/run.py train --against none     # without the previous release
+
+By default every task is also timed, side by side in the same run, with the previous
+release: the package and this benchmark at git ref ``--against`` (default
+:data:`PREVIOUS_RELEASE`, the last commit before issue 11's speed work), extracted with
+``git archive`` into a temporary folder and run in a subprocess on the same chunks, the
+same dtype and the same number of threads. The ratio column is previous / now.
 
 One training step is what ``diffcontact train`` does per batch: roll the learned model
 (contact model + true collision detection + CLNN/CHNN with the MLP potential) out over a
@@ -15,14 +22,24 @@ right before a contact (as in the training sets, about half the chunks contain o
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 
 import diffcontact as dc
 from common import machine_header, sync
 
+# 2026-11-23, the last commit before issue 11's solver and training-step work (the fused
+# solver, fast paths, batch-invariant polish): the "previous release" of the ratio column
+PREVIOUS_RELEASE = "42af21d"
+REPO = Path(__file__).resolve().parent.parent
 TASKS = ("BP5-e", "BP5", "BD5", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
 CHUNK = 5
 
@@ -68,6 +85,36 @@ def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
     }
 
 
+def extract_release(ref: str, into: Path) -> Path:
+    """``src/`` and ``benchmarks/`` of git ref ``ref`` under ``into`` (raises RuntimeError)."""
+    archive = subprocess.run(
+        ["git", "-C", str(REPO), "archive", ref, "src", "benchmarks"],
+        capture_output=True, check=False,
+    )  # fmt: skip
+    if archive.returncode != 0:
+        raise RuntimeError(f"git archive {ref}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive.stdout, check=True)
+    return into
+
+
+def time_release(root: Path, task: str, args: argparse.Namespace) -> float:
+    """Seconds per step of the release extracted at ``root``, in a subprocess."""
+    env = dict(os.environ, PYTHONPATH=str(root / "src"), OMP_NUM_THREADS=str(args.threads))
+    env.pop("DIFFCONTACT_SOLVER", None)
+    cmd = [
+        sys.executable, str(root / "benchmarks" / "run.py"), "train", "--tasks", task,
+        "--reps", str(args.reps), "--batch-size", str(args.batch_size), "--dtype", args.dtype,
+        "--model", args.model, "--device", args.device, "--against", "none",
+    ]  # fmt: skip
+    if "--against" not in (root / "benchmarks" / "train.py").read_text():
+        cmd = cmd[:-2]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    match = re.search(rf"^\s*{re.escape(task)} \|\s+([0-9.]+)", out.stdout, re.MULTILINE)
+    if out.returncode != 0 or match is None:
+        raise RuntimeError(f"previous release failed on {task}: {out.stderr.strip()[-400:]}")
+    return float(match.group(1))
+
+
 def compare_dtypes(task: str, args: argparse.Namespace) -> dict:
     """Loss and gradient of one training batch in float32 against float64 (same weights)."""
     import copy
@@ -99,6 +146,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=int, default=None, help="timed steps (default 5, quick 2)")
     ap.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
     ap.add_argument(
+        "--against", default=PREVIOUS_RELEASE, metavar="REF",
+        help=f"git ref of the previous release timed side by side (default {PREVIOUS_RELEASE}; "
+        "'none': only this version)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--threads", type=int, default=None,
+        help="torch threads for both versions (default: torch's default)",
+    )  # fmt: skip
+    ap.add_argument(
         "--compare-dtypes",
         action="store_true",
         help="instead of timing: relative difference of the loss and the gradient of one "
@@ -108,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
     args.reps = args.reps or (2 if args.quick else 5)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    args.threads = torch.get_num_threads()
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
     if args.compare_dtypes:
@@ -118,20 +177,42 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{task:>8} | {r['loss_rel']:>14.1e} | {r['grad_rel']:>18.1e}", flush=True)
         return 0
 
+    with tempfile.TemporaryDirectory(prefix="diffcontact-previous-") as tmp:
+        previous = None
+        if args.against.lower() != "none":
+            try:
+                previous = extract_release(args.against, Path(tmp))
+            except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
+                print(f"previous release not timed: {err}", file=sys.stderr)
+        _table(tasks, args, dtype, previous)
+    return 0
+
+
+def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path | None) -> None:
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states")
     for line in machine_header(args.device, dtype):
         print(line)
+    if previous is not None:
+        print(f"previous release: git {args.against}, timed in a subprocess right after each row")
     head = f"{'task':>8} | {'s/step':>8} {'chunks/s':>9} | {'chunks with a contact':>21}"
+    if previous is not None:
+        head += f" | {'previous s/step':>15} {'previous/now':>12}"
     print(head)
     print("-" * len(head))
     for task in tasks:
         r = time_task(task, args, dtype)
-        print(
+        line = (
             f"{task:>8} | {r['s_per_step']:>8.3f} {args.batch_size / r['s_per_step']:>9.0f} | "
-            f"{r['chunks_with_contact']:>20.0%}",
-            flush=True,
+            f"{r['chunks_with_contact']:>20.0%}"
         )
-    return 0
+        if previous is not None:
+            try:
+                old = time_release(previous, task, args)
+                line += f" | {old:>15.3f} {old / r['s_per_step']:>12.2f}"
+            except RuntimeError as err:
+                line += f" | {'failed':>15} {'-':>12}"
+                print(err, file=sys.stderr)
+        print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,8 @@ def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
         (["train", str(tmp_path / "missing"), "--out", out], "does not exist"),
         (["train", str(bp5_data), "--model", "XX-CD-CLNN", "--out", out], "unknown model"),
         (["train", str(bp5_data), "--dtype", "float16", "--out", out], "dtype"),
+        (["train", str(bp5_data), "--threads", "0", "--out", out], "threads must be"),
+        (["train", str(bp5_data), "--threads", "many", "--out", out], "threads must be"),
     ]
     if not torch.cuda.is_available():
         cases.append((["train", str(bp5_data), "--device", "cuda", "--out", out], "CUDA"))

@@ -122,3 +122,22 @@ def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
         train(bp5_data, tmp_path / "other", schedule="step", **SMALL)
     with pytest.raises(TrainingInputError, match="physics_lr must be > 0"):
         train(bp5_data, tmp_path / "other", physics_lr=-1.0, **SMALL)
+
+
+@pytest.mark.parametrize("threads", ["auto", 1])
+def test_threads_are_set_for_the_run_and_put_back(bp5_data, tmp_path, threads):
+    """``threads``: the run uses its own count; torch's setting is unchanged afterwards."""
+    seen = []
+
+    class Spy(pl.Callback):
+        def on_train_batch_end(self, *args):
+            seen.append(torch.get_num_threads())
+
+    before = torch.get_num_threads()
+    train(bp5_data, tmp_path / "run", epochs=1, batch_size=4, threads=threads,
+          callbacks=[Spy()], **SMALL)  # fmt: skip
+    assert torch.get_num_threads() == before and seen
+    if threads == 1:
+        assert set(seen) == {1}
+    else:
+        assert set(seen) <= {1, min(before, __import__("diffcontact").threads.available_cores())}

@@ -154,6 +154,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "--keep-checkpoints", type=positive_int, default=None, metavar="K",
         help="keep only the newest K per-epoch checkpoints (default: all)",
     )  # fmt: skip
+    p.add_argument(
+        "--threads", default="auto", metavar="N|auto",
+        help="torch CPU threads during training (default auto: 1 or all available cores, "
+        "whichever the timed steps show faster; several threads slow down on a loaded CPU)",
+    )  # fmt: skip
     p.add_argument("--devices", default="1", help="devices per node for Lightning (default 1)")
     p.add_argument("--num-nodes", type=positive_int, default=1, help="nodes (default 1)")
     p.add_argument("--strategy", default="auto", help="Lightning strategy, e.g. ddp (default auto)")
@@ -207,6 +212,7 @@ def _train(args: argparse.Namespace) -> int:
         num_nodes=args.num_nodes,
         keep_checkpoints=args.keep_checkpoints,
         steps_per_epoch=args.steps_per_epoch,
+        threads=args.threads,
     )
     if not args.quiet:
         print(f"wrote {Path(args.out) / 'model.pt'} and {Path(args.out) / 'learned.json'}")

@@ -51,6 +51,7 @@ from diffcontact.learning.models.registry import (
 )
 from diffcontact.learning.models.storage import save_model
 from diffcontact.learning.training.checkpoints import LAST, SafeCheckpointIO, resume_point
+from diffcontact.learning.training.governor import thread_callback
 from diffcontact.learning.training.module import DTYPES, RolloutModule, write_learned
 from diffcontact.learning.training.options import (
     COSINE_FLOOR,
@@ -79,6 +80,7 @@ from diffcontact.learning.training.rundir import (
     write_run_file,
 )
 from diffcontact.learning.training.stopping import GracefulStop, StopAfter, Stopped
+from diffcontact.threads import parse_threads
 
 __all__ = [
     "ChunkDataModule",
@@ -370,6 +372,7 @@ def train(
     keep_checkpoints: int | None = None,
     callbacks: Sequence[pl.Callback] = (),
     steps_per_epoch: int | None = None,
+    threads: int | str | None = "auto",
 ) -> Any:
     """Train a learned model on a dataset folder and write a run directory.
 
@@ -422,6 +425,13 @@ def train(
             would take, the windows drawn with replacement, weighted so that
             a draw contains a contact with probability ``contact_fraction``
             (:func:`contact_weights`; uniform when one kind is missing).
+        threads: torch's CPU threads during the run (put back afterwards).
+            ``"auto"`` (default): a :class:`~diffcontact.threads.ThreadGovernor`
+            times the steps and uses 1 thread or ``min(available cores,
+            torch.get_num_threads())``, whichever is faster now (several
+            threads are faster on an idle CPU, far slower on a loaded one;
+            docs/training.md, "CPU threads"); an integer fixes the count;
+            ``None`` leaves torch's setting alone.
 
     Returns:
         The trained model (on the CPU).
@@ -442,6 +452,10 @@ def train(
         weight_decay=weight_decay, schedule=schedule, seed=seed, device=device, dtype=dtype,
         max_time=max_time, keep_checkpoints=keep_checkpoints, steps_per_epoch=steps_per_epoch,
     )  # fmt: skip
+    try:
+        threads = parse_threads(threads)
+    except ValueError as err:
+        raise TrainingInputError(str(err)) from None
     physics_lr = lr if physics_lr is None else physics_lr
     data_path = Path(data_dir).resolve()
     out = Path(out_dir)
@@ -548,7 +562,9 @@ def train(
     )
     stop = GracefulStop(checkpoints / LAST, announce=launcher)
     stop_after = None if max_time is None else StopAfter(float(max_time) * 60.0)
+    governor = thread_callback(threads, device)
     all_callbacks = [checkpoint, stop, *callbacks, *([stop_after] if stop_after else [])]
+    all_callbacks += [governor] if governor is not None else []
     if strategy == "ddp":
         strategy = "ddp_find_unused_parameters_true"
     with _lightning_messages(progress):

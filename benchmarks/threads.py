@@ -1,0 +1,185 @@
+"""Benchmark: CPU threads, with and without a competing process (the thread cliff).
+
+    python benchmarks/run.py threads [--quick] [--task BP5] [--steps 48]
+
+Times, on an idle CPU and then with one competing process (a busy loop started by
+this script, standing for another user's job), side by side in one run:
+
+- a training step of CM-CD-CLNN (as ``benchmarks/run.py train``) with 1 thread,
+  with all available cores, and with ``threads="auto"`` (the
+  :class:`diffcontact.threads.ThreadGovernor` that ``train()`` uses by default,
+  including the steps it spends probing);
+- one friction-cone QP solve, forward + backward, at batch 1024 with 5 contacts,
+  on the fused (Warp, when installed) and the reference (torch) backends, with 1
+  thread and with all available cores.
+
+Every cell is the mean seconds (or ms) per step over the timed steps after one
+warm-up step; ``x best`` is the ratio to the fastest cell of its row and load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+from common import machine_header
+
+SPIN = "while True:\n    pass\n"
+
+
+class Competitor:
+    """One busy-loop process for the duration of a ``with`` block."""
+
+    def __enter__(self) -> Competitor:
+        self.proc = subprocess.Popen([sys.executable, "-c", SPIN])
+        time.sleep(0.5)  # let it start spinning
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+def train_step_fn(task: str, batch: int):
+    """A closure running one training step of CM-CD-CLNN on ``batch`` chunks of ``task``."""
+    import diffcontact as dc
+    from diffcontact.learning.models.physical import LearnedModel
+    from diffcontact.learning.training.module import rollout_loss
+    from train import make_chunks
+
+    chunks = make_chunks(task, batch)
+    model = LearnedModel(dc.load_system(task).config, model="CM-CD-CLNN").double()
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+
+    def step() -> None:
+        opt.zero_grad()
+        rollout_loss(model, chunks).backward()
+        opt.step()
+
+    return step
+
+
+def solver_fn(backend: str, batch: int = 1024, contacts: int = 5):
+    """A closure solving ``batch`` random problems of ``contacts`` contacts, forward + backward."""
+    from diffcontact.contact import SolverSettings, solve_cone_qp
+    from solver import make_problems
+
+    p = make_problems(contacts, batch, seed=0)
+    A, b, mu = p["A"], p["b"], p["mu"]
+    W = torch.randn(b.shape, generator=torch.Generator().manual_seed(1), dtype=b.dtype)
+    settings = SolverSettings(backend=backend, check_inputs=False)
+
+    def step() -> None:
+        Ar, br, mur = (x.clone().requires_grad_() for x in (A, b, mu))
+        f = solve_cone_qp(Ar, br, mur, 2, settings=settings)
+        (f * W).sum().backward()
+
+    return step
+
+
+def time_fixed(step, threads: int, reps: int) -> float:
+    torch.set_num_threads(threads)
+    step()  # warm-up
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return statistics.mean(times)
+
+
+def time_auto(step, max_threads: int, steps: int) -> tuple[float, int, float]:
+    """Mean seconds per step under the governor (probes included), its final choice and the
+    share of steps it ran with one thread."""
+    from diffcontact.threads import ThreadGovernor
+
+    torch.set_num_threads(max_threads)
+    step()  # warm-up
+    governor = ThreadGovernor(max_threads)
+    times, ones = [], 0
+    for _ in range(steps):
+        ones += torch.get_num_threads() == 1
+        t0 = time.perf_counter()
+        with governor.step():
+            step()
+        times.append(time.perf_counter() - t0)
+    governor.restore()
+    return statistics.mean(times), governor.threads, ones / steps
+
+
+def main(argv: list[str] | None = None) -> int:
+    from diffcontact.threads import available_cores
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer steps (about two minutes)")
+    ap.add_argument("--task", default="BP5", help="training task (default BP5)")
+    ap.add_argument("--batch-size", type=int, default=200, help="training chunks per step")
+    ap.add_argument("--steps", type=int, default=None, help="auto steps (48; quick 24)")
+    ap.add_argument(
+        "--reps", type=int, default=None, help="timed steps per fixed cell (8; quick 3)"
+    )
+    args = ap.parse_args(argv)
+    auto_steps = args.steps or (24 if args.quick else 48)
+    reps = args.reps or (3 if args.quick else 8)
+    cores = available_cores()
+    if cores < 2:
+        print(f"threads: this process may use {cores} core; nothing to compare")
+        return 0
+    initial = torch.get_num_threads()
+    try:
+        from diffcontact.contact import fused
+
+        have_warp = fused.warp_installed()
+    except Exception:
+        have_warp = False
+
+    print("CPU threads: idle vs one competing busy process, side by side in one run")
+    for line in machine_header("cpu", torch.float64):
+        print(line)
+    print(f"available cores: {cores}; timed steps: {reps} per fixed cell, {auto_steps} for auto")
+    head = f"{'what':>34} {'load':>5} | {'1 thread':>9} {f'{cores} threads':>10} {'auto':>9} | "
+    head += f"{'x best':>17} | auto chose (1-thread share)"
+    print(head)
+    print("-" * len(head))
+    rows = [(f"train step {args.task} (s)", train_step_fn(args.task, args.batch_size), 1.0, True)]
+    backends = (["warp"] if have_warp else []) + ["torch"]
+    rows += [(f"solve K=5 B=1024 f+b {b} (ms)", solver_fn(b), 1e3, False) for b in backends]
+    for load in ("idle", "busy"):
+        for name, step, scale, auto in rows:
+            if load == "busy":
+                with Competitor():
+                    cells = _row(step, cores, reps, auto_steps, auto)
+            else:
+                cells = _row(step, cores, reps, auto_steps, auto)
+            one, many, auto_cell = cells
+            values = [one, many] + ([auto_cell[0]] if auto_cell else [])
+            best = min(values)
+            ratios = " ".join(f"{v / best:>5.2f}" for v in values)
+            auto_txt = f"{scale * auto_cell[0]:>9.3g}" if auto_cell else f"{'-':>9}"
+            chose = f"{auto_cell[1]} ({auto_cell[2]:.0%})" if auto_cell else "-"
+            print(
+                f"{name:>34} {load:>5} | {scale * one:>9.3g} {scale * many:>10.3g} {auto_txt} | "
+                f"{ratios:>17} | {chose}",
+                flush=True,
+            )
+    torch.set_num_threads(initial)
+    print(
+        "x best: time / the fastest cell of the row (1 thread, all cores, auto). auto: the "
+        "ThreadGovernor of train(threads='auto'), its probes included."
+    )
+    return 0
+
+
+def _row(step, cores: int, reps: int, auto_steps: int, auto: bool):
+    one = time_fixed(step, 1, reps)
+    many = time_fixed(step, cores, reps)
+    return one, many, (time_auto(step, cores, auto_steps) if auto else None)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

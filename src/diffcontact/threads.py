@@ -1,0 +1,239 @@
+"""How many CPU threads torch uses: the cores this process may use, and a governor.
+
+A training step of diffcontact is thousands of small tensor operations plus a
+few large ones (the potential network's matrix products). With an idle CPU,
+several intra-op threads speed the large ones up (measured by
+``python benchmarks/run.py threads``). With another process competing for the
+cores, every parallel region waits for a thread the operating system has
+descheduled, and two threads become *slower* than one (the "thread cliff"
+of issue 11). No fixed number is right on a shared machine, so the default of
+``train()`` measures:
+
+- :func:`available_cores` is the number of cores this process may use: its CPU
+  affinity and, in a container, the cgroup CPU quota (torch itself counts all
+  the machine's cores, which oversubscribes a 2-core slot of a 64-core node).
+- :class:`ThreadGovernor` times the steps it is told about and chooses between
+  one thread and ``max_threads``: it measures a window of steps with each,
+  keeps the faster, probes the other again after a while (less often each
+  time the probe loses) and at once when the steps become markedly slower
+  than they were, which is what a competing process starting up looks like.
+
+Nothing here changes results: the thread count changes the order of
+floating-point reductions only inside torch's parallel kernels (last-bit
+differences), never the algorithm.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+__all__ = ["ThreadGovernor", "available_cores", "parse_threads"]
+
+
+def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """CPU quota of this process's cgroup in cores (``None``: no quota or not Linux)."""
+    try:
+        quota, period = (root / "cpu.max").read_text().split()[:2]  # cgroup v2
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:  # cgroup v1
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return None if quota <= 0 or period <= 0 else quota / period
+    except (OSError, ValueError):
+        return None
+
+
+def available_cores() -> int:
+    """Cores this process may run on: CPU affinity, capped by a cgroup CPU quota (>= 1)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    if quota is not None:
+        cores = min(cores, max(1, math.floor(quota)))
+    return max(1, cores)
+
+
+def parse_threads(value: int | str | None) -> int | str | None:
+    """Check a ``threads`` option: ``"auto"``, ``None`` (leave torch alone) or an int >= 1.
+
+    Raises:
+        ValueError: anything else, with a one-line message.
+    """
+    if value is None or value == "auto":
+        return value
+    if isinstance(value, str):
+        try:
+            value = int(value)
+        except ValueError:
+            raise ValueError(
+                f"threads must be 'auto' or a positive integer, got {value!r}"
+            ) from None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"threads must be 'auto' or a positive integer, got {value!r}")
+    return value
+
+
+class ThreadGovernor:
+    """Chooses torch's intra-op thread count from the measured time of the steps.
+
+    Use :meth:`step` as a context manager around each step (or call
+    :meth:`start` and :meth:`stop`). The governor holds one of two candidates,
+    ``1`` and ``max_threads``, and works in windows of ``window`` steps, the
+    first step of each window discarded (it pays for the switch):
+
+    1. measure a window with ``max_threads``, then one with 1 thread; keep the
+       one whose median step time is lower (ties within ``margin`` go to the
+       current one);
+    2. run ``interval`` windows with the choice, then probe the other for one
+       window; a probe that loses doubles ``interval`` (up to
+       ``max_interval``), one that wins switches and resets it;
+    3. when a window of the choice is more than ``1 + slowdown`` times slower
+       than the last one measured, probe at once: the machine's load changed;
+       two steps in a row ``spike`` times slower than that end the window early
+       (a competing process can make several threads ten times slower).
+
+    With ``max_threads == 1`` it sets one thread and never probes.
+
+    Args:
+        max_threads: the larger candidate (default :func:`available_cores`,
+            capped by torch's current setting).
+        window: steps per measurement window (>= 3).
+        interval, max_interval: windows between probes, initial and largest.
+        margin: relative advantage a probe needs to win.
+        slowdown: relative slowdown of the choice that triggers a probe.
+        spike: slowdown of single steps that ends a window early.
+        clock: the time function (for tests).
+
+    Attributes:
+        threads: the thread count in use now.
+        history: ``(step, threads, median seconds)`` of every finished window.
+    """
+
+    def __init__(
+        self,
+        max_threads: int | None = None,
+        *,
+        window: int = 8,
+        interval: int = 4,
+        max_interval: int = 64,
+        margin: float = 0.1,
+        slowdown: float = 0.3,
+        spike: float = 3.0,
+        clock=time.perf_counter,
+    ) -> None:
+        if max_threads is None:
+            max_threads = min(available_cores(), torch.get_num_threads())
+        if int(max_threads) < 1:
+            raise ValueError(f"max_threads must be >= 1, got {max_threads}")
+        if int(window) < 3:
+            raise ValueError(f"window must be >= 3 steps, got {window}")
+        self.max_threads = int(max_threads)
+        self.window = int(window)
+        self.interval = self._interval0 = max(1, int(interval))
+        self.max_interval = max(self.interval, int(max_interval))
+        self.margin = float(margin)
+        self.slowdown = float(slowdown)
+        self.spike = float(spike)
+        self._spikes = 0
+        self.clock = clock
+        self.history: list[tuple[int, int, float]] = []
+        self._steps = 0
+        self._times: list[float] = []
+        self._t0: float | None = None
+        self._best: dict[int, float] = {}  # last median of each candidate
+        self._choice = self.max_threads
+        self._probing = False
+        self._windows_since_probe = 0
+        self._initial = torch.get_num_threads()
+        self.threads = self.max_threads
+        self._apply(self.max_threads)
+
+    # ------------------------------------------------------------------ timing
+    def start(self) -> None:
+        """Mark the start of a step."""
+        self._t0 = self.clock()
+
+    def stop(self) -> None:
+        """Mark the end of the step started by :meth:`start` and maybe change the threads."""
+        if self._t0 is None:
+            return
+        t = self.clock() - self._t0
+        self._times.append(t)
+        self._t0 = None
+        self._steps += 1
+        if self.max_threads == 1:
+            return
+        ref = self._best.get(self.threads)
+        spiking = not self._probing and ref is not None and t > self.spike * ref
+        self._spikes = self._spikes + 1 if spiking else 0
+        if self._spikes >= 2:
+            self._spikes = 0
+            self._end_window(statistics.median(self._times[-2:]))
+            self._times = []
+        elif len(self._times) >= self.window:
+            self._end_window(statistics.median(self._times[1:]))
+            self._times = []
+
+    def step(self) -> _Step:
+        """Context manager timing one step: ``with governor.step(): ...``."""
+        return _Step(self)
+
+    def restore(self) -> None:
+        """Put back the thread count torch had before the governor was made."""
+        torch.set_num_threads(self._initial)
+
+    # ------------------------------------------------------------------ policy
+    def _apply(self, n: int) -> None:
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+        self.threads = n
+
+    def _other(self, n: int) -> int:
+        return 1 if n == self.max_threads else self.max_threads
+
+    def _end_window(self, median: float) -> None:
+        n = self.threads
+        self.history.append((self._steps, n, median))
+        previous = self._best.get(n)
+        self._best[n] = median
+        other = self._other(self._choice)
+        if self._probing:  # a window of the other candidate has just been measured
+            self._probing = False
+            self._windows_since_probe = 0
+            if median < self._best[self._choice] * (1.0 - self.margin):
+                self._choice = n  # the probe won
+                self.interval = self._interval0
+            else:
+                self.interval = min(2 * self.interval, self.max_interval)
+            self._apply(self._choice)
+            return
+        self._windows_since_probe += 1
+        slower = previous is not None and median > previous * (1.0 + self.slowdown)
+        never = other not in self._best
+        if never or slower or self._windows_since_probe >= self.interval:
+            if slower:
+                self.interval = self._interval0
+            self._probing = True
+            self._apply(other)
+
+
+class _Step:
+    def __init__(self, governor: ThreadGovernor) -> None:
+        self.governor = governor
+
+    def __enter__(self) -> ThreadGovernor:
+        self.governor.start()
+        return self.governor
+
+    def __exit__(self, *exc: object) -> None:
+        self.governor.stop()

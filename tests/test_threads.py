@@ -1,0 +1,131 @@
+"""The thread governor: it picks the faster thread count and follows a change of load."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffcontact.threads import ThreadGovernor, _cgroup_quota, available_cores, parse_threads
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture(autouse=True)
+def keep_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+def run(governor: ThreadGovernor, clock: FakeClock, steps: int, cost) -> list[int]:
+    """Run ``steps`` fake steps whose duration is ``cost(step, threads)``; the threads used."""
+    used = []
+    for i in range(steps):
+        with governor.step():
+            used.append(torch.get_num_threads())
+            clock.now += cost(i, torch.get_num_threads())
+    return used
+
+
+def test_keeps_several_threads_when_they_are_faster():
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+    used = run(g, clock, 400, lambda i, n: 1.0 if n == 2 else 1.6)
+    assert g.threads == 2
+    # probes back off: after the first two windows, few steps are spent on the slow count
+    assert used[16:].count(1) / len(used[16:]) < 0.1
+
+
+def test_falls_back_to_one_thread_under_load():
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+    used = run(g, clock, 400, lambda i, n: 2.0 if n == 2 else 1.0)
+    assert g.threads == 1
+    assert used[16:].count(2) / len(used[16:]) < 0.1
+
+
+def test_follows_a_change_of_load():
+    """Idle at first (2 threads faster), then a competing process starts (1 faster)."""
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+
+    def cost(i: int, n: int) -> float:
+        busy = i >= 300
+        return (2.0 if n == 2 else 1.0) if busy else (1.0 if n == 2 else 1.5)
+
+    used = run(g, clock, 600, cost)
+    assert used[299] == 2
+    # the slowdown of the 2-thread windows triggers a probe at once: within 3 windows
+    assert used[300 + 3 * g.window :].count(2) / len(used[300 + 3 * g.window :]) < 0.1
+    assert g.threads == 1
+    assert any(n == 1 for _, n, _ in g.history) and any(n == 2 for _, n, _ in g.history)
+
+
+def test_ties_keep_the_current_choice():
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+    run(g, clock, 200, lambda i, n: 1.0 if n == 2 else 0.95)  # 5 % is within the margin
+    assert g.threads == 2
+
+
+def test_one_core_never_probes():
+    clock = FakeClock()
+    g = ThreadGovernor(1, clock=clock)
+    used = run(g, clock, 50, lambda i, n: 1.0)
+    assert set(used) == {1} and g.history == []
+
+
+def test_restore_puts_back_the_initial_count():
+    torch.set_num_threads(2)
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+    run(g, clock, 40, lambda i, n: 2.0 if n == 2 else 1.0)
+    assert torch.get_num_threads() == 1
+    g.restore()
+    assert torch.get_num_threads() == 2
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="max_threads"):
+        ThreadGovernor(0)
+    with pytest.raises(ValueError, match="window"):
+        ThreadGovernor(2, window=2)
+    for bad in ("many", 0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="threads must be"):
+            parse_threads(bad)
+    assert (
+        parse_threads("3") == 3 and parse_threads("auto") == "auto" and parse_threads(None) is None
+    )
+
+
+def test_available_cores_respects_a_cgroup_quota(tmp_path, monkeypatch):
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert _cgroup_quota(tmp_path) == 1.5
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert _cgroup_quota(tmp_path) is None
+    monkeypatch.setattr("diffcontact.threads._cgroup_quota", lambda: 1.5)
+    assert available_cores() == 1
+    monkeypatch.setattr("diffcontact.threads._cgroup_quota", lambda: None)
+    assert 1 <= available_cores() <= (torch.multiprocessing.cpu_count() or 1)
+
+
+def test_a_sudden_tenfold_slowdown_ends_the_window_early():
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+
+    def cost(i: int, n: int) -> float:
+        if i < 100:
+            return 1.0 if n == 2 else 1.5
+        return 10.0 if n == 2 else 1.5  # a competing process: two threads 10x slower
+
+    used = run(g, clock, 140, cost)
+    first_busy = [n for n in used[100:]]
+    # two slow steps, then the probe with one thread wins
+    assert first_busy[:2] == [2, 2] and set(first_busy[2 : 2 + g.window]) == {1}
+    assert g.threads == 1
