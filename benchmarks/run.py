@@ -3,6 +3,7 @@
     python benchmarks/run.py                 # every suite, quick settings
     python benchmarks/run.py solver [...]    # friction-cone QP vs cvxpylayers (solver.py)
     python benchmarks/run.py simulate [...]  # ground-truth simulation (simulate.py)
+    python benchmarks/run.py simulate --compare mujoco  # BP5 against mujoco.rollout
     python benchmarks/run.py train [...]     # seconds per training step per task (train.py)
     python benchmarks/run.py control [...]   # one planning iteration, 1 and 64 starts (control.py)
     python benchmarks/run.py backends [...]  # the solver's torch vs Warp backends (backends.py)

@@ -1,18 +1,28 @@
 """Benchmark: ground-truth simulation, wall time of System.simulate.
 
     python benchmarks/run.py simulate [--quick] [--device cpu|cuda] [--dtype float64|float32]
+    python benchmarks/run.py simulate --compare mujoco [--quick] [--threads N]
 
 Simulates N trajectories of each task from its own initial-condition distribution and
 prints the wall time, the time per step and the number of state-steps per second. The
 default rows are the ones the simulator issue asks for: 1024 BP5 trajectories of 100 steps
 and 1024 ropes of 200 points (Rope-D400) over their horizon (19 steps).
+
+``--compare mujoco`` instead times 1024 BP5 scenes x 100 steps (``--quick``: 64 x 20) in
+diffcontact (``System.simulate``, then again with the backward pass of the final
+positions) and in MuJoCo (``mujoco.rollout`` on the matched scene of
+``benchmarks/mujoco_scene.py``, one and two threads) side by side, with the ratio to
+MuJoCo on one thread and how far the two simulators' positions are apart. It needs the
+optional ``mujoco`` package.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
+import numpy as np
 import torch
 
 import diffcontact as dc
@@ -44,16 +54,181 @@ def time_case(task: str, n: int, steps: int, device: str, dtype: torch.dtype) ->
     }
 
 
+COMPARE_TASK = "BP5"
+COMPARE_SIZE = (1024, 100)  # scenes, steps
+COMPARE_QUICK_SIZE = (64, 20)
+MUJOCO_THREADS = (1, 2)
+
+
+def _timed(fn, device: str) -> tuple[float, object]:
+    sync(device)
+    t0 = time.perf_counter()
+    out = fn()
+    sync(device)
+    return time.perf_counter() - t0, out
+
+
+def compare_mujoco(
+    n: int, steps: int, device: str, dtype: torch.dtype, task: str = COMPARE_TASK
+) -> dict:
+    """Time diffcontact and MuJoCo on the same ``n`` scenes of ``task`` for ``steps`` steps.
+
+    Returns ``{"rows": [...], "sanity": {...}, "mujoco_version": str, "timeconst": float}``;
+    each row has ``name``, ``wall_s``, ``ms_per_step``, ``state_steps_per_s`` and
+    ``ratio`` (its wall time over MuJoCo's on one thread). ``sanity`` holds the position
+    differences (mean over bodies of the Euclidean distance, float64) between diffcontact
+    and MuJoCo: ``free_max`` over every state up to each scene's first contact (the first
+    state where a gap is negative in either trajectory; it is still reached by free
+    flight), ``free_states`` how many such states, ``final_mean`` the mean at the last step,
+    ``contact_free_scenes`` how many scenes never touch anything.
+    """
+    from mujoco_scene import Roller, build_scene, import_mujoco, initial_states, positions
+
+    mujoco = import_mujoco()
+    system = dc.load_system(task)
+    scene = build_scene(system.config)
+    z0 = system.sample_initial_conditions(n, seed=0)
+    init = initial_states(scene, z0)
+    z0 = z0.to(device=device, dtype=dtype)
+
+    def ours() -> torch.Tensor:
+        return system.simulate(z0, steps=steps)
+
+    def ours_grad() -> torch.Tensor:
+        z = z0.clone().requires_grad_(True)
+        traj = system.simulate(z, steps=steps)
+        traj[:, -1, 0].sum().backward()
+        return z.grad
+
+    # warm-up (device caches, allocator, kernel loads, MuJoCo's first call)
+    system.simulate(z0[: min(n, 8)], steps=2)
+    zw = z0[: min(n, 8)].clone().requires_grad_(True)
+    system.simulate(zw, steps=2)[:, -1, 0].sum().backward()
+    rollers = {k: Roller(scene, k) for k in MUJOCO_THREADS}
+    for roll in rollers.values():
+        roll(init[: min(n, 8)], 2)
+
+    rows = []
+    wall, traj = _timed(ours, device)
+    rows.append(("diffcontact simulate", wall))
+    wall, grad = _timed(ours_grad, device)
+    if not bool(torch.isfinite(grad).all()):
+        raise RuntimeError("the gradient of the final positions is not finite")
+    rows.append(("diffcontact + gradient", wall))
+    mj_states = {}
+    for k, roll in rollers.items():
+        wall, mj_states[k] = _timed(lambda roll=roll: roll(init, steps), "cpu")
+        rows.append((f"MuJoCo rollout {k} thr", wall))
+        roll.close()
+    base = rows[2][1]
+
+    x_ours = traj[:, :, 0].detach().to(device="cpu", dtype=torch.float64)
+    x_mj = positions(scene, init, mj_states[MUJOCO_THREADS[0]])
+    dist = (x_ours - x_mj).norm(dim=-1).mean(-1)  # (n, steps + 1)
+    touching = (system.gaps(x_ours) < 0).any(-1) | (system.gaps(x_mj) < 0).any(-1)
+    T = steps + 1
+    first = torch.where(touching.any(1), touching.long().argmax(1), torch.full((n,), T - 1))
+    free = torch.arange(T)[None] <= first[:, None]
+    sanity = {
+        "free_max": float(dist[free].max()),
+        "free_states": int(free.sum()),
+        "final_mean": float(dist[:, -1].mean()),
+        "contact_free_scenes": int((~touching.any(1)).sum()),
+        "threads_agree": all(
+            np.array_equal(mj_states[k], mj_states[MUJOCO_THREADS[0]]) for k in MUJOCO_THREADS
+        ),
+    }
+    return {
+        "rows": [
+            {
+                "name": name,
+                "wall_s": wall,
+                "ms_per_step": 1e3 * wall / steps,
+                "state_steps_per_s": n * steps / wall,
+                "ratio": wall / base,
+            }
+            for name, wall in rows
+        ],
+        "sanity": sanity,
+        "mujoco_version": mujoco.__version__,
+        "timeconst": scene.timeconst,
+    }
+
+
+def main_compare(args: argparse.Namespace, dtype: torch.dtype) -> int:
+    from mujoco_scene import MISSING_MUJOCO
+
+    try:
+        import mujoco  # noqa: F401
+    except ImportError:
+        print(MISSING_MUJOCO, file=sys.stderr)
+        return 2
+    n, steps = COMPARE_QUICK_SIZE if args.quick else COMPARE_SIZE
+    n, steps = args.n or n, args.steps or steps
+    r = compare_mujoco(n, steps, args.device, dtype)
+    print(f"simulation: diffcontact vs MuJoCo on a matched {COMPARE_TASK} scene")
+    for line in machine_header(args.device, dtype):
+        print(line)
+    print(
+        f"MuJoCo {r['mujoco_version']}: mujoco.rollout on the CPU in float64, Euler, elliptic "
+        f"cones, soft contacts (timeconst {r['timeconst']:g} s; benchmarks/mujoco_scene.py)"
+    )
+    print(f"{n} scenes x {steps} steps, dt {dc.load_system(COMPARE_TASK).config.dt:g} s")
+    head = (
+        f"{'simulator':>24} | {'wall s':>8} {'ms/step':>9} {'state-steps/s':>14} | "
+        f"{'/ MuJoCo 1 thr':>14}"
+    )
+    print(head)
+    print("-" * len(head))
+    for row in r["rows"]:
+        print(
+            f"{row['name']:>24} | {row['wall_s']:>8.3f} {row['ms_per_step']:>9.2f} "
+            f"{row['state_steps_per_s']:>14.0f} | {row['ratio']:>14.2f}",
+            flush=True,
+        )
+    s = r["sanity"]
+    print(
+        "matched scene: |x_diffcontact - x_MuJoCo| (mean over bodies, box side 1): "
+        f"up to the first contact max {s['free_max']:.1e} ({s['free_states']} states), "
+        f"at step {steps} mean {s['final_mean']:.3f} "
+        f"({s['contact_free_scenes']} of {n} scenes never touch)"
+    )
+    if not s["threads_agree"]:
+        print("note: MuJoCo's 1- and 2-thread rollouts differ")
+    print(
+        "'/ MuJoCo 1 thr': wall time over MuJoCo's on one thread (> 1: slower than MuJoCo). "
+        "After the first contact the trajectories differ by design: MuJoCo's contacts are "
+        "soft and last several steps, ours are the two-phase impulse (benchmarks/README.md)."
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="small batches (about a minute)")
     ap.add_argument("--all-tasks", action="store_true", help="also BD5, CP3, Gyro and Rope")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    ap.add_argument(
+        "--compare",
+        choices=("mujoco",),
+        default=None,
+        help=f"time {COMPARE_TASK} against mujoco.rollout on a matched scene",
+    )
+    # sizes of the --compare run (tests use tiny ones)
+    ap.add_argument("--n", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--steps", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
+    if args.threads is not None:
+        if args.threads < 1:
+            ap.error(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
+    if args.compare == "mujoco":
+        return main_compare(args, dtype)
     cases = QUICK_CASES if args.quick else DEFAULT_CASES + (EXTRA_CASES if args.all_tasks else [])
 
     print("ground-truth simulation: System.simulate (RK4 + detection + two-phase impulse)")
