@@ -578,6 +578,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--n-test", type=int, default=100, help=argparse.SUPPRESS)
     parser.add_argument("--only", default=None, help="TASK:MODEL, a single run (for testing)")
     parser.add_argument(
+        "--tasks", nargs="+", default=None, metavar="TASK",
+        help="only the runs of these tasks (of the tables chosen)",
+    )  # fmt: skip
+    parser.add_argument(
         "--report-only", action="store_true",
         help="only rewrite the report from OUT/results.json (no training)",
     )  # fmt: skip
@@ -601,6 +605,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         for table in args.tables or list(TABLES):
             runs += [r for r in TABLES[table] if r not in runs]
+        if args.tasks:
+            known = {t for t, _ in runs}
+            if unknown_tasks := [t for t in args.tasks if t not in known]:
+                parser.error(
+                    f"--tasks: no run of {', '.join(unknown_tasks)} in the tables chosen "
+                    f"(tasks: {', '.join(sorted(known))})"
+                )
+            runs = [r for r in runs if r[0] in args.tasks]
     out = Path(args.out)
     cpus = os.cpu_count() or 1
     threads = max(1, cpus // args.jobs)

@@ -86,6 +86,10 @@ def test_bad_arguments(repro, tmp_path, capsys):
     assert exc.value.code == 2 and "unknown table" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         repro.main(["--only", "BP5:XX", "--out", str(tmp_path)])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        repro.main(["per-contact", "--tasks", "CP3", "--out", str(tmp_path)])
+    assert exc.value.code == 2 and "--tasks: no run of CP3" in capsys.readouterr().err
     assert repro.main(["--report-only", "--out", str(tmp_path / "none")]) == 2
 
 
