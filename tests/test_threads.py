@@ -129,3 +129,23 @@ def test_a_sudden_tenfold_slowdown_ends_the_window_early():
     # two slow steps, then the probe with one thread wins
     assert first_busy[:2] == [2, 2] and set(first_busy[2 : 2 + g.window]) == {1}
     assert g.threads == 1
+
+
+def test_more_load_does_not_send_it_back_to_several_threads():
+    """Under growing load one thread gets slower, several threads far slower: no probes then;
+    when the load leaves, several threads are tried again soon."""
+    clock = FakeClock()
+    g = ThreadGovernor(2, clock=clock)
+
+    def cost(i: int, n: int) -> float:
+        if i < 200:  # one competitor
+            return 2.0 if n == 2 else 1.0
+        if i < 400:  # more competitors: one thread slower too, two threads much slower
+            return 8.0 if n == 2 else 2.4
+        return 1.0 if n == 2 else 1.5  # idle
+
+    used = run(g, clock, 600, cost)
+    busier = used[200 + g.window : 400]
+    assert busier.count(2) / len(busier) < 0.1
+    assert used[400 + 3 * g.window :].count(2) / len(used[400 + 3 * g.window :]) > 0.85
+    assert g.threads == 2

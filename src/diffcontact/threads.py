@@ -97,10 +97,14 @@ class ThreadGovernor:
     2. run ``interval`` windows with the choice, then probe the other for one
        window; a probe that loses doubles ``interval`` (up to
        ``max_interval``), one that wins switches and resets it;
-    3. when a window of the choice is more than ``1 + slowdown`` times slower
-       than the last one measured, probe at once: the machine's load changed;
-       two steps in a row ``spike`` times slower than that end the window early
-       (a competing process can make several threads ten times slower).
+    3. probe at once when the load changed: a window of several threads more
+       than ``1 + slowdown`` times slower than their last one (a competing
+       process started), or a window of one thread ``1 - slowdown`` times
+       faster than its last one (it ended). One thread getting slower is no
+       reason to try more: under load, more threads are the slower choice;
+    4. two steps of several threads in a row ``spike`` times slower than one
+       thread's last window end the window (or the probe) early: a competing
+       process can make several threads ten times slower.
 
     With ``max_threads == 1`` it sets one thread and never probes.
 
@@ -173,8 +177,9 @@ class ThreadGovernor:
         self._steps += 1
         if self.max_threads == 1:
             return
-        ref = self._best.get(self.threads)
-        spiking = not self._probing and ref is not None and t > self.spike * ref
+        # a step of several threads far slower than one thread was: the cliff
+        ref = self._best.get(1, self._best.get(self.max_threads))
+        spiking = self.threads > 1 and ref is not None and t > self.spike * ref
         self._spikes = self._spikes + 1 if spiking else 0
         if self._spikes >= 2:
             self._spikes = 0
@@ -218,10 +223,15 @@ class ThreadGovernor:
             self._apply(self._choice)
             return
         self._windows_since_probe += 1
-        slower = previous is not None and median > previous * (1.0 + self.slowdown)
-        never = other not in self._best
-        if never or slower or self._windows_since_probe >= self.interval:
-            if slower:
+        # the load changed: several threads got slower (a competitor came), or one
+        # thread got faster (it left); one thread getting slower says nothing for more
+        changed = previous is not None and (
+            median > previous * (1.0 + self.slowdown)
+            if n > 1
+            else median < previous * (1.0 - self.slowdown)
+        )
+        if other not in self._best or changed or self._windows_since_probe >= self.interval:
+            if changed:
                 self.interval = self._interval0
             self._probing = True
             self._apply(other)
