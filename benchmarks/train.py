@@ -62,7 +62,9 @@ def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
     from diffcontact.learning.training.module import rollout_loss
 
     chunks = make_chunks(task, args.batch_size).to(args.device, dtype)
-    model = LearnedModel(dc.load_system(task).config, model=args.model).to(args.device, dtype)
+    model = LearnedModel(
+        dc.load_system(task).config, model=args.model, potential_dtype=args.potential_dtype
+    ).to(args.device, dtype)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
 
     def step() -> float:
@@ -125,15 +127,21 @@ def compare_dtypes(task: str, args: argparse.Namespace) -> dict:
     chunks = make_chunks(task, args.batch_size)
     m64 = LearnedModel(dc.load_system(task).config, model=args.model).double()
     m32 = copy.deepcopy(m64).float()
+    mixed = copy.deepcopy(m64)
+    mixed.potential.compute_dtype = torch.float32  # = LearnedModel(potential_dtype="float32")
     out = {}
-    for name, model, data in (("float64", m64, chunks), ("float32", m32, chunks.float())):
+    cases = (("float64", m64, chunks), ("float32", m32, chunks.float()), ("mixed", mixed, chunks))
+    for name, model, data in cases:
         loss = rollout_loss(model, data)
         grads = torch.autograd.grad(loss, [p for p in model.parameters() if p.requires_grad])
         out[name] = (loss.detach().double(), torch.cat([g.double().flatten() for g in grads]))
-    loss_rel = float((out["float32"][0] - out["float64"][0]).abs() / out["float64"][0].abs())
-    g32, g64 = out["float32"][1], out["float64"][1]
-    grad_rel = float((g32 - g64).norm() / g64.norm())
-    return {"task": task, "loss_rel": loss_rel, "grad_rel": grad_rel}
+    l64, g64 = out["float64"]
+    result = {"task": task}
+    for name in ("float32", "mixed"):
+        loss, grad = out[name]
+        result[f"{name}_loss_rel"] = float((loss - l64).abs() / l64.abs())
+        result[f"{name}_grad_rel"] = float((grad - g64).norm() / g64.norm())
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     ap.add_argument("--model", default="CM-CD-CLNN")
+    ap.add_argument(
+        "--potential-dtype", choices=("float32", "float64"), default=None,
+        help="the potential MLP's dtype inside the rollout (LearnedModel's potential_dtype)",
+    )  # fmt: skip
     ap.add_argument("--batch-size", type=int, default=200)
     ap.add_argument("--reps", type=int, default=None, help="timed steps (default 5, quick 2)")
     ap.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
@@ -170,11 +182,18 @@ def main(argv: list[str] | None = None) -> int:
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
     if args.compare_dtypes:
-        print(f"float32 vs float64, one batch of {args.batch_size} chunks, {args.model}")
-        print(f"{'task':>8} | {'loss rel. diff':>14} | {'gradient rel. diff':>18}")
+        print(f"against float64, one batch of {args.batch_size} chunks, {args.model}, same weights")
+        print("float32: everything in float32 (the QP in float64 inside, kkt_reg 1e-7)")
+        print("mixed: float64, the potential MLP in float32 (--potential-dtype float32)")
+        print(f"{'':>8} | {'float32':^29} | {'mixed':^29}")
+        print(f"{'task':>8} |" + f" {'loss rel. diff':>14} {'grad rel. diff':>14} |" * 2)
         for task in tasks:
             r = compare_dtypes(task, args)
-            print(f"{task:>8} | {r['loss_rel']:>14.1e} | {r['grad_rel']:>18.1e}", flush=True)
+            print(
+                f"{task:>8} | {r['float32_loss_rel']:>14.1e} {r['float32_grad_rel']:>14.1e} | "
+                f"{r['mixed_loss_rel']:>14.1e} {r['mixed_grad_rel']:>14.1e}",
+                flush=True,
+            )
         return 0
 
     with tempfile.TemporaryDirectory(prefix="diffcontact-previous-") as tmp:
@@ -189,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path | None) -> None:
-    print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states")
+    mlp = "" if args.potential_dtype is None else f", potential MLP in {args.potential_dtype}"
+    print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states{mlp}")
     for line in machine_header(args.device, dtype):
         print(line)
     if previous is not None:

@@ -282,3 +282,34 @@ def test_as_system_and_energy():
     assert float(s.gravity) == 0.0 and not s.mass.requires_grad
     torch.testing.assert_close(s.energy(z0), truth.energy(z0), rtol=1e-12, atol=1e-12)
     assert math.isclose(float(s.mass[1] / s.mass[0]), 2.0)
+
+
+@pytest.mark.parametrize("task", ["BP5", "CP3"])
+def test_float32_potential_inside_a_float64_rollout(task, tmp_path):
+    """potential_dtype="float32": the same loss and gradients as float64 to float32's
+    accuracy in the network, the mechanics and contacts still in float64; kept on save."""
+    system = dc.load_system(task)
+    steps = 4
+    z0 = _states_before_contact(task, 2, steps)
+    ref = system.simulate(z0, steps)
+    m64 = LearnedModel(task, hidden=(16, 16)).double()
+    mixed = LearnedModel(task, hidden=(16, 16), potential_dtype="float32").double()
+    mixed.load_state_dict(m64.state_dict())
+    assert mixed.options()["potential_dtype"] == "float32"
+    assert "potential_dtype" not in m64.options()
+    results = []
+    for m in (m64, mixed):
+        m.zero_grad()
+        out = m.simulate(z0, steps)
+        assert out.dtype == torch.float64
+        loss = (out - ref).abs().mean()
+        loss.backward()
+        grads = torch.cat([p.grad.flatten() for p in m.parameters() if p.grad is not None])
+        results.append((loss.detach(), grads))
+    (l64, g64), (lm, gm) = results
+    assert float((lm - l64).abs() / l64) < 1e-6
+    assert 0 < float((gm - g64).norm() / g64.norm()) < 1e-4  # differs (float32), but little
+    m = LearnedModel.from_checkpoint(mixed.checkpoint())
+    assert m.potential.compute_dtype == torch.float32
+    with pytest.raises(ValueError, match="potential_dtype"):
+        LearnedModel(task, potential_dtype="half")
