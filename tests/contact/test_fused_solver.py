@@ -129,7 +129,12 @@ def test_non_unique_minimisers():
     Af_t, Af_w = (torch.einsum("bij,bj->bi", A, f) for f in (f_t, f_w))
     torch.testing.assert_close(Af_w, Af_t, rtol=0, atol=1e-9)
     obj = [0.5 * (f * Af).sum(-1) + (b * f).sum(-1) for f, Af in ((f_t, Af_t), (f_w, Af_w))]
-    torch.testing.assert_close(obj[1], obj[0], rtol=1e-10, atol=1e-10)
+    # A = J M^-1 J^T has curvature ~eps |A| (rounding) along its null directions, so where
+    # an iterate runs far along one (the optimal set is a ray; 1e4 on one problem here) the
+    # objectives of two minimisers differ by up to ~eps |A| |f|^2
+    size = torch.maximum(f_t.abs().amax(-1), f_w.abs().amax(-1)).clamp_min(1)
+    floor = 1e2 * torch.finfo(F64).eps * A.abs().amax((-1, -2)) * size**2
+    assert ((obj[1] - obj[0]).abs() <= 1e-10 + floor).all()
 
     calls = []
 
@@ -140,8 +145,9 @@ def test_non_unique_minimisers():
 
     solve_rows = cone_qp._solve
     cone_qp._solve = spy
-    try:
-        solve_cone_qp(A, b, mu, 2, settings=WARP)
+    try:  # the interior point and the polish of the kernels, one problem per thread
+        active = torch.ones_like(mu, dtype=torch.bool)
+        cone_qp._forward(A, b, mu, torch.zeros_like(mu), active, 2, WARP.resolved(F64))
     finally:
         cone_qp._solve = solve_rows
     rows, f_ipm, f = calls[0]

@@ -776,6 +776,14 @@ def solve_cone_qp(
     resolved = settings.resolved(A.dtype, A.device)
     flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)
     n = flat[1].shape[0]
+    if resolved.backend == "warp":
+        # the whole call (scaling, fast paths, solve, certificate, status) in one kernel
+        f, converged, unbounded, iterations, residual = fused.FusedConeQP.apply(
+            *flat, warm_start, d, resolved
+        )
+        return _finish(
+            f, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status
+        )
     s_c = _contact_scales(flat[0], flat[4], d)  # (n, C), detached
     A_f, b_f, mu_f, lower_f, act_f = flat
     A_f = A_f * (s_c[:, :, None] * s_c[:, None, :])
@@ -786,7 +794,15 @@ def solve_cone_qp(
     f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(
         A_f, b_f, mu_f, lower_f, act_f, d, resolved, warm_start
     )
-    f = (f * s_c).reshape(*batch, C)
+    return _finish(
+        f * s_c, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status
+    )
+
+
+def _finish(f, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status):
+    """Shape the flat results to ``batch``; raise :class:`ConeQPError` on failures unless
+    ``return_status``."""
+    f = f.reshape(*batch, C)
     status = SolverStatus(
         converged=converged.reshape(batch),
         unbounded=unbounded.reshape(batch),
