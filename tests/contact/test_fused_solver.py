@@ -346,26 +346,42 @@ def test_reference_groups_with_both_backends():
 
 
 def test_few_torch_operations_per_call():
-    """The fused forward is a few dozen to a few hundred torch operations (scaling, the
-    status, the unboundedness test), not thousands: a regression guard."""
+    """The Warp backend's call is a handful of torch operations (allocations; the scaling,
+    fast paths, solve, certificate, status and input checks run in its two kernels), not
+    thousands, forward and backward, at batch 1 as at 64: a regression guard. None of them
+    is a host synchronisation (the one left, reading the kernel's flags, is no op)."""
     from torch.utils._python_dispatch import TorchDispatchMode
+
+    sync_ops = ("_local_scalar_dense", "nonzero", "is_nonzero", "item")
 
     class Count(TorchDispatchMode):
         n = 0
+        syncs = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             Count.n += 1
+            Count.syncs += any(name in str(func) for name in sync_ops)
             return func(*args, **(kwargs or {}))
 
     A, b, mu, lower = random_problems(64, 5, 2, seed=1, lower_frac=0.3)
     counts = {}
     for settings in (TORCH, WARP):
-        solve_cone_qp(A, b, mu, 2, lower, settings=settings)
-        Count.n = 0
-        with Count():
-            solve_cone_qp(A, b, mu, 2, lower, settings=settings)
-        counts[settings.backend] = Count.n
-    assert counts["warp"] < 450 < 2000 < counts["torch"], counts
+        for B in (1, 64):
+            xs = [x[:B].clone().requires_grad_() for x in (A, b, mu, lower)]
+            solve_cone_qp(*xs[:3], 2, xs[3], settings=settings)
+            Count.n = Count.syncs = 0
+            with Count():
+                f = solve_cone_qp(*xs[:3], 2, xs[3], settings=settings)
+            forward, forward_syncs = Count.n, Count.syncs
+            Count.n = Count.syncs = 0
+            with Count():
+                torch.autograd.grad(f, xs, torch.ones_like(f))
+            counts[settings.backend, B] = (forward, forward_syncs, Count.n, Count.syncs)
+    for B in (1, 64):
+        forward, forward_syncs, backward, backward_syncs = counts["warp", B]
+        assert forward <= 12 and backward <= 6, counts
+        assert forward_syncs == backward_syncs == 0, counts
+        assert counts["torch", B][0] > 2000, counts
 
 
 # --- the choice of backend ----------------------------------------------------------------

@@ -416,6 +416,7 @@ def _saved_layout(n: int, C: int, d: int, dtype: torch.dtype, device: torch.devi
     saved.add("sv", (n, SV_P + d, C))
     saved.add("LU", (n, C, C))
     saved.add("piv", (n, C), 4)
+    saved.add("scratch", (n, 2, C))  # the backward pass's
     return saved
 
 
@@ -429,6 +430,30 @@ def _run(name: str, n: int, args: list, dtype: torch.dtype, device: torch.device
     )
 
 
+# what the forward kernel's flags say (entry 5: some problem did not converge; the others
+# are ``solve_cone_qp``'s input errors, in the order the reference raises them)
+FLAGS = (
+    "A contains NaN or infinite values",
+    "b contains NaN or infinite values",
+    "mu contains NaN or infinite values",
+    "lower contains NaN or infinite values",
+    "warm_start contains NaN or infinite values",
+    None,
+    "mu must be >= 0 (friction coefficients)",
+    "lower must be >= 0",
+    "A must be symmetric",
+    "A must be positive semi-definite (negative diagonal)",
+)
+
+
+def input_error(flags: list[int]) -> str | None:
+    """The message of the first input error the forward kernel flagged, or None."""
+    for flag, message in zip(flags, FLAGS, strict=True):
+        if flag and message is not None:
+            return "solve_cone_qp: " + message
+    return None
+
+
 class FusedConeQP(torch.autograd.Function):
     """``solve_cone_qp`` on flat inputs with the Warp backend: the forward pass is one kernel
     (``fused_forward``), the backward pass one more (``fused_backward``).
@@ -436,7 +461,8 @@ class FusedConeQP(torch.autograd.Function):
     Inputs: ``A`` (n, C, C), ``b`` (n, C), ``mu``, ``lower`` (n, K), ``active`` (n, K) bool,
     ``warm_start`` (n, C) or None, ``d``, resolved settings. Outputs: ``f`` (n, C) in the
     input dtype, and the status ``converged``, ``unbounded`` (n,) bool, ``iterations`` (n,)
-    int64, ``residual`` (n,) in the compute dtype (not differentiable)."""
+    int64, ``residual`` (n,) in the compute dtype, and ``flags`` (10,) int32, 1 where a
+    problem shows the condition of :data:`FLAGS` (not differentiable)."""
 
     @staticmethod
     def forward(ctx, A, b, mu, lower, active, warm_start, d: int, settings: SolverSettings):
@@ -470,10 +496,12 @@ class FusedConeQP(torch.autograd.Function):
         iterations = torch.empty(n, dtype=torch.int64, device=device)
         converged = torch.empty(n, dtype=torch.bool, device=device)
         unbounded = torch.empty(n, dtype=torch.bool, device=device)
+        flags = torch.zeros(len(FLAGS), dtype=torch.int32, device=device)
         warm = b if warm_start is None else warm_start.detach().to(work)
         eps = finfo.eps
         args = [_ctype(x) for x in (A, b, mu, lower, active, warm)]
-        args += [n, d, K, int(warm_start is not None), 2, settings.retries, settings.max_iter]
+        args += [n, d, K, int(warm_start is not None), int(settings.check_inputs), 2]
+        args += [settings.retries, settings.max_iter]
         args += [settings.polish_steps]
         args += [
             scalar(x)
@@ -497,17 +525,20 @@ class FusedConeQP(torch.autograd.Function):
         names = "A0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc"
         args += [w[k] for k in (*names.split(), "piv", "act")]
         args += [_ctype(x) for x in (f, res, iterations, converged, unbounded)]
-        args += [s["sv"], s["LU"], s["piv"]]
+        args += [s["sv"], s["LU"], s["piv"], _ctype(flags)]
         _run("fused_forward", n, args, work, device)
         del work_buf
         ctx.save_for_backward(keep)
         ctx.shape = (n, C, d)
         ctx.dtypes = (in_dtype, work)
-        ctx.mark_non_differentiable(converged, unbounded, iterations, res)
-        return f.to(in_dtype), converged, unbounded, iterations, res
+        ctx.mark_non_differentiable(converged, unbounded, iterations, res, flags)
+        ctx.set_materialize_grads(False)
+        return f.to(in_dtype), converged, unbounded, iterations, res, flags
 
     @staticmethod
     def backward(ctx, grad_f, *_):
+        if grad_f is None:  # f took no part in the loss
+            return None, None, None, None, None, None, None, None
         (keep,) = ctx.saved_tensors
         n, C, d = ctx.shape
         K = C // d
@@ -520,15 +551,11 @@ class FusedConeQP(torch.autograd.Function):
         grad_l = torch.empty(n, K, dtype=work, device=device)
         grad_A = torch.empty(n, C, C, dtype=work, device=device) if want_A else None
         grad_mu = torch.empty(n, K, dtype=work, device=device) if want_mu else None
-        scratch = _Layout(work, device)
-        scratch.add("vec", (n, 2, C))
         args = [_ctype(grad_f), s["sv"], s["LU"], s["piv"], d, K, int(want_A), int(want_mu)]
-        scratch_buf = scratch.allocate()  # kept alive until the launch returns
-        args += [scratch.arrays(scratch_buf)["vec"]]
+        args += [s["scratch"]]
         args += [s["LU"] if grad_A is None else _ctype(grad_A), _ctype(grad_b)]
         args += [_ctype(grad_l if grad_mu is None else grad_mu), _ctype(grad_l)]
         _run("fused_backward", n, args, work, device)
-        del scratch_buf
         grads = [None if x is None else x.to(in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
         if not ctx.needs_input_grad[1]:
             grads[1] = None

@@ -1644,6 +1644,57 @@ def _certifies(
     return slope <= slope_max and curv <= sqrt_eps * slope * slope
 
 
+@wp.func
+def _flag_finite(
+    A_in: wp.array3d(dtype=Any),
+    b_in: wp.array2d(dtype=Any),
+    mu_in: wp.array2d(dtype=Any),
+    lower_in: wp.array2d(dtype=Any),
+    warm_in: wp.array2d(dtype=Any),
+    t: int,
+    n: int,
+    K: int,
+    has_warm: int,
+    check: int,
+    flags: wp.array(dtype=wp.int32),
+):
+    """flags[0..4] = 1 where problem t's A, b, mu, lower or warm start is not finite, and
+    where ``check``, flags[6..9] = 1 where mu < 0, lower < 0, A is not symmetric (to
+    ``1e-6 max_i |A_ii| + 1e-12``) or has a negative diagonal entry (below ``-1e-9 max_i
+    |A_ii|``), the tests of ``solve_cone_qp``'s ``check_inputs`` (every thread that finds
+    one writes the same value)."""
+    if check != 0:
+        scale = wp.abs(A_in[t, 0, 0])
+        for i in range(n):
+            scale = wp.max(scale, wp.abs(A_in[t, i, i]))
+        for i in range(n):
+            if A_in[t, i, i] < -(type(scale)(1e-9) * scale):
+                flags[9] = 1
+            for j in range(n):
+                asym = wp.abs(A_in[t, i, j] - A_in[t, j, i])
+                if asym > type(scale)(1e-6) * scale + type(scale)(1e-12):
+                    flags[8] = 1
+        for k in range(K):
+            if mu_in[t, k] < type(scale)(0.0):
+                flags[6] = 1
+            if lower_in[t, k] < type(scale)(0.0):
+                flags[7] = 1
+    for i in range(n):
+        for j in range(n):
+            if not wp.isfinite(A_in[t, i, j]):
+                flags[0] = 1
+        if not wp.isfinite(b_in[t, i]):
+            flags[1] = 1
+        if has_warm != 0:
+            if not wp.isfinite(warm_in[t, i]):
+                flags[4] = 1
+    for k in range(K):
+        if not wp.isfinite(mu_in[t, k]):
+            flags[2] = 1
+        if not wp.isfinite(lower_in[t, k]):
+            flags[3] = 1
+
+
 @wp.kernel
 def fused_forward(
     A_in: wp.array3d(dtype=Any),
@@ -1656,6 +1707,7 @@ def fused_forward(
     d: int,
     K: int,
     has_warm: int,
+    check: int,
     passes: int,
     retries: int,
     max_iter: int,
@@ -1701,16 +1753,21 @@ def fused_forward(
     sv: wp.array3d(dtype=Any),
     LU_out: wp.array3d(dtype=Any),
     piv_out: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
 ):
     """``solve_cone_qp``'s whole forward pass for problem t of n_total (flat inputs in the
     compute dtype: ``A_in`` (n, C, C), ``b_in`` (n, C), ``mu_in``, ``lower_in``,
     ``active_in`` (n, K), ``warm_in`` (n, C) where ``has_warm``). Writes f (n, C) in the
     caller's scale, the status (n,), and for the backward pass f', dPi/dz, dPi/dmu, dPi/dl,
     the scales, the mask and rho into ``sv`` (n, N_SV, C) and the LU factorisation of dF/df
-    into ``LU_out``, ``piv_out``. Workspace arrays have 2 n rows (see above)."""
+    into ``LU_out``, ``piv_out``. Workspace arrays have 2 n rows (see above). Sets
+    ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
+    ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
+    bad input (see ``_flag_finite``; zeros on entry)."""
     t = wp.tid()
     n = K * d
     zero = type(tol)(0.0)
+    _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, n, K, has_warm, check, flags)
     row1 = n_total + t
     _equilibrate(
         A_in, b_in, lower_in, mu_in, active_in, t, d, K, spread, A0, b0, mu0, lower0, act, row1,
@@ -1786,7 +1843,10 @@ def fused_forward(
                 Am, bm, mum, act, sc, t, d, K, vec, r, F_, one, slope_max, sqrt_eps, vec, t, FN
             )
     unb_out[t] = cert
-    conv_out[t] = res0 <= tol and not cert
+    converged = res0 <= tol and not cert
+    conv_out[t] = converged
+    if not converged:
+        flags[5] = 1
 
 
 @wp.kernel
