@@ -28,8 +28,10 @@ problems or contacts):
    identifies the active constraints and drives ``F`` to rounding level
    (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
    Steps 2 and 3 run on the backend of ``SolverSettings.backend``: batched torch
-   operations (the reference) or one fused NVIDIA Warp kernel, one thread per problem
-   (:mod:`diffcontact.contact.fused`); the rest is torch for both.
+   operations (the reference), or NVIDIA Warp (:mod:`diffcontact.contact.fused`), where
+   one kernel, one thread per problem, runs the whole call (the scaling of step 1-2, the
+   fast paths, the solve, the certificate of step 4, the status and the input checks)
+   and a second one the backward pass of step 5: a call is a dozen torch operations.
 4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
    on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
    ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),

@@ -6,9 +6,16 @@ fused (NVIDIA Warp) one.
 - ``"torch"``: the reference implementation, batched torch operations
   (:func:`diffcontact.contact.interior_point.interior_point_solve` and
   :func:`diffcontact.contact.cone_qp._polish`); thousands of small operations per call;
-- ``"warp"``: the same algorithm fused into one Warp kernel, one thread per problem
+- ``"warp"``: the same algorithm fused into Warp kernels, one thread per problem
   (:mod:`diffcontact.contact.warp_kernels`), on the CPU or a CUDA device; needs
-  ``pip install diffcontact[warp]`` (``warp-lang``);
+  ``pip install diffcontact[warp]`` (``warp-lang``). :class:`FusedConeQP` runs a whole
+  ``solve_cone_qp`` call (equilibration, scaling, fast paths, interior point, polish,
+  retries, unboundedness certificate, status, input checks) as one kernel launch and its
+  backward pass as another: about a dozen torch operations per call (allocations), and
+  one host synchronisation (reading the kernel's error flags). :func:`solve` and
+  :func:`polish` run the interior point and the polish alone on rows that the torch
+  code of ``cone_qp._forward`` selected (that function with ``backend="warp"``; tests
+  use it to look inside the algorithm);
 - ``"auto"`` (default): the environment variable ``DIFFCONTACT_SOLVER`` (``torch``,
   ``warp`` or ``auto``) if it is set, else Warp where it is installed, the device is the
   CPU or CUDA and the solve runs in float32 or float64, else torch.
