@@ -8,7 +8,7 @@ run, and the table prints milliseconds per call for the forward solve and for th
 plus the backward pass of ``loss = sum(f * W)`` to ``A``, ``b`` and ``mu``, the ratio
 torch / warp of each, the largest relative difference of the two solutions' contact
 velocity changes ``A f`` and the number of torch operations (dispatches) of one forward
-call. Families:
+call and of its backward pass. Families:
 
   BP5     d = 2: the compression and restitution problems of BP5 (five disks in a box),
           recorded from ``System("BP5").simulate`` of random states (padded to the largest
@@ -166,6 +166,12 @@ def time_backend(P: dict, B: int, backend: str, device, reps: int) -> dict:
             times.append(time.perf_counter() - t0)
         return statistics.median(times)
 
+    def backward_only() -> int:
+        A, b, mu = (x.clone().requires_grad_() for x in args[:3])
+        f = solve_cone_qp(A, b, mu, d, args[3], args[4], settings=settings)
+        loss = (f * W).sum()
+        return count_dispatches(loss.backward)
+
     f = forward()  # warm-up
     both()
     return {
@@ -173,12 +179,14 @@ def time_backend(P: dict, B: int, backend: str, device, reps: int) -> dict:
         "forward": median(forward),
         "both": median(both),
         "dispatches": count_dispatches(forward),
+        "backward dispatches": backward_only(),
     }
 
 
 HEADER = (
     f"{'family':>7} {'K':>3} {'batch':>6} | {'fwd torch':>10} {'fwd warp':>10} {'ratio':>7} | "
-    f"{'f+b torch':>10} {'f+b warp':>10} {'ratio':>7} | {'diff A f':>8} | {'ops torch/warp':>14}"
+    f"{'f+b torch':>10} {'f+b warp':>10} {'ratio':>7} | {'diff A f':>8} | {'ops torch/warp':>14} | "
+    f"{'bwd ops t/w':>11}"
 )
 
 
@@ -240,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{fmt(t['forward'] / w['forward']):>7} | "
                 f"{fmt(1e3 * t['both']):>10} {fmt(1e3 * w['both']):>10} "
                 f"{fmt(t['both'] / w['both']):>7} | {float(diff):>8.1e} | "
-                f"{t['dispatches']:>6}/{w['dispatches']:<7}",
+                f"{t['dispatches']:>6}/{w['dispatches']:<7} | "
+                f"{t['backward dispatches']:>5}/{w['backward dispatches']:<5}",
                 flush=True,
             )
     print()
@@ -249,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
         "max|A (f_warp - f_torch)| / max(1, max|A f_torch|), the change of contact velocity "
         "(where the minimiser is not unique, singular A, the backends may return different "
         "minimisers, with the same A f). ops: torch operations of one forward call (input "
-        "checks off, as inside a simulation step)."
+        "checks off, as inside a simulation step); bwd ops: those of the backward pass of "
+        "loss = sum(f * W) (the loss's own backward included)."
     )
     return 0
 

@@ -129,7 +129,12 @@ def test_non_unique_minimisers():
     Af_t, Af_w = (torch.einsum("bij,bj->bi", A, f) for f in (f_t, f_w))
     torch.testing.assert_close(Af_w, Af_t, rtol=0, atol=1e-9)
     obj = [0.5 * (f * Af).sum(-1) + (b * f).sum(-1) for f, Af in ((f_t, Af_t), (f_w, Af_w))]
-    torch.testing.assert_close(obj[1], obj[0], rtol=1e-10, atol=1e-10)
+    # A = J M^-1 J^T has curvature ~eps |A| (rounding) along its null directions, so where
+    # an iterate runs far along one (the optimal set is a ray; 1e4 on one problem here) the
+    # objectives of two minimisers differ by up to ~eps |A| |f|^2
+    size = torch.maximum(f_t.abs().amax(-1), f_w.abs().amax(-1)).clamp_min(1)
+    floor = 1e2 * torch.finfo(F64).eps * A.abs().amax((-1, -2)) * size**2
+    assert ((obj[1] - obj[0]).abs() <= 1e-10 + floor).all()
 
     calls = []
 
@@ -140,8 +145,9 @@ def test_non_unique_minimisers():
 
     solve_rows = cone_qp._solve
     cone_qp._solve = spy
-    try:
-        solve_cone_qp(A, b, mu, 2, settings=WARP)
+    try:  # the interior point and the polish of the kernels, one problem per thread
+        active = torch.ones_like(mu, dtype=torch.bool)
+        cone_qp._forward(A, b, mu, torch.zeros_like(mu), active, 2, WARP.resolved(F64))
     finally:
         cone_qp._solve = solve_rows
     rows, f_ipm, f = calls[0]
@@ -340,26 +346,42 @@ def test_reference_groups_with_both_backends():
 
 
 def test_few_torch_operations_per_call():
-    """The fused forward is a few dozen to a few hundred torch operations (scaling, the
-    status, the unboundedness test), not thousands: a regression guard."""
+    """The Warp backend's call is a handful of torch operations (allocations; the scaling,
+    fast paths, solve, certificate, status and input checks run in its two kernels), not
+    thousands, forward and backward, at batch 1 as at 64: a regression guard. None of them
+    is a host synchronisation (the one left, reading the kernel's flags, is no op)."""
     from torch.utils._python_dispatch import TorchDispatchMode
+
+    sync_ops = ("_local_scalar_dense", "nonzero", "is_nonzero", "item")
 
     class Count(TorchDispatchMode):
         n = 0
+        syncs = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             Count.n += 1
+            Count.syncs += any(name in str(func) for name in sync_ops)
             return func(*args, **(kwargs or {}))
 
     A, b, mu, lower = random_problems(64, 5, 2, seed=1, lower_frac=0.3)
     counts = {}
     for settings in (TORCH, WARP):
-        solve_cone_qp(A, b, mu, 2, lower, settings=settings)
-        Count.n = 0
-        with Count():
-            solve_cone_qp(A, b, mu, 2, lower, settings=settings)
-        counts[settings.backend] = Count.n
-    assert counts["warp"] < 450 < 2000 < counts["torch"], counts
+        for B in (1, 64):
+            xs = [x[:B].clone().requires_grad_() for x in (A, b, mu, lower)]
+            solve_cone_qp(*xs[:3], 2, xs[3], settings=settings)
+            Count.n = Count.syncs = 0
+            with Count():
+                f = solve_cone_qp(*xs[:3], 2, xs[3], settings=settings)
+            forward, forward_syncs = Count.n, Count.syncs
+            Count.n = Count.syncs = 0
+            with Count():
+                torch.autograd.grad(f, xs, torch.ones_like(f))
+            counts[settings.backend, B] = (forward, forward_syncs, Count.n, Count.syncs)
+    for B in (1, 64):
+        forward, forward_syncs, backward, backward_syncs = counts["warp", B]
+        assert forward <= 12 and backward <= 6, counts
+        assert forward_syncs == backward_syncs == 0, counts
+        assert counts["torch", B][0] > 2000, counts
 
 
 # --- the choice of backend ----------------------------------------------------------------

@@ -28,8 +28,10 @@ problems or contacts):
    identifies the active constraints and drives ``F`` to rounding level
    (~1e-12 in float64). Steps that do not reduce ``||F||`` are rejected.
    Steps 2 and 3 run on the backend of ``SolverSettings.backend``: batched torch
-   operations (the reference) or one fused NVIDIA Warp kernel, one thread per problem
-   (:mod:`diffcontact.contact.fused`); the rest is torch for both.
+   operations (the reference), or NVIDIA Warp (:mod:`diffcontact.contact.fused`), where
+   one kernel, one thread per problem, runs the whole call (the scaling of step 1-2, the
+   fast paths, the solve, the certificate of step 4, the status and the input checks)
+   and a second one the backward pass of step 5: a call is a dozen torch operations.
 4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
    on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
    ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),
@@ -390,15 +392,21 @@ def flatten_batch(
     n = 1
     for s in batch:
         n *= s
+
+    def flat_view(x: Tensor, *tail: int) -> Tensor:
+        if x.shape == (n, *tail) and len(batch) == 1:  # already flat: no view op
+            return x
+        return x.expand(*batch, *tail).reshape(n, *tail)
+
     flat = (
-        A.expand(*batch, C, C).reshape(n, C, C),
-        b.expand(*batch, C).reshape(n, C),
-        mu.expand(*batch, K).reshape(n, K),
-        lower.expand(*batch, K).reshape(n, K),
-        active.expand(*batch, K).reshape(n, K),
+        flat_view(A, C, C),
+        flat_view(b, C),
+        flat_view(mu, K),
+        flat_view(lower, K),
+        flat_view(active, K),
     )
     if warm_start is not None:
-        warm_start = warm_start.expand(*batch, C).reshape(n, C)
+        warm_start = flat_view(warm_start, C)
     return flat, warm_start
 
 
@@ -644,10 +652,12 @@ class _ConeQPFunction(torch.autograd.Function):
         return *grads, None, None, None, None
 
 
-def _check(name: str, x: Tensor) -> None:
+def _check(name: str, x: Tensor, finite: bool = True) -> None:
+    """Type check, and unless ``finite`` is False (the Warp backend checks finiteness in its
+    kernel, without a host synchronisation per tensor), a finiteness check."""
     if not isinstance(x, Tensor):
         raise ValueError(f"solve_cone_qp: {name} must be a torch.Tensor, got {type(x).__name__}")
-    if not bool(torch.isfinite(x).all()):
+    if finite and not bool(torch.isfinite(x).all()):
         raise ValueError(f"solve_cone_qp: {name} contains NaN or infinite values")
 
 
@@ -699,8 +709,11 @@ def solve_cone_qp(
     settings = settings or SolverSettings()
     if d not in (1, 2, 3):
         raise ValueError(f"solve_cone_qp: d must be 1, 2 or 3, got {d!r}")
+    _check("A", A, finite=False)
+    resolved = settings.resolved(A.dtype, A.device)
+    finite = resolved.backend != "warp"  # else checked in the kernel
     for name, x in (("A", A), ("b", b), ("mu", mu)):
-        _check(name, x)
+        _check(name, x, finite)
     if not A.is_floating_point():
         raise ValueError(f"solve_cone_qp: A must be a floating-point tensor, got {A.dtype}")
     if A.dim() < 2 or A.shape[-1] != A.shape[-2]:
@@ -721,7 +734,7 @@ def solve_cone_qp(
     if lower is None:
         lower = torch.zeros((), dtype=A.dtype, device=A.device).expand(K)
     else:
-        _check("lower", lower)
+        _check("lower", lower, finite)
         if lower.dim() < 1 or lower.shape[-1] != K:
             raise ValueError(
                 f"solve_cone_qp: lower must have shape (..., {K}), got {tuple(lower.shape)}"
@@ -746,7 +759,7 @@ def solve_cone_qp(
         )
     except RuntimeError as err:
         raise ValueError(f"solve_cone_qp: batch dimensions do not broadcast: {err}") from None
-    if settings.check_inputs:
+    if settings.check_inputs and finite:  # (the Warp backend checks these in its kernel)
         if bool((mu < 0).any()):
             raise ValueError("solve_cone_qp: mu must be >= 0 (friction coefficients)")
         if bool((lower < 0).any()):
@@ -759,7 +772,7 @@ def solve_cone_qp(
             raise ValueError("solve_cone_qp: A must be positive semi-definite (negative diagonal)")
 
     if warm_start is not None:
-        _check("warm_start", warm_start)
+        _check("warm_start", warm_start, finite)
         if warm_start.device != A.device:
             raise ValueError(
                 f"solve_cone_qp: warm_start is on {warm_start.device}, A is on {A.device}"
@@ -773,9 +786,22 @@ def solve_cone_qp(
             batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
         except RuntimeError as err:
             raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
-    resolved = settings.resolved(A.dtype, A.device)
     flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)
     n = flat[1].shape[0]
+    if resolved.backend == "warp":
+        # the whole call (scaling, fast paths, solve, certificate, status) in one kernel;
+        # one host synchronisation reads its flags (non-finite inputs, failures)
+        f, converged, unbounded, iterations, residual, flags = fused.FusedConeQP.apply(
+            *flat, warm_start, d, resolved
+        )
+        flags = flags.tolist()
+        error = fused.input_error(flags)
+        if error is not None:
+            raise ValueError(error)
+        return _finish(
+            f, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status,
+            all_converged=not flags[5],
+        )  # fmt: skip
     s_c = _contact_scales(flat[0], flat[4], d)  # (n, C), detached
     A_f, b_f, mu_f, lower_f, act_f = flat
     A_f = A_f * (s_c[:, :, None] * s_c[:, None, :])
@@ -786,16 +812,33 @@ def solve_cone_qp(
     f, converged, unbounded, iterations, residual, _ = _ConeQPFunction.apply(
         A_f, b_f, mu_f, lower_f, act_f, d, resolved, warm_start
     )
-    f = (f * s_c).reshape(*batch, C)
+    return _finish(
+        f * s_c, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status
+    )
+
+
+def _finish(
+    f, converged, unbounded, iterations, residual, batch, C, n, resolved, return_status,
+    all_converged: bool | None = None,
+):  # fmt: skip
+    """Shape the flat results to ``batch``; raise :class:`ConeQPError` on failures unless
+    ``return_status`` (``all_converged``: known already, else read from the status)."""
+
+    def shaped(x: Tensor, shape: tuple[int, ...]) -> Tensor:
+        return x if x.shape == shape else x.reshape(shape)
+
+    f = shaped(f, (*batch, C))
     status = SolverStatus(
-        converged=converged.reshape(batch),
-        unbounded=unbounded.reshape(batch),
-        iterations=iterations.reshape(batch),
-        residual=residual.reshape(batch),
+        converged=shaped(converged, batch),
+        unbounded=shaped(unbounded, batch),
+        iterations=shaped(iterations, batch),
+        residual=shaped(residual, batch),
     )
     if return_status:
         return f, status
-    if not status.all_converged:
+    if all_converged is None:
+        all_converged = status.all_converged
+    if not all_converged:
         n_unb = int(status.unbounded.sum())
         n_bad = int((~status.converged).sum()) - n_unb
         parts = []

@@ -6,9 +6,16 @@ fused (NVIDIA Warp) one.
 - ``"torch"``: the reference implementation, batched torch operations
   (:func:`diffcontact.contact.interior_point.interior_point_solve` and
   :func:`diffcontact.contact.cone_qp._polish`); thousands of small operations per call;
-- ``"warp"``: the same algorithm fused into one Warp kernel, one thread per problem
+- ``"warp"``: the same algorithm fused into Warp kernels, one thread per problem
   (:mod:`diffcontact.contact.warp_kernels`), on the CPU or a CUDA device; needs
-  ``pip install diffcontact[warp]`` (``warp-lang``);
+  ``pip install diffcontact[warp]`` (``warp-lang``). :class:`FusedConeQP` runs a whole
+  ``solve_cone_qp`` call (equilibration, scaling, fast paths, interior point, polish,
+  retries, unboundedness certificate, status, input checks) as one kernel launch and its
+  backward pass as another: about a dozen torch operations per call (allocations), and
+  one host synchronisation (reading the kernel's error flags). :func:`solve` and
+  :func:`polish` run the interior point and the polish alone on rows that the torch
+  code of ``cone_qp._forward`` selected (that function with ``backend="warp"``; tests
+  use it to look inside the algorithm);
 - ``"auto"`` (default): the environment variable ``DIFFCONTACT_SOLVER`` (``torch``,
   ``warp`` or ``auto``) if it is set, else Warp where it is installed, the device is the
   CPU or CUDA and the solve runs in float32 or float64, else torch.
@@ -350,3 +357,215 @@ def polish(f: Tensor, rows: Tensor, data: tuple[Tensor, ...], settings: SolverSe
     arrays_in = [rows.to(torch.int32), f, *data]
     _launch("fused_polish", n, arrays_in, scalars, out.scratch_args() + out.output_args(), device)
     return out.result()
+
+
+# --- the whole call in two kernels ------------------------------------------------------
+
+
+class _Layout:
+    """Arrays carved out of one byte buffer (one torch allocation), as Warp descriptors.
+
+    Float arrays whose first dimension is the thread index are laid out with that index
+    fastest on CUDA (the threads of a warp read adjacent words), slowest on the CPU."""
+
+    def __init__(self, dtype: torch.dtype, device: torch.device, threaded: bool = True):
+        self.item = torch.finfo(dtype).bits // 8
+        self.cuda = device.type == "cuda" and threaded
+        self.device = device
+        self.specs: list[tuple[str, tuple[int, ...], int, int]] = []
+        self.nbytes = 0
+
+    def add(self, name: str, shape: tuple[int, ...], item: int | None = None) -> None:
+        item = item or self.item
+        self.nbytes = -(-self.nbytes // 16) * 16
+        self.specs.append((name, shape, item, self.nbytes))
+        size = item
+        for s in shape:
+            size *= s
+        self.nbytes += size
+
+    def allocate(self) -> Tensor:
+        return torch.empty(max(self.nbytes, 16), dtype=torch.uint8, device=self.device)
+
+    def arrays(self, buf: Tensor) -> dict:
+        from warp._src.types import array_t
+
+        base = buf.data_ptr()
+        out = {}
+        for name, shape, item, offset in self.specs:
+            if self.cuda and len(shape) > 1:
+                rows, rest = shape[0], shape[1:]
+                strides = [rows * item] * len(rest)
+                for i in range(len(rest) - 2, -1, -1):
+                    strides[i] = strides[i + 1] * rest[i + 1]
+                strides = (item, *strides)
+            else:
+                strides = [item] * len(shape)
+                for i in range(len(shape) - 2, -1, -1):
+                    strides[i] = strides[i + 1] * shape[i + 1]
+            out[name] = array_t(base + offset, 0, len(shape), shape, tuple(strides))
+        return out
+
+
+def _ctype(x: Tensor):
+    """A tensor as a Warp array descriptor (any strides; no gradient)."""
+    from warp._src.types import array_t
+
+    item = x.element_size()
+    shape = tuple(x.shape)
+    return array_t(x.data_ptr(), 0, len(shape), shape, tuple(s * item for s in x.stride()))
+
+
+def _saved_layout(n: int, C: int, d: int, dtype: torch.dtype, device: torch.device) -> _Layout:
+    from diffcontact.contact.warp_kernels import SV_P
+
+    saved = _Layout(dtype, device, threaded=False)
+    saved.add("sv", (n, SV_P + d, C))
+    saved.add("LU", (n, C, C))
+    saved.add("piv", (n, C), 4)
+    saved.add("scratch", (n, 2, C))  # the backward pass's
+    return saved
+
+
+def _run(name: str, n: int, args: list, dtype: torch.dtype, device: torch.device) -> None:
+    wp, _ = _load()
+    stream = None
+    if device.type == "cuda":
+        stream = wp.stream_from_torch(torch.cuda.current_stream(device))
+    wp.launch(
+        _kernel(name, dtype), dim=n, inputs=args, device=wp.device_from_torch(device), stream=stream
+    )
+
+
+# what the forward kernel's flags say (entry 5: some problem did not converge; the others
+# are ``solve_cone_qp``'s input errors, in the order the reference raises them)
+FLAGS = (
+    "A contains NaN or infinite values",
+    "b contains NaN or infinite values",
+    "mu contains NaN or infinite values",
+    "lower contains NaN or infinite values",
+    "warm_start contains NaN or infinite values",
+    None,
+    "mu must be >= 0 (friction coefficients)",
+    "lower must be >= 0",
+    "A must be symmetric",
+    "A must be positive semi-definite (negative diagonal)",
+)
+
+
+def input_error(flags: list[int]) -> str | None:
+    """The message of the first input error the forward kernel flagged, or None."""
+    for flag, message in zip(flags, FLAGS, strict=True):
+        if flag and message is not None:
+            return "solve_cone_qp: " + message
+    return None
+
+
+class FusedConeQP(torch.autograd.Function):
+    """``solve_cone_qp`` on flat inputs with the Warp backend: the forward pass is one kernel
+    (``fused_forward``), the backward pass one more (``fused_backward``).
+
+    Inputs: ``A`` (n, C, C), ``b`` (n, C), ``mu``, ``lower`` (n, K), ``active`` (n, K) bool,
+    ``warm_start`` (n, C) or None, ``d``, resolved settings. Outputs: ``f`` (n, C) in the
+    input dtype, and the status ``converged``, ``unbounded`` (n,) bool, ``iterations`` (n,)
+    int64, ``residual`` (n,) in the compute dtype, and ``flags`` (10,) int32, 1 where a
+    problem shows the condition of :data:`FLAGS` (not differentiable)."""
+
+    @staticmethod
+    def forward(ctx, A, b, mu, lower, active, warm_start, d: int, settings: SolverSettings):
+        from diffcontact.contact.warp_kernels import N_SC, N_SLOTS
+
+        work = settings.compute_dtype
+        in_dtype, device = A.dtype, A.device
+        A, b, mu, lower = (x.to(work) for x in (A, b, mu, lower))
+        n, C = b.shape
+        K = C // d
+        scalar, finfo = _scalar(work), torch.finfo(work)
+        ws = _Layout(work, device)
+        rows = 2 * n
+        for name in ("A0", "Am", "Aipm", "M", "V"):
+            ws.add(name, (rows, C, C))
+        ws.add("vec", (rows, N_SLOTS, C))
+        for name in ("b0", "bm", "bipm"):
+            ws.add(name, (rows, C))
+        for name in ("mu0", "lower0", "mum", "lowerm", "muipm", "loweripm", "apex"):
+            ws.add(name, (rows, K))
+        ws.add("sc", (rows, N_SC))
+        ws.add("piv", (rows, C), 4)
+        ws.add("act", (rows, K), 1)
+        saved = _saved_layout(n, C, d, work, device)
+        keep = saved.allocate()
+        work_buf = ws.allocate()  # kept alive until the launch returns
+        w = ws.arrays(work_buf)
+        s = saved.arrays(keep)
+        f = torch.empty(n, C, dtype=work, device=device)
+        res = torch.empty(n, dtype=work, device=device)
+        iterations = torch.empty(n, dtype=torch.int64, device=device)
+        converged = torch.empty(n, dtype=torch.bool, device=device)
+        unbounded = torch.empty(n, dtype=torch.bool, device=device)
+        flags = torch.zeros(len(FLAGS), dtype=torch.int32, device=device)
+        warm = b if warm_start is None else warm_start.detach().to(work)
+        eps = finfo.eps
+        args = [_ctype(x) for x in (A, b, mu, lower, active, warm)]
+        args += [n, d, K, int(warm_start is not None), int(settings.check_inputs), 2]
+        args += [settings.retries, settings.max_iter]
+        args += [settings.polish_steps]
+        args += [
+            scalar(x)
+            for x in (
+                settings.gap,
+                min(settings.polish_tol, settings.tol),
+                settings.tol,
+                settings.kkt_reg,
+                1e10,  # the interior point's blow-up bound, as the reference's
+                eps,
+                finfo.tiny,
+                float("inf"),
+                1e3,  # cone_qp._EQUILIBRATE_ABOVE
+                eps**0.375,  # the Tikhonov term of cone_qp._unbounded
+                1e2,
+                1e-2 / settings.tol,
+                -1e3 * eps * C,
+                eps**0.5,
+            )
+        ]
+        names = "A0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc"
+        args += [w[k] for k in (*names.split(), "piv", "act")]
+        args += [_ctype(x) for x in (f, res, iterations, converged, unbounded)]
+        args += [s["sv"], s["LU"], s["piv"], _ctype(flags)]
+        _run("fused_forward", n, args, work, device)
+        del work_buf
+        ctx.save_for_backward(keep)
+        ctx.shape = (n, C, d)
+        ctx.dtypes = (in_dtype, work)
+        ctx.mark_non_differentiable(converged, unbounded, iterations, res, flags)
+        ctx.set_materialize_grads(False)
+        return f.to(in_dtype), converged, unbounded, iterations, res, flags
+
+    @staticmethod
+    def backward(ctx, grad_f, *_):
+        if grad_f is None:  # f took no part in the loss
+            return None, None, None, None, None, None, None, None
+        (keep,) = ctx.saved_tensors
+        n, C, d = ctx.shape
+        K = C // d
+        in_dtype, work = ctx.dtypes
+        device = keep.device
+        s = _saved_layout(n, C, d, work, device).arrays(keep)
+        grad_f = grad_f.to(work)
+        want_A, want_mu = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
+        grad_b = torch.empty(n, C, dtype=work, device=device)
+        grad_l = torch.empty(n, K, dtype=work, device=device)
+        grad_A = torch.empty(n, C, C, dtype=work, device=device) if want_A else None
+        grad_mu = torch.empty(n, K, dtype=work, device=device) if want_mu else None
+        args = [_ctype(grad_f), s["sv"], s["LU"], s["piv"], d, K, int(want_A), int(want_mu)]
+        args += [s["scratch"]]
+        args += [s["LU"] if grad_A is None else _ctype(grad_A), _ctype(grad_b)]
+        args += [_ctype(grad_l if grad_mu is None else grad_mu), _ctype(grad_l)]
+        _run("fused_backward", n, args, work, device)
+        grads = [None if x is None else x.to(in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
+        if not ctx.needs_input_grad[1]:
+            grads[1] = None
+        if not ctx.needs_input_grad[3]:
+            grads[3] = None
+        return *grads, None, None, None, None

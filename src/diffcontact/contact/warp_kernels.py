@@ -1226,3 +1226,698 @@ def fused_polish(
         A, b, mu, lower, rho[r], reg[r], c[r], r, t, d, K, target, polish_steps, eps, vec, V,
         f_out, res_out, P_out, dmu_out, dl_out, LU, piv,
     )  # fmt: skip
+
+
+# --- the whole forward pass and the backward pass, one thread per problem ---------------
+#
+# ``fused_forward`` runs for its problem everything that :func:`diffcontact.contact.
+# cone_qp.solve_cone_qp` and ``_forward`` do on the reference backend after the batch is
+# flattened: the per-contact equilibration (``_contact_scales``) and the symmetrisation of
+# ``A``, the scaling and decoupling of inactive contacts, the fast paths' guesses
+# (:mod:`diffcontact.contact.closed_form`, the caller's warm start) and their polish, the
+# interior point with its retries, the unboundedness certificate with its Tikhonov re-solve
+# (:func:`diffcontact.contact.cone_qp._unbounded`), and the status. ``fused_backward`` is
+# the implicit backward pass of ``_ConeQPFunction`` with the chain rule of the scaling.
+#
+# Workspace rows: pass 0 (the problem) uses row t, pass 1 (the Tikhonov re-solve of the
+# certificate, run only where it is needed) row n + t of every workspace array.
+
+SC_AS = wp.constant(0)  # columns of the per-row scalars ``sc``: a_s, b_s, c, rho, reg
+SC_BS = wp.constant(1)
+SC_C = wp.constant(2)
+SC_RHO = wp.constant(3)
+SC_REG = wp.constant(4)
+N_SC = 5
+# rows of the saved array ``sv`` (n, N_SV, C) that the backward pass reads
+SV_F = wp.constant(0)  # the scaled solution f' (inactive entries zero)
+SV_DMU = wp.constant(1)  # dPi/dmu
+SV_DL = wp.constant(2)  # dPi/dl
+SV_S = wp.constant(3)  # contact scales s (per component)
+SV_ACT = wp.constant(4)  # 1 on active components, 0 elsewhere
+SV_RHO = wp.constant(5)  # rho in entry 0
+SV_P = wp.constant(6)  # dPi/dz, d rows (row a of block k at index k d + j)
+TINY_DET = wp.constant(wp.float64(1e-8))  # relative determinant of the closed form
+HUNDREDTH = wp.constant(wp.float64(0.01))  # the retries' gap factor
+
+
+@wp.func
+def _equilibrate(
+    A_in: wp.array3d(dtype=Any),
+    b_in: wp.array2d(dtype=Any),
+    lower_in: wp.array2d(dtype=Any),
+    mu_in: wp.array2d(dtype=Any),
+    active_in: wp.array2d(dtype=wp.bool),
+    t: int,
+    d: int,
+    K: int,
+    spread: Any,
+    A0: wp.array3d(dtype=Any),
+    b0: wp.array2d(dtype=Any),
+    mu0: wp.array2d(dtype=Any),
+    lower0: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    row1: int,
+    sv: wp.array3d(dtype=Any),
+):
+    """``_contact_scales`` and ``S sym(A) S``, ``S b``, ``lower / s`` into row t of the
+    workspace (the scales into sv[t, SV_S], the active mask into sv[t, SV_ACT] and rows t,
+    row1 of ``act``)."""
+    n = K * d
+    zero = type(spread)(0.0)
+    one = type(spread)(1.0)
+    top = zero
+    low = zero
+    any_ok = bool(False)
+    for k in range(K):
+        a = A_in[t, k * d, k * d]
+        if active_in[t, k] and a > zero:
+            top = _pick(any_ok, wp.max(top, a), a)
+            low = _pick(any_ok, wp.min(low, a), a)
+            any_ok = True
+    wide = any_ok and top > spread * low
+    for k in range(K):
+        a = A_in[t, k * d, k * d]
+        on = active_in[t, k]
+        act[t, k] = on
+        act[row1, k] = on
+        s = one
+        if wide and on and a > zero:
+            s = wp.sqrt(top / a)
+        for j in range(d):
+            sv[t, SV_S, k * d + j] = s
+            sv[t, SV_ACT, k * d + j] = _pick(on, one, zero)
+        lower0[t, k] = lower_in[t, k] / s
+        mu0[t, k] = mu_in[t, k]
+    for i in range(n):
+        si = sv[t, SV_S, i]
+        b0[t, i] = b_in[t, i] * si
+        for j in range(n):
+            sj = sv[t, SV_S, j]
+            A0[t, i, j] = type(spread)(0.5) * (
+                A_in[t, i, j] * (si * sj) + A_in[t, j, i] * (sj * si)
+            )
+
+
+@wp.func
+def _prepare(
+    A0: wp.array3d(dtype=Any),
+    b0: wp.array2d(dtype=Any),
+    mu0: wp.array2d(dtype=Any),
+    lower0: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    r: int,
+    d: int,
+    K: int,
+    kkt_reg: Any,
+    tiny: Any,
+    Am: wp.array3d(dtype=Any),
+    bm: wp.array2d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    lowerm: wp.array2d(dtype=Any),
+    Aipm: wp.array3d(dtype=Any),
+    bipm: wp.array2d(dtype=Any),
+    muipm: wp.array2d(dtype=Any),
+    loweripm: wp.array2d(dtype=Any),
+    apex: wp.array2d(dtype=Any),
+    sc: wp.array2d(dtype=Any),
+):
+    """The scaled, decoupled problems of ``_forward`` (the polish's ``data`` and the
+    interior point's ``ipm_data``) of workspace row r."""
+    zero = type(tiny)(0.0)
+    one = type(tiny)(1.0)
+    n_act = int(0)
+    sdiag = zero
+    lmax = zero
+    bmax = zero
+    for k in range(K):
+        if act[r, k]:
+            n_act += d
+            lmax = wp.max(lmax, lower0[r, k])
+            for j in range(d):
+                i = k * d + j
+                sdiag = sdiag + A0[r, i, i]
+                bmax = wp.max(bmax, wp.abs(b0[r, i]))
+    a_s = wp.max(sdiag / type(tiny)(wp.max(n_act, 1)), tiny)
+    if not (a_s > type(tiny)(1e3) * tiny):
+        a_s = one
+    b_s = wp.max(bmax, a_s * lmax)
+    if not (b_s > zero):
+        b_s = a_s
+    c = b_s / a_s
+    sc[r, SC_AS] = a_s
+    sc[r, SC_BS] = b_s
+    sc[r, SC_C] = c
+    sc[r, SC_RHO] = one / a_s
+    sc[r, SC_REG] = kkt_reg * a_s
+    for k in range(K):
+        on = act[r, k]
+        lm = _pick(on, lower0[r, k], zero)
+        m = one
+        if d > 1 and on:
+            m = mu0[r, k]
+        lowerm[r, k] = lm
+        mum[r, k] = m
+        if d > 1:
+            muipm[r, k] = _pick(m > zero, m, one)
+            apex[r, k] = _pick(m == zero, one, zero)
+            loweripm[r, k] = _pick(m > zero and lm == zero, -one, lm / c)
+        else:
+            muipm[r, k] = m
+            apex[r, k] = zero
+            loweripm[r, k] = lm / c
+    for k in range(K):
+        for a in range(d):
+            i = k * d + a
+            on_i = act[r, k]
+            free_i = d > 1 and a > 0 and mum[r, k] == zero
+            bi = b0[r, i]
+            if not on_i:
+                bi = _pick(a == 0, b_s, zero)
+            bm[r, i] = bi
+            bipm[r, i] = _pick(free_i, zero, bi) / b_s
+            for k2 in range(K):
+                for a2 in range(d):
+                    j = k2 * d + a2
+                    free_j = d > 1 and a2 > 0 and mum[r, k2] == zero
+                    v = zero
+                    if on_i and act[r, k2]:
+                        v = A0[r, i, j]
+                    if (not on_i) and i == j:
+                        v = a_s
+                    Am[r, i, j] = v
+                    w = zero
+                    if not (free_i or free_j):
+                        w = v
+                    if free_i and i == j:
+                        w = a_s
+                    Aipm[r, i, j] = w / a_s
+
+
+@wp.func
+def _quad2(A: wp.array3d(dtype=Any), b: wp.array2d(dtype=Any), r: int, i0: int, f0: Any, f1: Any):
+    """0.5 f^T A f + b^T f for the 2-vector f on block i0 of row r (as ``_objective``)."""
+    half = type(f0)(0.5)
+    af0 = A[r, i0, i0] * f0 + A[r, i0, i0 + 1] * f1
+    af1 = A[r, i0 + 1, i0] * f0 + A[r, i0 + 1, i0 + 1] * f1
+    return (half * (f0 * af0) + b[r, i0] * f0) + (half * (f1 * af1) + b[r, i0 + 1] * f1)
+
+
+@wp.func
+def _guess(
+    Am: wp.array3d(dtype=Any),
+    bm: wp.array2d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    lowerm: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    r: int,
+    d: int,
+    K: int,
+    tiny: Any,
+    inf: Any,
+    vec: wp.array3d(dtype=Any),
+):
+    """The fast paths' starting point (``separating_guess``, ``single_contact_minimiser``)
+    into vec[r, F_]; returns whether one applies."""
+    n = K * d
+    zero = type(tiny)(0.0)
+    for i in range(n):
+        vec[r, F_, i] = zero
+    separating = bool(True)
+    n_on = int(0)
+    kk = int(0)
+    for k in range(K):
+        if lowerm[r, k] != zero:
+            separating = False
+        if act[r, k]:
+            n_on += 1
+            kk = k
+            bn = bm[r, k * d]
+            if d == 1:
+                if not (bn >= zero):
+                    separating = False
+            else:
+                bt = bm[r, k * d + 1]
+                bt2 = zero
+                if d > 2:
+                    bt2 = bm[r, k * d + 2]
+                if not (mum[r, k] * wp.sqrt(bt * bt + bt2 * bt2) <= bn):
+                    separating = False
+    if separating:
+        return True
+    if n_on != 1 or d > 2:
+        return False
+    i0 = kk * d
+    a_nn = Am[r, i0, i0]
+    l_k = lowerm[r, kk]
+    b_n = bm[r, i0]
+    if d == 1:
+        if not (a_nn > tiny):
+            return False
+        vec[r, F_, i0] = wp.max(l_k, -b_n / a_nn)
+        return True
+    a_nt = Am[r, i0, i0 + 1]
+    a_tn = Am[r, i0 + 1, i0]
+    a_tt = Am[r, i0 + 1, i0 + 1]
+    b_t = bm[r, i0 + 1]
+    m = mum[r, kk]
+    det = a_nn * a_tt - a_nt * a_nt
+    if not (a_nn > tiny and a_tt > tiny and det > type(tiny)(TINY_DET) * a_nn * a_tt):
+        return False
+    one = type(tiny)(1.0)
+    # candidates as single_contact_minimiser: the rays t (1, +-mu), the segment, the free one
+    best_n = zero
+    best_t = zero
+    best_q = inf
+    for c in range(4):
+        fn = zero
+        ft = zero
+        if c < 2:
+            sgn = _pick(c == 0, one, -one)
+            r1 = m * sgn
+            # r^T A r summed as einsum's bni,bij,bnj (row by row)
+            rar = (one * (a_nn * one) + one * (a_nt * r1)) + (r1 * (a_tn * one) + r1 * (a_tt * r1))
+            tt = -(one * b_n + r1 * b_t) / rar
+            tt = wp.max(tt, l_k)
+            fn = tt * one
+            ft = tt * r1
+        elif c == 2:
+            cap = m * l_k
+            fn = l_k
+            ft = wp.clamp(-(b_t + a_nt * l_k) / a_tt, -cap, cap)
+        else:
+            fn = -(a_tt * b_n - a_nt * b_t) / det
+            ft = -(a_nn * b_t - a_nt * b_n) / det
+        q = _quad2(Am, bm, r, i0, fn, ft)
+        if c == 3 and not (fn >= l_k and wp.abs(ft) <= m * fn):
+            q = inf
+        if q < best_q or c == 0:
+            best_q = q
+            best_n = fn
+            best_t = ft
+    vec[r, F_, i0] = best_n
+    vec[r, F_, i0 + 1] = best_t
+    return True
+
+
+@wp.func
+def _solve_row(
+    Am: wp.array3d(dtype=Any),
+    bm: wp.array2d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    lowerm: wp.array2d(dtype=Any),
+    Aipm: wp.array3d(dtype=Any),
+    bipm: wp.array2d(dtype=Any),
+    muipm: wp.array2d(dtype=Any),
+    loweripm: wp.array2d(dtype=Any),
+    apex: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    sc: wp.array2d(dtype=Any),
+    r: int,
+    d: int,
+    K: int,
+    guessed: bool,
+    gap: Any,
+    max_iter: int,
+    retries: int,
+    target: Any,
+    tol: Any,
+    polish_steps: int,
+    blowup: Any,
+    eps: Any,
+    tiny: Any,
+    inf: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+):
+    """The solve of ``_forward`` for workspace row r: polish of the guess in vec[r, F_]
+    (if ``guessed``), else interior point and polish with retries. Leaves the polished
+    point (f, F, P, dmu, dl in their rows of vec; the LU factorisation of dF/df in M[r],
+    piv[r]); returns (residual, interior-point iterations, interior point diverged)."""
+    rho = sc[r, SC_RHO]
+    reg = sc[r, SC_REG]
+    c = sc[r, SC_C]
+    n = K * d
+    iterations = int(0)
+    diverged = bool(False)
+    res = inf
+    kept = bool(False)
+    if guessed:
+        res = _polish(
+            Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, polish_steps, eps, vec, M, V,
+            piv,
+        )  # fmt: skip
+        kept = res <= target
+    if not kept:
+        g = gap
+        for _attempt in range(retries + 1):
+            _ok, div, it = _interior_point(
+                Aipm, bipm, muipm, loweripm, apex, act, r, r, d, K, g, max_iter, blowup, tiny,
+                inf, vec, M,
+            )  # fmt: skip
+            iterations += it
+            diverged = div
+            for i in range(n):
+                vec[r, F_, i] = vec[r, F_, i] * c
+            res = _polish(
+                Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, polish_steps, eps, vec, M,
+                V, piv,
+            )  # fmt: skip
+            if not (res > tol and not div):
+                break
+            g = g * type(gap)(HUNDREDTH)
+    for k in range(K):
+        if not act[r, k]:
+            for j in range(d):
+                vec[r, F_, k * d + j] = type(gap)(0.0)
+    return res, iterations, diverged
+
+
+@wp.func
+def _certifies(
+    Am: wp.array3d(dtype=Any),
+    bm: wp.array2d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    sc: wp.array2d(dtype=Any),
+    t: int,
+    d: int,
+    K: int,
+    g: wp.array3d(dtype=Any),
+    gr: int,
+    gs: int,
+    g_scale: Any,
+    slope_max: Any,
+    sqrt_eps: Any,
+    u: wp.array3d(dtype=Any),
+    ur: int,
+    us: int,
+):
+    """``_certifies_unbounded`` of problem t (scaled data A_m / a_s, b_m / b_s) for the
+    direction g[gr, gs] / g_scale; u[ur, us] is scratch."""
+    n = K * d
+    zero = type(slope_max)(0.0)
+    a_s = sc[t, SC_AS]
+    b_s = sc[t, SC_BS]
+    scale = zero
+    for k in range(K):
+        gk = _load(g, gr, gs, k, d) / g_scale
+        uk, _P, _dm, _dl = _project(gk, mum[t, k], zero, d)
+        if not act[t, k]:
+            uk = wp.vector(zero, zero, zero)
+        _store(u, ur, us, k, d, uk)
+        for j in range(d):
+            scale = wp.max(scale, wp.abs(uk[j]))
+    if not (scale > zero):
+        scale = type(slope_max)(1.0)
+    slope = zero
+    curv = zero
+    for i in range(n):
+        u[ur, us, i] = u[ur, us, i] / scale
+    for i in range(n):
+        slope = slope + (bm[t, i] / b_s) * u[ur, us, i]
+        Au = zero
+        for j in range(n):
+            Au = Au + (Am[t, i, j] / a_s) * u[ur, us, j]
+        curv = curv + u[ur, us, i] * Au
+    return slope <= slope_max and curv <= sqrt_eps * slope * slope
+
+
+@wp.func
+def _flag_finite(
+    A_in: wp.array3d(dtype=Any),
+    b_in: wp.array2d(dtype=Any),
+    mu_in: wp.array2d(dtype=Any),
+    lower_in: wp.array2d(dtype=Any),
+    warm_in: wp.array2d(dtype=Any),
+    t: int,
+    n: int,
+    K: int,
+    has_warm: int,
+    check: int,
+    flags: wp.array(dtype=wp.int32),
+):
+    """flags[0..4] = 1 where problem t's A, b, mu, lower or warm start is not finite, and
+    where ``check``, flags[6..9] = 1 where mu < 0, lower < 0, A is not symmetric (to
+    ``1e-6 max_i |A_ii| + 1e-12``) or has a negative diagonal entry (below ``-1e-9 max_i
+    |A_ii|``), the tests of ``solve_cone_qp``'s ``check_inputs`` (every thread that finds
+    one writes the same value)."""
+    if check != 0:
+        scale = wp.abs(A_in[t, 0, 0])
+        for i in range(n):
+            scale = wp.max(scale, wp.abs(A_in[t, i, i]))
+        for i in range(n):
+            if A_in[t, i, i] < -(type(scale)(1e-9) * scale):
+                flags[9] = 1
+            for j in range(n):
+                asym = wp.abs(A_in[t, i, j] - A_in[t, j, i])
+                if asym > type(scale)(1e-6) * scale + type(scale)(1e-12):
+                    flags[8] = 1
+        for k in range(K):
+            if mu_in[t, k] < type(scale)(0.0):
+                flags[6] = 1
+            if lower_in[t, k] < type(scale)(0.0):
+                flags[7] = 1
+    for i in range(n):
+        for j in range(n):
+            if not wp.isfinite(A_in[t, i, j]):
+                flags[0] = 1
+        if not wp.isfinite(b_in[t, i]):
+            flags[1] = 1
+        if has_warm != 0:
+            if not wp.isfinite(warm_in[t, i]):
+                flags[4] = 1
+    for k in range(K):
+        if not wp.isfinite(mu_in[t, k]):
+            flags[2] = 1
+        if not wp.isfinite(lower_in[t, k]):
+            flags[3] = 1
+
+
+@wp.kernel
+def fused_forward(
+    A_in: wp.array3d(dtype=Any),
+    b_in: wp.array2d(dtype=Any),
+    mu_in: wp.array2d(dtype=Any),
+    lower_in: wp.array2d(dtype=Any),
+    active_in: wp.array2d(dtype=wp.bool),
+    warm_in: wp.array2d(dtype=Any),
+    n_total: int,
+    d: int,
+    K: int,
+    has_warm: int,
+    check: int,
+    passes: int,
+    retries: int,
+    max_iter: int,
+    polish_steps: int,
+    gap: Any,
+    target: Any,
+    tol: Any,
+    kkt_reg: Any,
+    blowup: Any,
+    eps: Any,
+    tiny: Any,
+    inf: Any,
+    spread: Any,
+    delta: Any,
+    size_check: Any,
+    size_again: Any,
+    slope_max: Any,
+    sqrt_eps: Any,
+    A0: wp.array3d(dtype=Any),
+    Am: wp.array3d(dtype=Any),
+    Aipm: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+    V: wp.array3d(dtype=Any),
+    vec: wp.array3d(dtype=Any),
+    b0: wp.array2d(dtype=Any),
+    bm: wp.array2d(dtype=Any),
+    bipm: wp.array2d(dtype=Any),
+    mu0: wp.array2d(dtype=Any),
+    lower0: wp.array2d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    lowerm: wp.array2d(dtype=Any),
+    muipm: wp.array2d(dtype=Any),
+    loweripm: wp.array2d(dtype=Any),
+    apex: wp.array2d(dtype=Any),
+    sc: wp.array2d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+    act: wp.array2d(dtype=wp.bool),
+    f_out: wp.array2d(dtype=Any),
+    res_out: wp.array(dtype=Any),
+    it_out: wp.array(dtype=wp.int64),
+    conv_out: wp.array(dtype=wp.bool),
+    unb_out: wp.array(dtype=wp.bool),
+    sv: wp.array3d(dtype=Any),
+    LU_out: wp.array3d(dtype=Any),
+    piv_out: wp.array2d(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int32),
+):
+    """``solve_cone_qp``'s whole forward pass for problem t of n_total (flat inputs in the
+    compute dtype: ``A_in`` (n, C, C), ``b_in`` (n, C), ``mu_in``, ``lower_in``,
+    ``active_in`` (n, K), ``warm_in`` (n, C) where ``has_warm``). Writes f (n, C) in the
+    caller's scale, the status (n,), and for the backward pass f', dPi/dz, dPi/dmu, dPi/dl,
+    the scales, the mask and rho into ``sv`` (n, N_SV, C) and the LU factorisation of dF/df
+    into ``LU_out``, ``piv_out``. Workspace arrays have 2 n rows (see above). Sets
+    ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
+    ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
+    bad input (see ``_flag_finite``; zeros on entry)."""
+    t = wp.tid()
+    n = K * d
+    zero = type(tol)(0.0)
+    _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, n, K, has_warm, check, flags)
+    row1 = n_total + t
+    _equilibrate(
+        A_in, b_in, lower_in, mu_in, active_in, t, d, K, spread, A0, b0, mu0, lower0, act, row1,
+        sv,
+    )  # fmt: skip
+    again = bool(False)
+    cert = bool(False)
+    res0 = zero
+    for p in range(passes):
+        r = t
+        if p == 1:
+            if not again:
+                break
+            r = row1
+            # the Tikhonov problem A_hat + delta I, b_hat, mu_m, lower 0 of ``_unbounded``
+            a_s = sc[t, SC_AS]
+            b_s = sc[t, SC_BS]
+            for i in range(n):
+                b0[r, i] = bm[t, i] / b_s
+                for j in range(n):
+                    A0[r, i, j] = Am[t, i, j] / a_s + _pick(i == j, delta, zero)
+            for k in range(K):
+                mu0[r, k] = mum[t, k]
+                lower0[r, k] = zero
+        _prepare(
+            A0, b0, mu0, lower0, act, r, d, K, kkt_reg, tiny, Am, bm, mum, lowerm, Aipm, bipm,
+            muipm, loweripm, apex, sc,
+        )  # fmt: skip
+        guessed = _guess(Am, bm, mum, lowerm, act, r, d, K, tiny, inf, vec)
+        if p == 0 and has_warm != 0 and not guessed:
+            for k in range(K):
+                for j in range(d):
+                    i = k * d + j
+                    vec[r, F_, i] = _pick(act[r, k], warm_in[t, i] / sv[t, SV_S, i], zero)
+            guessed = True
+        res, iterations, _div = _solve_row(
+            Am, bm, mum, lowerm, Aipm, bipm, muipm, loweripm, apex, act, sc, r, d, K, guessed,
+            gap, max_iter, retries, target, tol, polish_steps, blowup, eps, tiny, inf, vec, M, V,
+            piv,
+        )  # fmt: skip
+        if p == 0:
+            res0 = res
+            res_out[t] = res
+            it_out[t] = wp.int64(iterations)
+            c = sc[t, SC_C]
+            size = zero
+            any_on = bool(False)
+            for k in range(K):
+                any_on = any_on or act[t, k]
+            for i in range(n):
+                fi = vec[t, F_, i]
+                sv[t, SV_F, i] = fi
+                sv[t, SV_DMU, i] = vec[t, DMU, i]
+                sv[t, SV_DL, i] = vec[t, DL, i]
+                f_out[t, i] = fi * sv[t, SV_S, i]
+                size = wp.max(size, wp.abs(fi / c))
+                piv_out[t, i] = piv[t, i]
+                for j in range(n):
+                    LU_out[t, i, j] = M[t, i, j]
+                for a in range(d):
+                    sv[t, SV_P + a, i] = vec[t, P0 + a, i]
+            sv[t, SV_RHO, 0] = sc[t, SC_RHO]
+            unconverged = res > tol
+            if any_on and (unconverged or size > size_check):
+                cert = _certifies(
+                    Am, bm, mum, act, sc, t, d, K, sv, t, SV_F, c, slope_max, sqrt_eps, vec, t,
+                    FN,
+                )  # fmt: skip
+                again = (not cert) and (unconverged or size > size_again)
+        else:
+            one = type(tol)(1.0)
+            cert = _certifies(
+                Am, bm, mum, act, sc, t, d, K, vec, r, F_, one, slope_max, sqrt_eps, vec, t, FN
+            )
+    unb_out[t] = cert
+    converged = res0 <= tol and not cert
+    conv_out[t] = converged
+    if not converged:
+        flags[5] = 1
+
+
+@wp.kernel
+def fused_backward(
+    grad_f: wp.array2d(dtype=Any),
+    sv: wp.array3d(dtype=Any),
+    LU: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+    d: int,
+    K: int,
+    want_A: int,
+    want_mu: int,
+    vec: wp.array3d(dtype=Any),
+    grad_A: wp.array3d(dtype=Any),
+    grad_b: wp.array2d(dtype=Any),
+    grad_mu: wp.array2d(dtype=Any),
+    grad_l: wp.array2d(dtype=Any),
+):
+    """The implicit backward pass of problem t, with the chain rule of ``S sym(A) S``,
+    ``S b``, ``lower / s`` and ``f = S f'``: v = dF/df^-T g (g = s grad_f on active
+    components), then gradients to A, b, mu and lower as ``_ConeQPFunction.backward``.
+    ``vec`` (n, 2, C) is scratch."""
+    t = wp.tid()
+    n = K * d
+    zero = type(grad_f[t, 0])(0.0)
+    rho = sv[t, SV_RHO, 0]
+    for i in range(n):
+        g = grad_f[t, i] * sv[t, SV_S, i]
+        vec[t, 0, i] = _pick(sv[t, SV_ACT, i] != zero, g, zero)
+    # solve (P L U)^T v = g: U^T y = g, L^T w = y, v = P w
+    for i in range(n):
+        s = vec[t, 0, i]
+        for k in range(i):
+            s = s - LU[t, k, i] * vec[t, 0, k]
+        vec[t, 0, i] = s / LU[t, i, i]
+    for ii in range(n):
+        i = n - 1 - ii
+        s = vec[t, 0, i]
+        for k in range(i + 1, n):
+            s = s - LU[t, k, i] * vec[t, 0, k]
+        vec[t, 0, i] = s
+    for jj in range(n):
+        j = n - 1 - jj
+        p = piv[t, j] - 1
+        if p != j:
+            tmp = vec[t, 0, j]
+            vec[t, 0, j] = vec[t, 0, p]
+            vec[t, 0, p] = tmp
+    # P^T v per block, into row 1
+    for k in range(K):
+        for i in range(d):
+            s = zero
+            for j in range(d):
+                s = s + sv[t, SV_P + j, k * d + i] * vec[t, 0, k * d + j]
+            vec[t, 1, k * d + i] = s
+    for k in range(K):
+        on = sv[t, SV_ACT, k * d] != zero
+        gm = zero
+        gl = zero
+        for j in range(d):
+            gm = gm + sv[t, SV_DMU, k * d + j] * vec[t, 0, k * d + j]
+            gl = gl + sv[t, SV_DL, k * d + j] * vec[t, 0, k * d + j]
+        if want_mu != 0:
+            grad_mu[t, k] = _pick(on and d > 1, gm, zero)
+        grad_l[t, k] = _pick(on, gl, zero) / sv[t, SV_S, k * d]
+    for i in range(n):
+        si = sv[t, SV_S, i]
+        Pv_i = (-rho) * vec[t, 1, i]
+        grad_b[t, i] = _pick(sv[t, SV_ACT, i] != zero, Pv_i, zero) * si
+        if want_A != 0:
+            for j in range(n):
+                Pv_j = (-rho) * vec[t, 1, j]
+                G = type(rho)(0.5) * (Pv_i * sv[t, SV_F, j] + Pv_j * sv[t, SV_F, i])
+                grad_A[t, i, j] = G * (si * sv[t, SV_S, j])
