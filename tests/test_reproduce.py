@@ -129,3 +129,18 @@ def test_report_rewrite_keeps_the_control_section(repro, tmp_path):
     kept = repro._kept_sections(doc)
     assert "control table v2" in kept and "# old report" not in kept
     assert repro._kept_sections(tmp_path / "missing.md") == ""
+
+
+def test_chaos_floor_script(tmp_path, capsys):
+    """The true system reproduces its own test set (rel 0: error 0); a mass off is not 0."""
+    from diffcontact.learning.data.generate import generate_dataset
+
+    script = _load("chaos_floor")
+    data = tmp_path / "BP5-e"
+    generate_dataset("BP5-e", data, n_train=2, n_val=2, n_test=3, progress=False)
+    rows = script.floor(data, [0.0, 1e-2], body=1)
+    assert rows[0]["mean"] == 0.0 and rows[0]["median"] == 0.0
+    assert rows[1]["mean"] > 0.0
+    assert script.main([str(data), "--rel", "1e-3"]) == 0
+    assert "| 1e-03 |" in capsys.readouterr().out
+    assert script.main([str(tmp_path / "none")]) == 2
