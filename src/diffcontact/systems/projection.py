@@ -41,6 +41,9 @@ Making it robust on a whipping rope (violations of 0.1-0.4 rad per step at
 - a backtracking line search over :data:`STEPS` keeps the step with the least
   violation (``0`` if none improves).
 
+Limitation: on a long whipping rope (Rope-D200) the per-step violations grow beyond
+what the iterations resolve and the limits are not held (docs/config.md, ``rope``).
+
 The iterations stop early once every gap is above ``-tol`` and ``Phi`` is within
 ``tol``. Velocities are not changed (the impulse already made them admissible).
 Everything but the discrete choices (rows, step length, early stop) is
