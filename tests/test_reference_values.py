@@ -2,10 +2,11 @@
 
 ``tests/data/reference_values.pt`` was written by ``tests/make_reference_values.py``
 with the code before issue 10 (contact models and learned models as registered
-components; the two rope rollouts were rewritten with the restitution warm start of
-issue 11, see that script's history); this compares the current code against it. Tolerance 1e-12
-(relative to each tensor's scale): equal bitwise on the machine that wrote the
-file, and this leaves room for other BLAS builds' rounding.
+components; the rope rollouts were rewritten for issue 11, with the restitution warm
+start and then with the rope's position projection, see that script's history); this
+compares the current code against it. Tolerance 1e-12 (relative to each tensor's
+scale): equal bitwise on the machine that wrote the file, and this leaves room for
+other BLAS builds' rounding.
 """
 
 from __future__ import annotations

@@ -107,7 +107,15 @@ def test_gradients_gyroscope():
 def test_gradients_rope():
     system = dc.load_system("Rope", cor=0.3)
     z0 = system.sample_initial_conditions(4, seed=0)[1:3]
-    check_rollout(system, ["cor", "mass", "stiffness", "rest_length", "gravity"], z0, steps=12)
+    # the velocity-level path; with the position projection (the rope's default) the stored
+    # states sit on their limits: tests/systems/test_rope_projection.py checks that path
+    check_rollout(
+        system,
+        ["cor", "mass", "stiffness", "rest_length", "gravity"],
+        z0,
+        steps=12,
+        position_projection=0,
+    )
 
 
 def test_gradient_flows_with_requires_grad_attributes():

@@ -16,6 +16,7 @@ The contact-space velocity of candidate ``idx[..., k]`` is
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import torch
@@ -153,6 +154,16 @@ class GeometryBase:
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         raise NotImplementedError
 
+    def gap_widths(self) -> Tensor:
+        """``(K,)`` float64: the width of each candidate's admissible band.
+
+        A two-sided limit (the rope's) reports the smaller of its two side gaps, and the
+        two sides' gaps sum to a constant, the width: ``gap_other = width - gap``, with the
+        Jacobian row negated. One-sided contacts (all others) have width ``inf``. Used by
+        the position projection (``systems/projection.py``) to linearise both sides.
+        """
+        return torch.full((self.n_candidates,), math.inf, dtype=torch.float64)
+
     def jacobian(self, x: Tensor, idx: Tensor) -> Tensor:
         """Dense rows ``J_C: (..., Ka, d, P, dim)`` of candidates ``idx: (..., Ka)``.
 
@@ -210,6 +221,17 @@ class ContactGeometry(GeometryBase):
     def gaps(self, x: Tensor) -> Tensor:
         """Signed gaps ``(..., K)`` of all candidates for ``x: (..., P, dim)``."""
         return torch.cat([p.gaps(x) for p in self.parts], dim=-1)
+
+    def gap_widths(self) -> Tensor:
+        """``(K,)`` the parts' widths (``inf`` for a part without ``gap_widths``)."""
+        return torch.cat(
+            [
+                p.gap_widths().to(torch.float64)
+                if hasattr(p, "gap_widths")
+                else torch.full((p.n_candidates,), math.inf, dtype=torch.float64)
+                for p in self.parts
+            ]
+        )
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of candidates ``idx: (..., Ka)``; entries padded to the largest ``m``.

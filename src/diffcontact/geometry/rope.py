@@ -72,6 +72,10 @@ class RopeBending(GeometryBase):
     def n_candidates(self) -> int:
         return self.n_points - 1
 
+    def gap_widths(self) -> Tensor:
+        """``(n_points - 1,)``: ``2 max_angle`` (``gap`` on the other side is ``width - gap``)."""
+        return torch.full((self.n_candidates,), 2.0 * self.max_angle, dtype=torch.float64)
+
     def gaps(self, x: Tensor) -> Tensor:
         """``max_angle - |theta|`` per joint.
 
@@ -135,6 +139,10 @@ class RopeStretch(GeometryBase):
     @property
     def n_candidates(self) -> int:
         return int(self.lower.shape[0])
+
+    def gap_widths(self) -> Tensor:
+        """``(n_points,)``: ``upper - lower`` (``gap`` on the other side is ``width - gap``)."""
+        return (self.upper - self.lower).to(torch.float64)
 
     def gaps(self, x: Tensor) -> Tensor:
         """``min(len - lower, upper - len)`` per segment.

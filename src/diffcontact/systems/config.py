@@ -187,6 +187,9 @@ class _SystemBase(_Strict):
     mu: PerContact = 0.0
     cor: PerContact = 1.0
     penetration_fraction: Annotated[float, Field(ge=0, le=1, strict=True)] = 0.125
+    # Gauss-Newton iterations of the position-level projection onto the admissible set of
+    # the violated contacts after each step (systems/projection.py); 0 switches it off
+    position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 0
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
     # the fourth-order Runge-Kutta rule of the smooth dynamics: classic, or the 3/8 rule
     # (torchdiffeq's "rk4", used by the paper's released code)
@@ -433,6 +436,8 @@ class RopeConfig(_SystemBase):
     max_ratio: PositiveFloat = 1.2
     anchor: Pair = (0.0, 0.0)
     cor: PerContact = 0.0
+    # the limits hold only approximately at velocity level (docs/config.md, rope)
+    position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 10
     initial_conditions: RopeInitialConditions = Field(default_factory=RopeInitialConditions)
 
     def contact_groups(self) -> list[tuple[str, int]]:

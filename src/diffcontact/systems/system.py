@@ -19,7 +19,10 @@ One step of :meth:`System.simulate` (paper-facts.md, "Time stepping"):
    mask marks real ones; padded rows of ``J_C`` are exact zeros),
    ``J_C: (n, Ka*d, D)``, ``Mhat^-1`` (S.12), the penetration-compensation
    target (appendix G, ``fraction * depth / dt``) and the two-phase impulse
-   (CM or CMr) give the post-impact velocities.
+   (CM or CMr) give the post-impact velocities;
+4. with ``position_projection > 0`` (the config's key; default for the rope only),
+   the positions of the states that violate a candidate are projected onto the
+   admissible set (:func:`~diffcontact.systems.projection.project_positions`).
 
 States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 (``docs/conventions.md``); trajectories are ``(N, T, 2, P, dim)``.
@@ -68,6 +71,7 @@ from diffcontact.systems.config import (
 )
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
+from diffcontact.systems.projection import project_positions
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
 
@@ -249,7 +253,7 @@ class System:
       ``n_bodies``, ``body_points`` (first point of each body), ``n_contacts``
       (candidates K), ``d`` (contact-space dimension), ``contact_names``,
       ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
-      ``penetration_fraction``, ``dynamics``, ``integrator`` (``"rk4"`` or
+      ``penetration_fraction``, ``position_projection``, ``dynamics``, ``integrator`` (``"rk4"`` or
       ``"rk4_38"``, the config's Runge-Kutta rule);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
@@ -266,6 +270,7 @@ class System:
         self.dt: float = float(cfg.dt)
         self.horizon: float = float(cfg.horizon)
         self.penetration_fraction: float = float(cfg.penetration_fraction)
+        self.position_projection: int = int(cfg.position_projection)
         self.dynamics: str = cfg.dynamics
         self.integrator: str = cfg.integrator
         self.second_moments: Tensor | None = None
@@ -877,6 +882,77 @@ class System:
             params = (self.parameters() if params is None else params).replace(eps=eps)
         return model, dynamics, fraction, params
 
+    def _projection_iterations(self, iterations: int | None) -> int:
+        if iterations is None:
+            return self.position_projection
+        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
+            raise ValueError(
+                f"position_projection must be a non-negative integer, got {iterations!r}"
+            )
+        return iterations
+
+    def _project(
+        self,
+        res: ContactResult,
+        ctx: _Context,
+        iterations: int,
+        settings: SolverSettings | None = None,
+    ) -> Tensor:
+        """``res.z`` with its positions projected (``iterations`` Gauss-Newton steps)."""
+        if iterations == 0 or res.batch_index.shape[0] == 0:
+            return res.z
+        x = project_positions(
+            res.z[..., 0, :, :],
+            ctx.geometry,
+            ctx.M_inv,
+            iterations,
+            constraints=ctx.constraints,
+            gaps=res.gaps,
+            settings=self._inner_settings(settings),
+        )
+        return torch.stack([x, res.z[..., 1, :, :]], dim=-3)
+
+    def project_positions(
+        self,
+        z: Tensor,
+        *,
+        params: PhysicalParams | None = None,
+        iterations: int | None = None,
+        solver_settings: SolverSettings | None = None,
+    ) -> Tensor:
+        """Project the positions of ``z`` onto the admissible set of its violated candidates.
+
+        The states with a candidate gap < 0 get the positions nearest in the mass
+        metric with every such gap >= 0 and the equality constraints' values kept
+        (:mod:`diffcontact.systems.projection`); velocities are unchanged. What
+        :meth:`step` and :meth:`simulate` do after the impulse when
+        ``position_projection > 0``. Differentiable (the active set aside).
+
+        Args:
+            z: ``(N, 2, P, dim)``.
+            params: physical parameters (default: the system's own; the masses matter).
+            iterations: Gauss-Newton iterations (default: the config's
+                ``position_projection``, or 3 where that is 0).
+            solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
+
+        Returns:
+            ``(N, 2, P, dim)``.
+        """
+        self._check_state(z, "z")
+        if iterations is None:
+            iterations = self.position_projection or 3
+        iterations = self._projection_iterations(iterations)
+        ctx = self._context(z, params, z.shape[0])
+        x = project_positions(
+            z[..., 0, :, :],
+            ctx.geometry,
+            ctx.M_inv,
+            iterations,
+            constraints=ctx.constraints,
+            settings=self._inner_settings(solver_settings),
+        )
+        return torch.stack([x, z[..., 1, :, :]], dim=-3)
+
     def integrate(
         self, z: Tensor, *, params: PhysicalParams | None = None, dynamics: str | None = None
     ) -> Tensor:
@@ -938,15 +1014,22 @@ class System:
         dynamics: str | None = None,
         penetration_fraction: float | None = None,
         solver_settings: SolverSettings | None = None,
+        position_projection: int | None = None,
     ) -> Tensor:
-        """One full step: :meth:`integrate`, then :meth:`resolve_contacts`. ``(N, 2, P, dim)``."""
+        """One full step: :meth:`integrate`, :meth:`resolve_contacts`, then (with
+        ``position_projection > 0``, default the config's) :meth:`project_positions`.
+        ``(N, 2, P, dim)``."""
         self._check_state(z, "z")
         model, dynamics, fraction, params = self._options(
             contact_model, dynamics, penetration_fraction, params, eps
         )
+        iterations = self._projection_iterations(position_projection)
+        if iterations:  # the projection removes violations; the target would pump energy
+            fraction = 0.0
         ctx = self._context(z, params, z.shape[0])
         z1 = self._integrate(z, ctx, dynamics)
-        return self._resolve(z1, ctx, model, fraction, solver_settings).z
+        res = self._resolve(z1, ctx, model, fraction, solver_settings)
+        return self._project(res, ctx, iterations, solver_settings)
 
     def simulate(
         self,
@@ -962,6 +1045,7 @@ class System:
         check_overlap: bool = True,
         solver_settings: SolverSettings | None = None,
         on_tunnelling: str = "warn",
+        position_projection: int | None = None,
     ) -> Tensor:
         """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
@@ -992,6 +1076,9 @@ class System:
                 (``ValueError``) or ``"ignore"``. Checked once, after the last step.
                 Contacts between bodies without a radius (the rope's limits) are not
                 checked.
+            position_projection: override of the config's ``position_projection``:
+                Gauss-Newton iterations of the position-level projection onto the
+                admissible set after each step (:meth:`project_positions`); 0: off.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
@@ -1015,6 +1102,9 @@ class System:
         model, dynamics, fraction, params = self._options(
             contact_model, dynamics, penetration_fraction, params, eps
         )
+        iterations = self._projection_iterations(position_projection)
+        if iterations:  # the projection removes violations; the target would pump energy
+            fraction = 0.0
         ctx = self._context(z0, params, z0.shape[0])
         if check_overlap:
             self._check_no_overlap(z0, "z0")
@@ -1028,7 +1118,8 @@ class System:
         for step in iterator:
             z1 = self._integrate(z, ctx, dynamics)
             try:
-                z = self._resolve(z1, ctx, model, fraction, solver_settings).z
+                res = self._resolve(z1, ctx, model, fraction, solver_settings)
+                z = self._project(res, ctx, iterations, solver_settings)
             except (ValueError, torch.linalg.LinAlgError) as err:
                 # a state that blew up inside the step fails in the first linear algebra
                 # that meets it (the solver's input check, or an SVD / factorisation of

@@ -1,0 +1,158 @@
+"""The position projection after each step (``position_projection``): limits hold.
+
+The rope's limits are inelastic contacts resolved at velocity level; without a
+position-level correction a whipping rope drifts far past them (docs/config.md,
+``rope``). ``System.project_positions`` (systems/projection.py) moves the
+positions onto the admissible set, keeping the equality constraints' values;
+the rope tasks switch it on by default.
+"""
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.testing import assert_gradients_close
+
+F64 = torch.float64
+
+
+def segment_ratios(system, x: torch.Tensor) -> torch.Tensor:
+    """``(..., P)`` segment lengths over the rest length (segment 0 from the anchor)."""
+    anchor = torch.as_tensor(system.config.anchor, dtype=x.dtype)
+    seg = torch.cat([x[..., :1, :] - anchor, x[..., 1:, :] - x[..., :-1, :]], dim=-2)
+    return seg.norm(dim=-1) / float(system.config.rest_length)
+
+
+def bending_angles(x: torch.Tensor) -> torch.Tensor:
+    """``(..., P - 1)`` signed angles between consecutive segments (anchor at the origin)."""
+    seg = torch.cat([x[..., :1, :], x[..., 1:, :] - x[..., :-1, :]], dim=-2)
+    a, b = seg[..., :-1, :], seg[..., 1:, :]
+    cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return torch.atan2(cross, (a * b).sum(-1))
+
+
+def test_defaults_and_validation():
+    assert dc.load_system("Rope").position_projection == 10
+    assert dc.load_system("Rope-D200").position_projection == 10
+    for task in ("BP5", "BD5", "CP3", "Gyro"):
+        assert dc.load_system(task).position_projection == 0
+    assert dc.load_system("BP5", position_projection=3).position_projection == 3
+    for bad in (-1, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="position_projection"):
+            dc.load_system("Rope", position_projection=bad)
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(1, seed=0)
+    with pytest.raises(ValueError, match="position_projection"):
+        system.simulate(z0, 2, position_projection=-2)
+
+
+def test_rope_limits_hold_over_a_long_simulation():
+    """1 s of a whipping rope at dt = 0.01: the limits hold with the projection only."""
+    system = dc.load_system("Rope", dt=0.01, horizon=1.0)
+    cfg = system.config
+    z0 = system.sample_initial_conditions(4, seed=0)
+    traj = system.simulate(z0, 100, on_tunnelling="ignore")
+    x = traj[:, :, 0]
+    assert float(system.gaps(x).min()) > -1e-8
+    r = segment_ratios(system, x)
+    assert float(r.max()) <= cfg.max_ratio + 1e-8 and float(r.min()) >= cfg.min_ratio - 1e-8
+    assert float(bending_angles(x).abs().max()) <= cfg.max_angle + 1e-8
+    # the same rollout without it leaves the limits far behind: the test can fail
+    loose = system.simulate(z0, 100, on_tunnelling="ignore", position_projection=0)
+    r0 = segment_ratios(system, loose[:, :, 0])
+    assert float(r0.max()) > 1.3 and float(r0.min()) < 0.7
+    assert float(bending_angles(loose[:, :, 0]).abs().max()) > cfg.max_angle + 0.1
+
+
+def test_projection_keeps_equality_constraints_and_velocities():
+    """Disks (rigid-body constraints) and a chain (link constraints) pushed into walls."""
+    for task, n, steps in (("BD5", 6, 40), ("CP3", 8, 60)):
+        system = dc.load_system(task)
+        z0 = system.sample_initial_conditions(n, seed=1)
+        traj = system.simulate(z0, steps, on_tunnelling="ignore")  # projection off (default)
+        flat = traj.flatten(0, 1)
+        gaps = system.gaps(flat[:, 0])
+        hit = (gaps < -1e-4).any(-1)
+        assert bool(hit.any()), f"{task}: the rollout must contain a penetration"
+        z = torch.cat([flat[hit][:4], flat[~hit][:2]])  # violated states and clean ones
+        zp = system.project_positions(z, iterations=10)
+        assert float(system.gaps(zp[:, 0]).min()) > -1e-10
+        phi = system.constraints.phi
+        assert float((phi(zp[:, 0]) - phi(z[:, 0])).abs().max()) < 1e-12
+        assert torch.equal(zp[:, 1], z[:, 1])  # velocities untouched
+        k = int(hit.sum().clamp(max=4))
+        assert torch.equal(zp[k:], z[k:])  # admissible states untouched
+        assert float((zp[:k, 0] - z[:k, 0]).abs().max()) > 1e-4
+
+
+def test_projection_is_the_nearest_admissible_point_of_a_small_rope():
+    """A 2-point rope with one stretch limit violated: the exact projection is known."""
+    system = dc.load_system(
+        {"type": "rope", "n_points": 2, "mass": [0.1, 0.3], "rest_length": 1.0,
+         "stiffness": 0.0, "dt": 0.01, "horizon": 1.0}
+    )  # fmt: skip
+    # segment 0 along -y at length 1, segment 1 along -y stretched to 1.5 (limit 1.2)
+    z = torch.tensor([[[[0.0, -1.0], [0.0, -2.5]], [[0.0, 0.0], [0.0, 0.0]]]], dtype=F64)
+    zp = system.project_positions(z, iterations=5)
+    # min 0.1 d0^2 + 0.3 d1^2 s.t. d0 + d1 >= 0.3 (segment 1 back to 1.2) gives d0 = 0.225,
+    # past segment 0's own limit (d0 <= 0.2): so d0 = 0.2 (point 0 down) and d1 = 0.1 (up)
+    expected = torch.tensor([[0.0, -1.2], [0.0, -2.4]], dtype=F64)
+    torch.testing.assert_close(zp[0, 0], expected, rtol=0, atol=1e-12)
+
+
+def test_gradient_through_one_projected_step():
+    system = dc.load_system(
+        "Rope", n_points=5, dt=0.01, initial_conditions={"angular_velocity_std": 6.0}
+    )
+    z0 = system.sample_initial_conditions(3, seed=3)
+    with torch.no_grad():
+        loose = system.step(z0, position_projection=0)
+        gaps = system.gaps(loose[:, 0])
+    assert bool((gaps < -1e-3).any()), "the step must violate a limit"
+    assert float(gaps.abs().min()) > 1e-5  # the active set stays put under perturbation
+    base = system.parameters()
+    names = ("mass", "stiffness", "gravity")
+
+    def step(mass, stiffness, gravity, z):
+        p = base.replace(mass=mass, stiffness=stiffness, gravity=gravity)
+        return system.step(z, params=p)
+
+    inputs = [getattr(base, n).detach().clone() for n in names] + [z0]
+    results = assert_gradients_close(step, inputs, n_directions=2, rtol=1e-4)
+    assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
+    with torch.no_grad():
+        assert float(system.gaps(step(*inputs)[:, 0]).min()) > -1e-10
+
+
+def test_float32_projection():
+    system = dc.load_system("Rope", dt=0.01, horizon=1.0)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    traj64 = system.simulate(z0, 30, on_tunnelling="ignore")
+    traj32 = system.simulate(z0.float(), 30, on_tunnelling="ignore")
+    assert traj32.dtype == torch.float32
+    assert float(system.gaps(traj32[:, :, 0]).min()) > -1e-4
+    # a step of each from the same float64 state agrees to float32 accuracy
+    z = traj64[:, 20]
+    one64 = system.step(z)
+    one32 = system.step(z.float())
+    assert float(system.gaps(one64[:, 0]).min()) > -1e-8
+    torch.testing.assert_close(one32.double(), one64, rtol=0, atol=1e-4)
+
+
+def test_gradient_through_the_projection_with_equality_constraints():
+    """Disks pushed into a wall: the projection (with Mhat^-1 and the Phi restoration)."""
+    system = dc.load_system("BD5")
+    z0 = system.sample_initial_conditions(6, seed=1)
+    traj = system.simulate(z0, 40, on_tunnelling="ignore")
+    flat = traj.flatten(0, 1)
+    gaps = system.gaps(flat[:, 0])
+    hit = (gaps < -1e-3).any(-1) & ((gaps.abs() > 1e-5).all(-1))
+    z = flat[hit][:2]
+    assert z.shape[0] == 2
+    base = system.parameters()
+
+    def project(mass, z):
+        return system.project_positions(z, params=base.replace(mass=mass), iterations=10)
+
+    results = assert_gradients_close(project, [base.mass.clone(), z], n_directions=2, rtol=1e-4)
+    assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
