@@ -4,6 +4,7 @@
                                    [--model CM-CD-CLNN] [--batch-size 200]
     python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
     python benchmarks/run.py train --against none     # without the previous release
+    python benchmarks/run.py train --mixed            # also with the potential MLP in float32
 
 By default every task is also timed, side by side in the same run, with the previous
 release: the package and this benchmark at git ref ``--against`` (default
@@ -163,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
         "'none': only this version)",
     )  # fmt: skip
     ap.add_argument(
+        "--mixed", action="store_true",
+        help="also time each task with the potential MLP in float32 (a column, same run)",
+    )  # fmt: skip
+    ap.add_argument(
         "--threads", type=int, default=None,
         help="torch threads for both versions (default: torch's default)",
     )  # fmt: skip
@@ -215,8 +220,11 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
     if previous is not None:
         print(f"previous release: git {args.against}, timed in a subprocess right after each row")
     head = f"{'task':>8} | {'s/step':>8} {'chunks/s':>9} | {'chunks with a contact':>21}"
+    if args.mixed:
+        head += f" | {'MLP f32 s/step':>14} {'now/f32':>7}"
     if previous is not None:
         head += f" | {'previous s/step':>15} {'previous/now':>12}"
+        head += f" {'previous/f32':>12}" if args.mixed else ""
     print(head)
     print("-" * len(head))
     for task in tasks:
@@ -225,10 +233,18 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
             f"{task:>8} | {r['s_per_step']:>8.3f} {args.batch_size / r['s_per_step']:>9.0f} | "
             f"{r['chunks_with_contact']:>20.0%}"
         )
+        mixed = None
+        if args.mixed:
+            mixed = time_task(
+                task, argparse.Namespace(**{**vars(args), "potential_dtype": "float32"}), dtype
+            )
+            mixed = mixed["s_per_step"]
+            line += f" | {mixed:>14.3f} {r['s_per_step'] / mixed:>7.2f}"
         if previous is not None:
             try:
                 old = time_release(previous, task, args)
                 line += f" | {old:>15.3f} {old / r['s_per_step']:>12.2f}"
+                line += f" {old / mixed:>12.2f}" if mixed else ""
             except RuntimeError as err:
                 line += f" | {'failed':>15} {'-':>12}"
                 print(err, file=sys.stderr)
