@@ -109,7 +109,7 @@ def time_auto(step, max_threads: int, steps: int) -> tuple[float, int, float]:
             step()
         times.append(time.perf_counter() - t0)
     governor.restore()
-    return statistics.mean(times), governor.threads, ones / steps
+    return statistics.mean(times), governor.choice, ones / steps
 
 
 def main(argv: list[str] | None = None) -> int:

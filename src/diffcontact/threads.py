@@ -119,7 +119,8 @@ class ThreadGovernor:
         clock: the time function (for tests).
 
     Attributes:
-        threads: the thread count in use now.
+        threads: the thread count in use now (during a probe, the probed one).
+        choice: the thread count chosen (the faster one at the last comparison).
         history: ``(step, threads, median seconds)`` of every finished window.
     """
 
@@ -188,6 +189,10 @@ class ThreadGovernor:
         elif len(self._times) >= self.window:
             self._end_window(statistics.median(self._times[1:]))
             self._times = []
+
+    @property
+    def choice(self) -> int:
+        return self._choice
 
     def step(self) -> _Step:
         """Context manager timing one step: ``with governor.step(): ...``."""

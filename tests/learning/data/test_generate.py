@@ -54,3 +54,19 @@ def test_foreign_folder_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown task"):
         generate_dataset("NoSuchTask", tmp_path / "x")
     assert not (tmp_path / "x").exists()
+
+
+def test_datasets_made_before_a_config_key_existed_are_reused():
+    """A dataset recorded without a later config key matches a request with the value that
+    stands for the old behaviour, and only that value."""
+    from diffcontact.learning.data.write import _differences
+
+    old = {"seed": 0, "config": {"name": "BP5", "dt": 0.01}}
+    same = {"seed": 0, "config": {"name": "BP5", "dt": 0.01, "position_projection": 0}}
+    assert _differences(old, same) == []
+    other = {"seed": 0, "config": {"name": "BP5", "dt": 0.01, "position_projection": 10}}
+    assert _differences(old, other) == [
+        "config.position_projection (not recorded there, requested 10)"
+    ]
+    # only inside the config: a top-level argument of that name is not excused
+    assert _differences({"seed": 0}, {"seed": 0, "position_projection": 0})

@@ -53,6 +53,12 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
+# config keys added after datasets were first written, with the value that stands for
+# the behaviour of a dataset made before the key existed: a request with that value
+# matches such a dataset (another value, e.g. the rope's position projection, does not)
+ADDED_CONFIG_KEYS: dict[str, Any] = {"position_projection": 0, "integrator": "rk4"}
+
+
 def _differences(old: Any, new: Any, name: str = "") -> list[str]:
     """Human-readable differences between recorded (``old``) and requested (``new``) arguments."""
     if isinstance(old, dict) and isinstance(new, dict):
@@ -60,6 +66,9 @@ def _differences(old: Any, new: Any, name: str = "") -> list[str]:
         keys = list(new) + [k for k in old if k not in new]
         for key in keys:
             sub = f"{name}.{key}" if name else str(key)
+            added = name == "config" and key in ADDED_CONFIG_KEYS
+            if key not in old and added and new[key] == ADDED_CONFIG_KEYS[key]:
+                continue  # made before the key existed, with the behaviour requested
             if key not in old:
                 out.append(f"{sub} (not recorded there, requested {_short(new[key])})")
             elif key not in new:
