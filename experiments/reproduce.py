@@ -148,7 +148,17 @@ NOTES = (
     "(`skipped steps`; docs/training.md): near-grazing contacts produce such spikes, and one "
     "of them fed to Adam froze the gyroscope's inertia before this check existed.",
     "The chain pendulum is chaotic: rollout errors over 100 steps grow with any error of the "
-    "learned potential, which is the last part to converge; more epochs lower them.",
+    "learned potential, which is the last part to converge; more epochs lower them (with "
+    "60 epochs this report gave CP3-e 3.98e-2 and CP3 4.07e-2 before: commit 66abf69 of "
+    "docs/results.md).",
+    "Billiards are chaotic too, and there the mean rollout error is set by the test set's "
+    "grazing collisions rather than by training: the *floor* column is the error of the "
+    "true system with one mass ratio off by 1e-5 / 1e-4, and the paper's own BP5-e mass "
+    "ratios (Table S.1) are off by up to 3e-4. Half of the test trajectories are far more "
+    "accurate than the mean (the *median* column); a handful in which a collision goes the "
+    "other way carry most of it. The paper's BP5-e error with its narrow interval is below "
+    "what its learned masses allow on our test set, so its test set or horizon must have "
+    "been less exposed to such collisions; we cannot tell from the supplement.",
 )
 
 
