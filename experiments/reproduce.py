@@ -706,8 +706,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         ]
         for fut in as_completed(futures):
             print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
-        # longest first: rigid bodies and many contacts
-        order = sorted(runs, key=lambda r: r[0] not in ("BD5", "Gyro", "Gyro-e", "BP5"))
+        # longest first (most epochs, then rigid bodies and many contacts), so that the
+        # two workers finish close together
+        slow = ("BD5", "Gyro", "Gyro-e", "BP5")
+        order = sorted(runs, key=lambda r: (-(args.epochs or epochs_for(*r)), r[0] not in slow))
         futures = {
             pool.submit(
                 train_and_evaluate, t, m, str(out / "data" / t), str(out / "runs" / t / m),
