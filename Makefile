@@ -38,7 +38,7 @@ lint: $(VENV)/.dev
 bench: $(VENV)/.dev
 	$(PY) benchmarks/run.py
 
-# the paper's learning tables (docs/results.md): about an hour on 2 CPU cores
+# the paper's learning tables (docs/results.md): about 45 minutes on 2 CPU cores
 reproduce: $(VENV)/.base
 	$(PY) experiments/reproduce.py --out runs/repro --doc docs/results.md
 
