@@ -384,6 +384,108 @@ def test_few_torch_operations_per_call():
         assert counts["torch", B][0] > 2000, counts
 
 
+def test_recorded_launches_replay_new_data():
+    """A call replays the launch recorded for its signature (shapes, strides, settings)
+    with new data pointers (and on the CPU a new number of problems): replays give bitwise
+    what a fresh recording gives, for new data of the same shapes, for fewer and more
+    problems, for inputs with other strides (broadcast A), for warm starts, in the
+    backward pass, and from several threads at once (each has its own)."""
+    import threading
+
+    d, n, K = 2, 8, 4
+    sets = [mixed_family(n, K, d, seed=s) for s in (11, 12)]
+    w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(1), dtype=F64)
+
+    def run(A, b, mu, lower, active, warm=None):
+        xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+        f = solve_cone_qp(*xs[:3], d, xs[3], active, settings=WARP, warm_start=warm)
+        return (f.detach(), *torch.autograd.grad((f * w[: len(f)]).sum(), xs))
+
+    def fresh(*args):
+        fused._RECORDED.__dict__.clear()
+        return run(*args)
+
+    A0, b0, mu0, lower0, active0 = sets[0]
+    broadcast = (A0[:1].expand(n, -1, -1), b0, mu0, lower0, active0)
+    fewer = tuple(x[2:5] for x in sets[1])
+    cases = [sets[0], sets[1], fewer, sets[0], broadcast, (*sets[1], 0.5 * sets[1][1])]
+    expected = [fresh(*case) for case in cases]
+    fused._RECORDED.__dict__.clear()
+    for case, want in zip(cases * 2, expected * 2, strict=True):
+        for got, ref in zip(run(*case), want, strict=True):
+            assert torch.equal(got, ref)
+    assert not torch.equal(expected[0][0], expected[1][0])  # the data did change
+
+    errors = []
+
+    def worker(i: int) -> None:
+        try:
+            for _ in range(20):
+                for got, ref in zip(run(*cases[i]), expected[i], strict=True):
+                    assert torch.equal(got, ref)
+        except Exception as err:  # reported by the main thread
+            errors.append(err)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+
+
+def test_batch_split_over_cores_is_bitwise_the_same(monkeypatch):
+    """On the CPU a large batch is split into parts run on several cores at once; the
+    impulses, status and gradients are bitwise those of one launch (each problem is one
+    thread's arithmetic), and in a fresh process the first (recording) calls of the parts
+    run at the same time safely."""
+    d, n, K = 2, 40, 5
+    A, b, mu, lower, active = mixed_family(n, K, d, seed=21)
+    w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(2), dtype=F64)
+
+    def run():
+        xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+        f, status = solve_cone_qp(*xs[:3], d, xs[3], active, settings=WARP, return_status=True)
+        grads = torch.autograd.grad((f * w).sum(), xs)
+        return (f.detach(), status.converged, status.iterations, status.residual, *grads)
+
+    threads = torch.get_num_threads()
+    monkeypatch.setattr(fused, "_SPLIT_WORK", 1)
+    monkeypatch.setattr(fused, "_cores", lambda: 3)
+    try:
+        torch.set_num_threads(1)
+        assert len(fused._parts(n, K * d, A.device)) == 1
+        one = run()
+        torch.set_num_threads(3)
+        assert len(fused._parts(n, K * d, A.device)) == 3
+        split = run()
+    finally:
+        torch.set_num_threads(threads)
+    for x, y in zip(one, split, strict=True):
+        assert torch.equal(x, y)
+
+    code = (
+        "import torch\n"
+        "from diffcontact.contact import SolverSettings, fused, solve_cone_qp\n"
+        "from tests.contact.test_cone_qp import random_problems\n"
+        "fused._SPLIT_WORK = 1\n"
+        "fused._cores = lambda: 4\n"
+        "torch.set_num_threads(4)\n"
+        "A, b, mu, lower = random_problems(64, 4, 2, seed=5, lower_frac=0.3)\n"
+        "f = solve_cone_qp(A, b, mu, 2, lower, settings=SolverSettings(backend='warp'))\n"
+        "g = solve_cone_qp(A, b, mu, 2, lower, settings=SolverSettings(backend='torch'))\n"
+        "assert len(fused._parts(64, 8, A.device)) == 4\n"
+        "print(float((f - g).abs().max()))\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root / "src"), str(root)])}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=root
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert float(out.stdout.split()[-1]) < 1e-8
+
+
 # --- the choice of backend ----------------------------------------------------------------
 
 

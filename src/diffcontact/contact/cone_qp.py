@@ -66,6 +66,7 @@ Gradients at degenerate points follow the one-sided choices documented in
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -75,6 +76,7 @@ from diffcontact.contact import fused
 from diffcontact.contact.closed_form import separating_guess, single_contact_minimiser
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
+from diffcontact.shapes import broadcast_shapes
 
 
 class ConeQPError(RuntimeError):
@@ -652,6 +654,18 @@ class _ConeQPFunction(torch.autograd.Function):
         return *grads, None, None, None, None
 
 
+@functools.lru_cache(maxsize=64)
+def _no_lower(K: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(K,) zeros, the default ``lower`` (read only: shared by the calls)."""
+    return torch.zeros((), dtype=dtype, device=device).expand(K)
+
+
+@functools.lru_cache(maxsize=64)
+def _all_active(K: int, device: torch.device) -> Tensor:
+    """(K,) True, the default ``active`` (read only: shared by the calls)."""
+    return torch.ones((), dtype=torch.bool, device=device).expand(K)
+
+
 def _check(name: str, x: Tensor, finite: bool = True) -> None:
     """Type check, and unless ``finite`` is False (the Warp backend checks finiteness in its
     kernel, without a host synchronisation per tensor), a finiteness check."""
@@ -732,7 +746,7 @@ def solve_cone_qp(
             f"got {tuple(mu.shape)}"
         )
     if lower is None:
-        lower = torch.zeros((), dtype=A.dtype, device=A.device).expand(K)
+        lower = _no_lower(K, A.dtype, A.device)
     else:
         _check("lower", lower, finite)
         if lower.dim() < 1 or lower.shape[-1] != K:
@@ -740,7 +754,7 @@ def solve_cone_qp(
                 f"solve_cone_qp: lower must have shape (..., {K}), got {tuple(lower.shape)}"
             )
     if active is None:
-        active = torch.ones(K, dtype=torch.bool, device=A.device)
+        active = _all_active(K, A.device)
     elif not isinstance(active, Tensor) or active.dtype != torch.bool:
         raise ValueError("solve_cone_qp: active must be a bool tensor of shape (..., K)")
     elif active.dim() < 1 or active.shape[-1] != K:
@@ -754,7 +768,7 @@ def solve_cone_qp(
         if x.device != A.device:
             raise ValueError(f"solve_cone_qp: {name} is on {x.device}, A is on {A.device}")
     try:
-        batch = torch.broadcast_shapes(
+        batch = broadcast_shapes(
             A.shape[:-2], b.shape[:-1], mu.shape[:-1], lower.shape[:-1], active.shape[:-1]
         )
     except RuntimeError as err:
@@ -783,7 +797,7 @@ def solve_cone_qp(
                 f"got {tuple(warm_start.shape)}"
             )
         try:
-            batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
+            batch = broadcast_shapes(batch, warm_start.shape[:-1])
         except RuntimeError as err:
             raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
     flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)

@@ -88,6 +88,7 @@ from diffcontact.contact.cone_qp import (
 )
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.interior_point import add_block_diag
+from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
     "CoulombSettings",
@@ -449,11 +450,11 @@ def solve_coulomb(
     if settings.check_inputs and (bool((mu < 0).any()) or bool((lower < 0).any())):
         raise ValueError("solve_coulomb: mu and lower must be >= 0")
     try:
-        batch = torch.broadcast_shapes(
+        batch = broadcast_shapes(
             A.shape[:-2], b.shape[:-1], mu.shape[:-1], lower.shape[:-1], active.shape[:-1]
         )
         if warm_start is not None:
-            batch = torch.broadcast_shapes(batch, warm_start.shape[:-1])
+            batch = broadcast_shapes(batch, warm_start.shape[:-1])
     except RuntimeError as err:
         raise ValueError(f"solve_coulomb: batch dimensions do not broadcast: {err}") from None
     flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)

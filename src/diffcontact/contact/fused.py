@@ -12,7 +12,11 @@ fused (NVIDIA Warp) one.
   ``solve_cone_qp`` call (equilibration, scaling, fast paths, interior point, polish,
   retries, unboundedness certificate, status, input checks) as one kernel launch and its
   backward pass as another: about a dozen torch operations per call (allocations), and
-  one host synchronisation (reading the kernel's error flags). :func:`solve` and
+  one host synchronisation (reading the kernel's error flags). Each launch replays one
+  recorded for the call's signature with new pointers (:class:`_Recorded`: tens of
+  microseconds less per call than packing Warp's arguments anew), and on the CPU a large
+  batch is split into ranges of problems launched on several cores at once
+  (:func:`_parts`; Warp runs a CPU launch on one core). :func:`solve` and
   :func:`polish` run the interior point and the polish alone on rows that the torch
   code of ``cone_qp._forward`` selected (that function with ``backend="warp"``; tests
   use it to look inside the algorithm);
@@ -28,7 +32,9 @@ cache, ``~/.cache/warp``).
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import ctypes
 import functools
 import importlib.util
 import io
@@ -36,6 +42,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 import warnings
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -387,10 +394,10 @@ class _Layout:
     def allocate(self) -> Tensor:
         return torch.empty(max(self.nbytes, 16), dtype=torch.uint8, device=self.device)
 
-    def arrays(self, buf: Tensor) -> dict:
+    def arrays(self, base: int) -> dict:
+        """Warp descriptors of the arrays of a buffer starting at address ``base``."""
         from warp._src.types import array_t
 
-        base = buf.data_ptr()
         out = {}
         for name, shape, item, offset in self.specs:
             if self.cuda and len(shape) > 1:
@@ -416,6 +423,7 @@ def _ctype(x: Tensor):
     return array_t(x.data_ptr(), 0, len(shape), shape, tuple(s * item for s in x.stride()))
 
 
+@functools.lru_cache(maxsize=64)
 def _saved_layout(n: int, C: int, d: int, dtype: torch.dtype, device: torch.device) -> _Layout:
     from diffcontact.contact.warp_kernels import SV_P
 
@@ -461,9 +469,260 @@ def input_error(flags: list[int]) -> str | None:
     return None
 
 
+class _Recorded:
+    """One kernel launch recorded for one call signature and replayed with new data
+    pointers: the arrays' strides and trailing shapes and the scalar arguments are those
+    of the recording, so a replay costs a pointer store per array and no argument packing
+    (tens of microseconds per call on a CPU).
+
+    ``dynamic`` lists ``(argument index, rows per problem)`` of the arrays whose pointer
+    changes per call; where rows per problem is not 0 their leading size is that times the
+    number of problems n, which a replay may change (with the scalar argument ``n_arg``)
+    as long as the strides do not depend on n. The kernel's argument ``first_arg`` is the
+    first problem of the launch: a replay may cover a range of the problems."""
+
+    def __init__(self, name: str, n: int, args: list, dynamic, dtype, device, n_arg, first_arg):
+        wp, _ = _load()
+        self.cmd = wp.launch(
+            _kernel(name, dtype),
+            dim=n,
+            inputs=args,
+            device=wp.device_from_torch(device),
+            record_cmd=True,
+        )
+        # params[0] is the launch bounds; the array descriptors are patched in place (on
+        # CUDA the launch reads them through addresses taken at recording)
+        self.slots = [self.cmd.params[i + 1] for i, _ in dynamic]
+        self.rows = [rows for _, rows in dynamic]
+        self.n, self.dim, self.first = n, n, args[first_arg]
+        self.n_arg, self.first_arg = n_arg, first_arg
+        self.device = device
+        self.args = None
+        hooks = getattr(self.cmd, "hooks", None)
+        if device.type == "cpu" and self.cmd.block_dim <= 1 and not self.cmd.adjoint and hooks:
+            # on the CPU, call the compiled kernel with one argument structure kept here,
+            # patched in place, instead of Warp copying every argument into a new one per
+            # launch (what Launch.launch does: a third of a small launch's time)
+            self.labels = [arg.label for arg in self.cmd.kernel.adj.args]
+            values = self.cmd.params[1 : len(self.labels) + 1]
+            fields = [(label, type(v)) for label, v in zip(self.labels, values, strict=True)]
+            self.args = type("Args", (ctypes.Structure,), {"_fields_": fields})(*values)
+            self.slots = [getattr(self.args, self.labels[i]) for i, _ in dynamic]
+            self.forward = hooks.forward
+
+    def _set(self, index: int, value: int) -> None:
+        self.cmd.set_param_at_index(index, value)
+        if self.args is not None:
+            setattr(self.args, self.labels[index], value)
+
+    def __call__(self, n: int, pointers: list[int], first: int = 0, count: int | None = None):
+        """Run problems ``first, ..., first + count - 1`` (default: all n) of the arrays at
+        ``pointers`` (one per dynamic array, in order)."""
+        count = n if count is None else count
+        if n != self.n:
+            if self.n_arg is not None:
+                self._set(self.n_arg, n)
+            for slot, rows in zip(self.slots, self.rows, strict=True):
+                if rows:
+                    slot.shape[0] = rows * n
+            self.n = n
+        if count != self.dim:
+            self.cmd.set_dim(count)
+            self.dim = count
+        if first != self.first:
+            self._set(self.first_arg, first)
+            self.first = first
+        for slot, pointer in zip(self.slots, pointers, strict=True):
+            slot.data = pointer
+        if self.args is not None:
+            self.forward(ctypes.byref(self.cmd.params[0]), ctypes.byref(self.args))
+            return
+        stream = None
+        if self.device.type == "cuda":
+            wp, _ = _load()
+            stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
+        self.cmd.launch(stream)
+
+
+# recorded launches of this thread (a replay patches the recording: one per thread), by
+# call signature, the most recently used last
+_RECORDED = threading.local()
+_MAX_RECORDED = 32
+_RECORD_LOCK = threading.Lock()
+# on the CPU (where launches are synchronous) a recording keeps its forward workspace, grown
+# as needed up to this size, instead of allocating one per call
+_KEEP_WORKSPACE_BYTES = 1 << 21
+
+
+def _recorded(key: tuple, record) -> _Recorded:
+    """The recorded launch of ``key`` in this thread, made by ``record()`` if missing."""
+    cache = getattr(_RECORDED, "cache", None)
+    if cache is None:
+        cache = _RECORDED.cache = collections.OrderedDict()
+    launch = cache.get(key)
+    if launch is None:
+        with _RECORD_LOCK:  # (Warp loads a kernel's module on its first launch: once)
+            launch = cache[key] = record()
+        if len(cache) > _MAX_RECORDED:
+            cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
+    return launch
+
+
+def _signature(n: int, device: torch.device, *xs: Tensor) -> tuple:
+    """What a recording depends on: the arrays' strides and trailing sizes, and n on CUDA
+    (where the scratch layouts' strides depend on it)."""
+    return (n if device.type == "cuda" else None, *((x.shape[1:], x.stride()) for x in xs))
+
+
+def _as(x: Tensor, dtype: torch.dtype) -> Tensor:
+    """``x.to(dtype)``, without the call when it is one already (a microsecond per call)."""
+    return x if x.dtype == dtype else x.to(dtype)
+
+
+@functools.lru_cache(maxsize=64)
+def _forward_workspace(n: int, C: int, K: int, dtype, device) -> _Layout:
+    """The forward kernel's scratch memory of n problems (two rows per problem)."""
+    from diffcontact.contact.warp_kernels import N_SC, N_SLOTS
+
+    ws = _Layout(dtype, device)
+    rows = 2 * n
+    for name in ("A0", "Am", "Aipm", "M", "V"):
+        ws.add(name, (rows, C, C))
+    ws.add("vec", (rows, N_SLOTS, C))
+    for name in ("b0", "bm", "bipm"):
+        ws.add(name, (rows, C))
+    for name in ("mu0", "lower0", "mum", "lowerm", "muipm", "loweripm", "apex"):
+        ws.add(name, (rows, K))
+    ws.add("sc", (rows, N_SC))
+    ws.add("piv", (rows, C), 4)
+    ws.add("act", (rows, K), 1)
+    return ws
+
+
+_WS_NAMES = (
+    "A0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc piv act".split()
+)
+_SAVED_NAMES = ("sv", "LU", "piv", "scratch")
+
+
+def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings) -> _Recorded:
+    """Record ``fused_forward`` for the call signature of ``inputs`` (A, b, mu, lower,
+    active, warm start) and ``outputs`` (f, residual, iterations, converged, unbounded,
+    flags). A replay takes the pointers of the inputs, the outputs (f to unbounded), the
+    saved buffer's sv, LU and piv, the flags and the workspace's arrays."""
+    A, b = inputs[0], inputs[1]
+    work, device = A.dtype, A.device
+    C = b.shape[-1]
+    K = C // d
+    scalar, finfo = _scalar(work), torch.finfo(work)
+    eps = finfo.eps
+    ws = _forward_workspace(n, C, K, work, device)
+    saved = _saved_layout(n, C, d, work, device)
+    w, s = ws.arrays(0), saved.arrays(0)  # (a replay sets the pointers)
+    args = [_ctype(x) for x in inputs]
+    n_arg = len(args)
+    args += [n, 0, d, K, int(warm), int(settings.check_inputs), 2]
+    args += [settings.retries, settings.max_iter]
+    args += [settings.polish_steps]
+    args += [
+        scalar(x)
+        for x in (
+            settings.gap,
+            min(settings.polish_tol, settings.tol),
+            settings.tol,
+            settings.kkt_reg,
+            1e10,  # the interior point's blow-up bound, as the reference's
+            eps,
+            finfo.tiny,
+            float("inf"),
+            1e3,  # cone_qp._EQUILIBRATE_ABOVE
+            eps**0.375,  # the Tikhonov term of cone_qp._unbounded
+            1e2,
+            1e-2 / settings.tol,
+            -1e3 * eps * C,
+            eps**0.5,
+        )
+    ]
+    first_ws = len(args)
+    args += [w[k] for k in _WS_NAMES]
+    first_out = len(args)
+    args += [_ctype(x) for x in outputs[:5]]
+    args += [s[k] for k in _SAVED_NAMES[:3]] + [_ctype(outputs[5])]
+    dynamic = [(i, 1) for i in range(6)]
+    dynamic += [(i, 1) for i in range(first_out, len(args) - 1)] + [(len(args) - 1, 0)]
+    dynamic += [(i, 2) for i in range(first_ws, first_out)]
+    launch = _Recorded("fused_forward", n, args, dynamic, work, device, n_arg, n_arg + 1)
+    launch.workspace = None  # the kept workspace buffer (CPU)
+    return launch
+
+
+def _workspace_pointers(launch: _Recorded | None, ws: _Layout):
+    """The workspace's array pointers, and the buffer to keep alive until the launch
+    returns: ``launch``'s own (grown as needed) when one is given, else a new one."""
+    if launch is None:
+        buf = ws.allocate()
+    else:
+        buf = launch.workspace
+        if buf is None or buf.numel() < ws.nbytes:
+            buf = launch.workspace = ws.allocate()
+    base = buf.data_ptr()
+    return [base + offset for *_, offset in ws.specs], buf
+
+
+# --- the batch split over CPU cores ----------------------------------------------------------
+
+# a CPU launch runs its problems one after another on one core; a batch with at least this
+# many problems times C^2 per part is split into parts launched on several cores at once
+# (about half a millisecond of work per part), as many as torch.get_num_threads() allows
+_SPLIT_WORK = 1 << 12
+
+
+@functools.cache
+def _cores() -> int:
+    from diffcontact.threads import available_cores
+
+    return available_cores()
+
+
+@functools.cache
+def _pool(workers: int):
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="diffcontact-warp")
+
+
+def _parts(n: int, C: int, device: torch.device) -> list[tuple[int, int]]:
+    """``(first, count)`` ranges of the n problems, one per core that a CPU launch of this
+    size is worth splitting over (one range on CUDA, where a launch fills the device)."""
+    if device.type != "cpu":
+        return [(0, n)]
+    parts = min(torch.get_num_threads(), _cores(), n * C * C // _SPLIT_WORK)
+    if parts <= 1:
+        return [(0, n)]
+    bounds = [n * i // parts for i in range(parts + 1)]
+    return [(bounds[i], bounds[i + 1] - bounds[i]) for i in range(parts)]
+
+
+def _run_parts(run, parts: list[tuple[int, int]]) -> None:
+    """``run(first, count)`` for every part: the first on this thread, the others on the
+    pool's at the same time (a Warp CPU launch releases the GIL); the first error raised."""
+    if len(parts) == 1:
+        run(*parts[0])
+        return
+    futures = [_pool(_cores() - 1).submit(run, *part) for part in parts[1:]]
+    try:
+        run(*parts[0])
+    finally:
+        for future in futures:
+            future.result()
+
+
 class FusedConeQP(torch.autograd.Function):
     """``solve_cone_qp`` on flat inputs with the Warp backend: the forward pass is one kernel
-    (``fused_forward``), the backward pass one more (``fused_backward``).
+    (``fused_forward``), the backward pass one more (``fused_backward``), each a replay of
+    a launch recorded for the call's signature (:class:`_Recorded`).
 
     Inputs: ``A`` (n, C, C), ``b`` (n, C), ``mu``, ``lower`` (n, K), ``active`` (n, K) bool,
     ``warm_start`` (n, C) or None, ``d``, resolved settings. Outputs: ``f`` (n, C) in the
@@ -473,74 +732,51 @@ class FusedConeQP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, A, b, mu, lower, active, warm_start, d: int, settings: SolverSettings):
-        from diffcontact.contact.warp_kernels import N_SC, N_SLOTS
-
         work = settings.compute_dtype
         in_dtype, device = A.dtype, A.device
-        A, b, mu, lower = (x.to(work) for x in (A, b, mu, lower))
+        A, b, mu, lower = (_as(x, work) for x in (A, b, mu, lower))
         n, C = b.shape
-        K = C // d
-        scalar, finfo = _scalar(work), torch.finfo(work)
-        ws = _Layout(work, device)
-        rows = 2 * n
-        for name in ("A0", "Am", "Aipm", "M", "V"):
-            ws.add(name, (rows, C, C))
-        ws.add("vec", (rows, N_SLOTS, C))
-        for name in ("b0", "bm", "bipm"):
-            ws.add(name, (rows, C))
-        for name in ("mu0", "lower0", "mum", "lowerm", "muipm", "loweripm", "apex"):
-            ws.add(name, (rows, K))
-        ws.add("sc", (rows, N_SC))
-        ws.add("piv", (rows, C), 4)
-        ws.add("act", (rows, K), 1)
-        saved = _saved_layout(n, C, d, work, device)
-        keep = saved.allocate()
-        work_buf = ws.allocate()  # kept alive until the launch returns
-        w = ws.arrays(work_buf)
-        s = saved.arrays(keep)
+        warm = b if warm_start is None else _as(warm_start.detach(), work)
+        inputs = (A, b, mu, lower, active, warm)
         f = torch.empty(n, C, dtype=work, device=device)
         res = torch.empty(n, dtype=work, device=device)
         iterations = torch.empty(n, dtype=torch.int64, device=device)
         converged = torch.empty(n, dtype=torch.bool, device=device)
         unbounded = torch.empty(n, dtype=torch.bool, device=device)
         flags = torch.zeros(len(FLAGS), dtype=torch.int32, device=device)
-        warm = b if warm_start is None else warm_start.detach().to(work)
-        eps = finfo.eps
-        args = [_ctype(x) for x in (A, b, mu, lower, active, warm)]
-        args += [n, d, K, int(warm_start is not None), int(settings.check_inputs), 2]
-        args += [settings.retries, settings.max_iter]
-        args += [settings.polish_steps]
-        args += [
-            scalar(x)
-            for x in (
-                settings.gap,
-                min(settings.polish_tol, settings.tol),
-                settings.tol,
-                settings.kkt_reg,
-                1e10,  # the interior point's blow-up bound, as the reference's
-                eps,
-                finfo.tiny,
-                float("inf"),
-                1e3,  # cone_qp._EQUILIBRATE_ABOVE
-                eps**0.375,  # the Tikhonov term of cone_qp._unbounded
-                1e2,
-                1e-2 / settings.tol,
-                -1e3 * eps * C,
-                eps**0.5,
+        outputs = (f, res, iterations, converged, unbounded, flags)
+        sig = _signature(n, device, *inputs)
+        key = ("forward", d, work, device, warm_start is None, settings, sig)
+
+        def record() -> _Recorded:
+            return _record_forward(inputs, outputs, n, d, warm_start is not None, settings)
+
+        saved = _saved_layout(n, C, d, work, device)
+        keep = saved.allocate()
+        base = keep.data_ptr()
+        pointers = [x.data_ptr() for x in inputs] + [x.data_ptr() for x in outputs[:5]]
+        pointers += [base + offset for *_, offset in saved.specs[:3]]
+        pointers.append(flags.data_ptr())
+        ws = _forward_workspace(n, C, C // d, work, device)
+        parts = _parts(n, C, device)
+        if len(parts) == 1:
+            launch = _recorded(key, record)
+            keep_ws = device.type == "cpu" and ws.nbytes <= _KEEP_WORKSPACE_BYTES
+            ws_pointers, work_buf = _workspace_pointers(launch if keep_ws else None, ws)
+            launch(n, pointers + ws_pointers)
+        else:  # one workspace shared by the parts (each problem has its own rows)
+            ws_pointers, work_buf = _workspace_pointers(None, ws)
+            pointers += ws_pointers
+            _run_parts(
+                lambda first, count: _recorded(key, record)(n, pointers, first, count), parts
             )
-        ]
-        names = "A0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc"
-        args += [w[k] for k in (*names.split(), "piv", "act")]
-        args += [_ctype(x) for x in (f, res, iterations, converged, unbounded)]
-        args += [s["sv"], s["LU"], s["piv"], _ctype(flags)]
-        _run("fused_forward", n, args, work, device)
         del work_buf
         ctx.save_for_backward(keep)
         ctx.shape = (n, C, d)
         ctx.dtypes = (in_dtype, work)
         ctx.mark_non_differentiable(converged, unbounded, iterations, res, flags)
         ctx.set_materialize_grads(False)
-        return f.to(in_dtype), converged, unbounded, iterations, res, flags
+        return _as(f, in_dtype), converged, unbounded, iterations, res, flags
 
     @staticmethod
     def backward(ctx, grad_f, *_):
@@ -551,19 +787,36 @@ class FusedConeQP(torch.autograd.Function):
         K = C // d
         in_dtype, work = ctx.dtypes
         device = keep.device
-        s = _saved_layout(n, C, d, work, device).arrays(keep)
-        grad_f = grad_f.to(work)
+        grad_f = _as(grad_f, work)
         want_A, want_mu = ctx.needs_input_grad[0], ctx.needs_input_grad[2]
         grad_b = torch.empty(n, C, dtype=work, device=device)
         grad_l = torch.empty(n, K, dtype=work, device=device)
         grad_A = torch.empty(n, C, C, dtype=work, device=device) if want_A else None
         grad_mu = torch.empty(n, K, dtype=work, device=device) if want_mu else None
-        args = [_ctype(grad_f), s["sv"], s["LU"], s["piv"], d, K, int(want_A), int(want_mu)]
-        args += [s["scratch"]]
-        args += [s["LU"] if grad_A is None else _ctype(grad_A), _ctype(grad_b)]
-        args += [_ctype(grad_l if grad_mu is None else grad_mu), _ctype(grad_l)]
-        _run("fused_backward", n, args, work, device)
-        grads = [None if x is None else x.to(in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
+        saved = _saved_layout(n, C, d, work, device)
+        outputs = (grad_A, grad_b, grad_mu if want_mu else grad_l, grad_l)
+
+        def record() -> _Recorded:
+            s = saved.arrays(0)  # (a replay sets the pointers)
+            args = [_ctype(grad_f), s["sv"], s["LU"], s["piv"], d, K, int(want_A), int(want_mu)]
+            args += [0, s["scratch"]]
+            args += [s["LU"] if grad_A is None else _ctype(grad_A), _ctype(grad_b)]
+            args += [_ctype(outputs[2]), _ctype(grad_l)]
+            dynamic = [(i, 1) for i in (0, 1, 2, 3, 9, 10, 11, 12, 13)]
+            return _Recorded("fused_backward", n, args, dynamic, work, device, None, 8)
+
+        sig = _signature(n, device, grad_f)
+        key = ("backward", C, d, work, device, want_A, want_mu, sig)
+        base = keep.data_ptr()
+        sv, LU, piv, scratch = (base + offset for *_, offset in saved.specs)
+        pointers = [grad_f.data_ptr(), sv, LU, piv, scratch]
+        pointers += [LU if grad_A is None else grad_A.data_ptr(), grad_b.data_ptr()]
+        pointers += [outputs[2].data_ptr(), grad_l.data_ptr()]
+        _run_parts(
+            lambda first, count: _recorded(key, record)(n, pointers, first, count),
+            _parts(n, C, device),
+        )
+        grads = [None if x is None else _as(x, in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
         if not ctx.needs_input_grad[1]:
             grads[1] = None
         if not ctx.needs_input_grad[3]:

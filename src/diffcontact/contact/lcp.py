@@ -124,6 +124,7 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.models import ContactParams
+from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
     "LCP",
@@ -389,7 +390,7 @@ def solve_lcp(
     if tol is not None and not (isinstance(tol, (int, float)) and 0 < tol < 1):
         raise ValueError(f"solve_lcp: tol must be a number in (0, 1), got {tol!r}")
     try:
-        batch = torch.broadcast_shapes(M.shape[:-2], q.shape[:-1], active.shape[:-1])
+        batch = broadcast_shapes(M.shape[:-2], q.shape[:-1], active.shape[:-1])
     except RuntimeError as err:
         raise ValueError(f"solve_lcp: batch dimensions do not broadcast: {err}") from None
     Mb = M.expand(*batch, n, n).reshape(-1, n, n)

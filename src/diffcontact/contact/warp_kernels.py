@@ -1704,6 +1704,7 @@ def fused_forward(
     active_in: wp.array2d(dtype=wp.bool),
     warm_in: wp.array2d(dtype=Any),
     n_total: int,
+    first: int,
     d: int,
     K: int,
     has_warm: int,
@@ -1763,8 +1764,9 @@ def fused_forward(
     into ``LU_out``, ``piv_out``. Workspace arrays have 2 n rows (see above). Sets
     ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
     ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
-    bad input (see ``_flag_finite``; zeros on entry)."""
-    t = wp.tid()
+    bad input (see ``_flag_finite``; zeros on entry). Thread i solves problem t = first + i
+    (a launch may cover a range of the problems)."""
+    t = wp.tid() + first
     n = K * d
     zero = type(tol)(0.0)
     _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, n, K, has_warm, check, flags)
@@ -1859,6 +1861,7 @@ def fused_backward(
     K: int,
     want_A: int,
     want_mu: int,
+    first: int,
     vec: wp.array3d(dtype=Any),
     grad_A: wp.array3d(dtype=Any),
     grad_b: wp.array2d(dtype=Any),
@@ -1868,8 +1871,8 @@ def fused_backward(
     """The implicit backward pass of problem t, with the chain rule of ``S sym(A) S``,
     ``S b``, ``lower / s`` and ``f = S f'``: v = dF/df^-T g (g = s grad_f on active
     components), then gradients to A, b, mu and lower as ``_ConeQPFunction.backward``.
-    ``vec`` (n, 2, C) is scratch."""
-    t = wp.tid()
+    ``vec`` (n, 2, C) is scratch. Thread i handles problem t = first + i."""
+    t = wp.tid() + first
     n = K * d
     zero = type(grad_f[t, 0])(0.0)
     rho = sv[t, SV_RHO, 0]

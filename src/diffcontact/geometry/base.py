@@ -22,6 +22,8 @@ from typing import ClassVar, NamedTuple, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from diffcontact.shapes import broadcast_shapes
+
 __all__ = [
     "ContactGeometry",
     "Geometry",
@@ -76,7 +78,7 @@ class Geometry(Protocol):
 
 def broadcast_batch(x: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
     """Expand ``x: (..., P, dim)`` and ``idx: (..., Ka)`` to common leading dims."""
-    batch = torch.broadcast_shapes(x.shape[:-2], idx.shape[:-1])
+    batch = broadcast_shapes(x.shape[:-2], idx.shape[:-1])
     return x.expand(*batch, *x.shape[-2:]), idx.expand(*batch, idx.shape[-1])
 
 

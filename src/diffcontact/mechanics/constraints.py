@@ -33,6 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diffcontact.shapes import broadcast_shapes
+
 __all__ = [
     "EqualityConstraints",
     "ball_joint",
@@ -284,7 +286,7 @@ class EqualityConstraints:
         dw = G_ce @ v
         K_dot = G_ce[:, :, None] * du[..., :, None, :] + G_ab[:, :, None] * dw[..., :, None, :]
         K_dot = K_dot.flatten(-2)
-        batch = torch.broadcast_shapes(x.shape[:-2], v.shape[:-2])
+        batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
         K_dot = K_dot.expand(*batch, *K_dot.shape[-2:])
         K_lin = K_dot.new_zeros(*batch, self.num_linear * self.dim, K_dot.shape[-1])
         return torch.cat([K_dot, K_lin], dim=-2)
@@ -304,13 +306,13 @@ class EqualityConstraints:
         self._check(v, "v")
         G_ab, G_ce, _, _ = self._selectors(x)
         term = 2.0 * ((G_ab @ v) * (G_ce @ v)).sum(-1)
-        batch = torch.broadcast_shapes(x.shape[:-2], v.shape[:-2])
+        batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
         term = term.expand(*batch, term.shape[-1])
         return torch.cat([term, term.new_zeros(*batch, self.num_linear * self.dim)], dim=-1)
 
 
 def _common_batch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    batch = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    batch = broadcast_shapes(a.shape[:-1], b.shape[:-1])
     return a.expand(*batch, a.shape[-1]), b.expand(*batch, b.shape[-1])
 
 

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from diffcontact.mechanics.bodies import kron_identity
 from diffcontact.mechanics.constraints import EqualityConstraints
+from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
     "Mhat_inv",
@@ -33,7 +34,7 @@ def _solve_spd(A: Tensor, B: Tensor) -> Tensor:
     A batch element whose ``A`` is not positive definite (a constraint system that
     became singular: the state left its constraint manifold) gets NaN, without a host
     synchronisation; ``System.simulate`` reports such states by index at the end."""
-    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    batch = broadcast_shapes(A.shape[:-2], B.shape[:-2])
     L, info = torch.linalg.cholesky_ex(A.expand(*batch, *A.shape[-2:]))
     X = torch.cholesky_solve(B.expand(*batch, *B.shape[-2:]), L)
     return torch.where((info > 0)[..., None, None], torch.nan, X)
@@ -58,7 +59,7 @@ def Mhat_inv(M_inv: Tensor, J_E: Tensor) -> Tensor:
     if D % P != 0:
         raise ValueError(f"J_E has {D} columns, not a multiple of P = {P} points")
     Minv_full = kron_identity(M_inv, D // P)
-    batch = torch.broadcast_shapes(M_inv.shape[:-2], J_E.shape[:-2])
+    batch = broadcast_shapes(M_inv.shape[:-2], J_E.shape[:-2])
     if J_E.shape[-2] == 0:
         return Minv_full.expand(*batch, D, D)
     B = Minv_full @ J_E.transpose(-1, -2)  # (..., D, E) = M^-1 J^T
@@ -148,7 +149,7 @@ def hamiltonian_flow(
     """
     P, dim = x.shape[-2:]
     D = P * dim
-    batch = torch.broadcast_shapes(x.shape[:-2], v.shape[:-2], grad_V.shape[:-2], M_inv.shape[:-2])
+    batch = broadcast_shapes(x.shape[:-2], v.shape[:-2], grad_V.shape[:-2], M_inv.shape[:-2])
     Minv_full = kron_identity(M_inv, dim).expand(*batch, D, D)
     grad_H = torch.cat(
         [

@@ -1,0 +1,33 @@
+"""Shape helpers cheap enough for the per-step hot paths."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+
+def broadcast_shapes(*shapes: Sequence[int]) -> tuple[int, ...]:
+    """The broadcast of ``shapes``, as :func:`torch.broadcast_shapes` for shapes given as
+    tuples (or ``torch.Size``), in a few microseconds instead of tens.
+
+    Raises:
+        RuntimeError: the shapes do not broadcast (the type ``torch.broadcast_shapes``
+            raises).
+    """
+    out: list[int] = []
+    for shape in shapes:
+        shape = tuple(shape)
+        if len(shape) > len(out):
+            out[:0] = [1] * (len(shape) - len(out))
+        offset = len(out) - len(shape)
+        for i, size in enumerate(shape):
+            current = out[offset + i]
+            if size == current or size == 1:
+                continue
+            if current == 1:
+                out[offset + i] = size
+            else:
+                raise RuntimeError(
+                    f"shapes {[tuple(s) for s in shapes]} cannot be broadcast: size {size} "
+                    f"against {current} at dimension {offset + i - len(out)}"
+                )
+    return tuple(out)
