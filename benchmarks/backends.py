@@ -24,12 +24,11 @@ kernel on a fresh machine: its time is printed once). See benchmarks/README.md.
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import torch
 
-from common import machine_header, sync
+from common import machine_header, median_time
 
 BATCHES = (1, 64, 1024)
 
@@ -157,14 +156,7 @@ def time_backend(P: dict, B: int, backend: str, device, reps: int) -> dict:
         (f * W).sum().backward()
 
     def median(fn) -> float:
-        times = []
-        for _ in range(reps):
-            sync(device)
-            t0 = time.perf_counter()
-            fn()
-            sync(device)
-            times.append(time.perf_counter() - t0)
-        return statistics.median(times)
+        return median_time(fn, device, reps)
 
     def backward_only() -> int:
         A, b, mu = (x.clone().requires_grad_() for x in args[:3])

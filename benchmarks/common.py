@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import platform
+import statistics
+import time
 from pathlib import Path
 
 import torch
@@ -12,6 +14,18 @@ import torch
 def sync(device: str) -> None:
     if device == "cuda":
         torch.cuda.synchronize()
+
+
+def median_time(fn, device: str, reps: int) -> float:
+    """Median seconds of ``reps`` calls of ``fn()`` (the device synchronised around each)."""
+    times = []
+    for _ in range(reps):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def machine_header(device: str, dtype: torch.dtype) -> list[str]:

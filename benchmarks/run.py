@@ -9,6 +9,7 @@
     python benchmarks/run.py backends [...]  # the solver's torch vs Warp backends (backends.py)
     python benchmarks/run.py contact_models [...]  # one impulse: CM vs CMr vs Coulomb
     python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
+    python benchmarks/run.py reductions [...]  # sums over a short last dim (reductions.py)
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -21,7 +22,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-SUITES = ("solver", "simulate", "train", "control", "backends", "contact_models", "threads")
+SUITES = (
+    "solver",
+    "simulate",
+    "train",
+    "control",
+    "backends",
+    "contact_models",
+    "threads",
+    "reductions",
+)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -589,3 +589,35 @@ def test_projection_derivatives_match_the_reference():
     )
     torch.testing.assert_close(torch.where(on, dmu, 0), torch.where(on, dmu_ref, 0))
     torch.testing.assert_close(torch.where(on, dl, 0), torch.where(on, dl_ref, 0))
+
+
+def test_trailing_inactive_contacts_are_trimmed_exactly():
+    """The kernel solves only up to each problem's last active contact: the trailing
+    contacts get exactly zero impulse and zero gradients (whatever A and b hold there), the
+    others the same impulse and gradients as the problem without them, and a problem with
+    no active contact a zero impulse."""
+    d, K = 2, 5
+    A, b, mu, lower, _ = mixed_family(6, K, d, seed=11)
+    active = torch.ones(6, K, dtype=torch.bool)
+    active[:, 3:] = False  # contacts 3 and 4 trail
+    active[1, 1] = False  # an inactive contact before an active one
+    active[5] = False  # nothing active
+    w = torch.randn(6, K * d, generator=torch.Generator().manual_seed(1), dtype=F64)
+    xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+    f = solve_cone_qp(*xs[:3], d, xs[3], active, settings=WARP)
+    gA, gb, gmu, gl = torch.autograd.grad((f * w).sum(), xs)
+    assert torch.equal(f[:, 3 * d :], torch.zeros_like(f[:, 3 * d :]))
+    assert torch.equal(f[5], torch.zeros_like(f[5]))
+    for g in (gb[:, 3 * d :], gmu[:, 3:], gl[:, 3:], gA[:, 3 * d :], gA[:, :, 3 * d :]):
+        assert torch.equal(g, torch.zeros_like(g))
+    C = 3 * d
+    ys = [x[:5].detach().clone().requires_grad_() for x in (A, b, mu, lower)]
+    ys = [ys[0][:, :C, :C], ys[1][:, :C], ys[2][:, :3], ys[3][:, :3]]
+    ys = [y.detach().requires_grad_() for y in ys]
+    g_ref = solve_cone_qp(*ys[:3], d, ys[3], active[:5, :3], settings=WARP)
+    torch.testing.assert_close(f[:5, :C], g_ref, rtol=1e-12, atol=1e-14)
+    hA, hb, hmu, hl = torch.autograd.grad((g_ref * w[:5, :C]).sum(), ys)
+    torch.testing.assert_close(gA[:5, :C, :C], hA, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(gb[:5, :C], hb, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(gmu[:5, :3], hmu, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(gl[:5, :3], hl, rtol=1e-10, atol=1e-12)

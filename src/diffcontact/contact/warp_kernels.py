@@ -1261,6 +1261,16 @@ HUNDREDTH = wp.constant(wp.float64(0.01))  # the retries' gap factor
 
 
 @wp.func
+def _trimmed(act: wp.array2d(dtype=wp.bool), t: int, K: int):
+    """The number of contacts up to problem t's last active one (at least 1)."""
+    last = int(0)
+    for k in range(K):
+        if act[t, k]:
+            last = k + 1
+    return wp.max(last, 1)
+
+
+@wp.func
 def _equilibrate(
     A_in: wp.array3d(dtype=Any),
     b_in: wp.array2d(dtype=Any),
@@ -1281,8 +1291,7 @@ def _equilibrate(
 ):
     """``_contact_scales`` and ``S sym(A) S``, ``S b``, ``lower / s`` into row t of the
     workspace (the scales into sv[t, SV_S], the active mask into sv[t, SV_ACT] and rows t,
-    row1 of ``act``)."""
-    n = K * d
+    row1 of ``act``); A and b only up to the last active contact (``_trimmed``)."""
     zero = type(spread)(0.0)
     one = type(spread)(1.0)
     top = zero
@@ -1308,6 +1317,7 @@ def _equilibrate(
             sv[t, SV_ACT, k * d + j] = _pick(on, one, zero)
         lower0[t, k] = lower_in[t, k] / s
         mu0[t, k] = mu_in[t, k]
+    n = _trimmed(act, t, K) * d  # (the solve's contacts)
     for i in range(n):
         si = sv[t, SV_S, i]
         b0[t, i] = b_in[t, i] * si
@@ -1706,7 +1716,7 @@ def fused_forward(
     n_total: int,
     first: int,
     d: int,
-    K: int,
+    K_all: int,
     has_warm: int,
     check: int,
     passes: int,
@@ -1767,14 +1777,17 @@ def fused_forward(
     bad input (see ``_flag_finite``; zeros on entry). Thread i solves problem t = first + i
     (a launch may cover a range of the problems)."""
     t = wp.tid() + first
-    n = K * d
     zero = type(tol)(0.0)
-    _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, n, K, has_warm, check, flags)
+    _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, has_warm, check, flags)
     row1 = n_total + t
     _equilibrate(
-        A_in, b_in, lower_in, mu_in, active_in, t, d, K, spread, A0, b0, mu0, lower0, act, row1,
-        sv,
+        A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, A0, b0, mu0, lower0, act,
+        row1, sv,
     )  # fmt: skip
+    # the trailing inactive contacts are decoupled (identity rows, zero impulse): the solve
+    # runs on the contacts up to the last active one (callers pad at the end)
+    K = _trimmed(act, t, K_all)
+    n = K * d
     again = bool(False)
     cert = bool(False)
     res0 = zero
@@ -1831,6 +1844,13 @@ def fused_forward(
                     LU_out[t, i, j] = M[t, i, j]
                 for a in range(d):
                     sv[t, SV_P + a, i] = vec[t, P0 + a, i]
+            for i in range(n, K_all * d):  # the trimmed contacts: zero impulse
+                sv[t, SV_F, i] = zero
+                sv[t, SV_DMU, i] = zero
+                sv[t, SV_DL, i] = zero
+                f_out[t, i] = zero
+                for a in range(d):
+                    sv[t, SV_P + a, i] = zero
             sv[t, SV_RHO, 0] = sc[t, SC_RHO]
             unconverged = res > tol
             if any_on and (unconverged or size > size_check):
@@ -1858,7 +1878,7 @@ def fused_backward(
     LU: wp.array3d(dtype=Any),
     piv: wp.array2d(dtype=wp.int32),
     d: int,
-    K: int,
+    K_all: int,
     want_A: int,
     want_mu: int,
     first: int,
@@ -1873,8 +1893,25 @@ def fused_backward(
     components), then gradients to A, b, mu and lower as ``_ConeQPFunction.backward``.
     ``vec`` (n, 2, C) is scratch. Thread i handles problem t = first + i."""
     t = wp.tid() + first
-    n = K * d
     zero = type(grad_f[t, 0])(0.0)
+    C = K_all * d
+    K = int(0)  # as the forward pass: the contacts up to the last active one
+    for k in range(K_all):
+        if sv[t, SV_ACT, k * d] != zero:
+            K = k + 1
+    K = wp.max(K, 1)
+    n = K * d
+    for i in range(n, C):  # the trimmed contacts: no gradient
+        grad_b[t, i] = zero
+    for k in range(K, K_all):
+        if want_mu != 0:
+            grad_mu[t, k] = zero
+        grad_l[t, k] = zero
+    if want_A != 0:
+        for i in range(C):
+            for j in range(C):
+                if i >= n or j >= n:
+                    grad_A[t, i, j] = zero
     rho = sv[t, SV_RHO, 0]
     for i in range(n):
         g = grad_f[t, i] * sv[t, SV_S, i]

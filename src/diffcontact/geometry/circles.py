@@ -112,6 +112,7 @@ class CirclePairs(GeometryBase):
     radii: Tensor
     pair_i: Tensor
     pair_j: Tensor
+    _tables: dict = dataclasses.field(default_factory=dict, init=False, repr=False)
 
     d: ClassVar[int] = 2
 
@@ -147,13 +148,29 @@ class CirclePairs(GeometryBase):
         Returns:
             ``(..., K)``.
         """
-        dev = x.device
-        centres = self.body_points[:, 0].to(dev)
-        ci = x[..., centres[self.pair_i.to(dev)], :]
-        cj = x[..., centres[self.pair_j.to(dev)], :]
-        dist = safe_norm(cj - ci)
-        r = self.radii.to(device=dev, dtype=x.dtype)
-        return dist - r[self.pair_i.to(dev)] - r[self.pair_j.to(dev)]
+        ci_idx, cj_idx, r_i, r_j = self._gap_tables(x.device, x.dtype)
+        dist = safe_norm(x.index_select(-2, cj_idx) - x.index_select(-2, ci_idx))
+        return dist - r_i - r_j
+
+    def _gap_tables(self, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, ...]:
+        """The points of the pairs' centres and their radii, each ``(K,)``, on ``device``
+        (made once per device and dtype: making index tensors costs microseconds)."""
+        key = (device, dtype)
+        tables = self._tables.get(key)
+        if tables is None:
+            centres = self.body_points[:, 0]
+            r = self.radii.to(dtype)
+            tables = tuple(
+                t.to(device)
+                for t in (
+                    centres[self.pair_i],
+                    centres[self.pair_j],
+                    r[self.pair_i],
+                    r[self.pair_j],
+                )
+            )
+            self._tables[key] = tables
+        return tables
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of pairs ``idx``.
@@ -205,6 +222,7 @@ class CircleWalls(GeometryBase):
     is_disk: Tensor
     radii: Tensor
     walls: Tensor
+    _tables: dict = dataclasses.field(default_factory=dict, init=False, repr=False)
 
     d: ClassVar[int] = 2
 
@@ -253,12 +271,23 @@ class CircleWalls(GeometryBase):
         Returns:
             ``(..., K)``, body-major.
         """
-        dev = x.device
-        c = x[..., self.body_points[:, 0].to(dev), :]  # (..., B, 2)
-        w = self.walls.to(device=dev, dtype=x.dtype)
-        r = self.radii.to(device=dev, dtype=x.dtype)
-        dist = c @ w[:, :2].T + w[:, 2]  # (..., B, W)
-        return (dist - r.unsqueeze(-1)).flatten(-2)
+        key = (x.device, x.dtype)
+        tables = self._tables.get(key)
+        if tables is None:  # made once per device and dtype
+            w = self.walls.to(x.dtype)
+            tables = tuple(
+                t.to(x.device)
+                for t in (
+                    self.body_points[:, 0],
+                    w[:, :2].T.contiguous(),
+                    w[:, 2],
+                    self.radii.to(x.dtype).unsqueeze(-1),
+                )
+            )
+            self._tables[key] = tables
+        centres, normals, offsets, r = tables
+        c = x.index_select(-2, centres)  # (..., B, 2)
+        return (c @ normals + offsets - r).flatten(-2)  # (..., B, W)
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of body-wall candidates ``idx``.

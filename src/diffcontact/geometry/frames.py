@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffcontact.reductions import dot_last
+
 __all__ = [
     "contact_frame",
     "material_point_weights",
@@ -36,7 +38,7 @@ def safe_norm(v: Tensor, eps: float | None = None) -> Tensor:
         ``(...,)``.
     """
     eps = _tiny(v) if eps is None else eps
-    return (v * v).sum(-1).clamp_min(eps * eps).sqrt()
+    return dot_last(v, v).clamp_min(eps * eps).sqrt()
 
 
 def safe_normalize(

@@ -1109,6 +1109,9 @@ class System:
         if check_overlap:
             self._check_no_overlap(z0, "z0")
         states = [z0]
+        # the gaps of each state, for the tunnelling check: the contact resolution's own
+        # (a step's positions are final there unless the position projection moves them)
+        gaps: list[Tensor] | None = None if iterations else [self.gaps(z0.detach()[:, 0])]
         z = z0
         iterator: Any = range(steps)
         if progress:
@@ -1120,6 +1123,8 @@ class System:
             try:
                 res = self._resolve(z1, ctx, model, fraction, solver_settings)
                 z = self._project(res, ctx, iterations, solver_settings)
+                if gaps is not None:
+                    gaps.append(res.gaps)
             except (ValueError, torch.linalg.LinAlgError) as err:
                 # a state that blew up inside the step fails in the first linear algebra
                 # that meets it (the solver's input check, or an SVD / factorisation of
@@ -1140,7 +1145,9 @@ class System:
         if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
             raise ValueError(self._nonfinite_message(states, steps))
         if on_tunnelling != "ignore":
-            self._check_tunnelling(traj, on_tunnelling == "raise")
+            self._check_tunnelling(
+                traj, on_tunnelling == "raise", None if gaps is None else torch.stack(gaps, 1)
+            )
         return traj
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
@@ -1157,10 +1164,17 @@ class System:
             sizes.append(min(radii) if radii else float("inf"))
         return torch.tensor(sizes, dtype=like.dtype, device=like.device)
 
-    def _check_tunnelling(self, traj: Tensor, raise_error: bool) -> None:
-        """Warn (or raise) once if any state penetrates deeper than the fraction allows."""
+    def _check_tunnelling(
+        self, traj: Tensor, raise_error: bool, gaps: Tensor | None = None
+    ) -> None:
+        """Warn (or raise) once if any state penetrates deeper than the fraction allows.
+
+        ``gaps``: ``(N, T, K)`` the gaps of ``traj``'s positions where the caller has them.
+        """
         with torch.no_grad():
-            gaps = self.gaps(traj[..., 0, :, :].detach())  # (N, T, K)
+            if gaps is None:
+                gaps = self.gaps(traj[..., 0, :, :].detach())  # (N, T, K)
+            gaps = gaps.detach()
             depth = -gaps / self._contact_sizes(gaps)
             bad = depth > TUNNELLING_FRACTION
             if not bool(bad.any()):

@@ -1,0 +1,49 @@
+"""``diffcontact.reductions``: the fast sums equal torch's sums, values and gradients."""
+
+import pytest
+import torch
+
+from diffcontact.reductions import dot_last, sum_last
+
+
+@pytest.mark.parametrize("shape", [(5,), (7, 2), (1024, 10, 2), (3, 4, 3), (6, 9), (4, 0)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_sum_last_equals_torch_sum(shape, dtype):
+    x = torch.randn(*shape, dtype=dtype)
+    expected = x.sum(-1)
+    got = sum_last(x)
+    assert got.shape == expected.shape and got.dtype == dtype
+    torch.testing.assert_close(got, expected, rtol=4 * torch.finfo(dtype).eps, atol=0)
+    if shape[-1] == 2:  # one addition: bitwise the same
+        assert torch.equal(got, expected)
+
+
+@pytest.mark.parametrize("n", [3, 3000])  # below and above the size that switches backward
+def test_dot_last_gradients(n):
+    a = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(n, dtype=torch.float64)
+    (dot_last(a, b) * w).sum().backward()
+    torch.testing.assert_close(a.grad, w[:, None] * b.detach())
+    torch.testing.assert_close(b.grad, w[:, None] * a.detach())
+    if n == 3:
+        assert torch.autograd.gradcheck(lambda u, v: dot_last(u, v), (a, b))
+
+
+def test_integer_and_bool_fall_back_to_sum():
+    x = torch.arange(12).reshape(6, 2)
+    assert torch.equal(sum_last(x), x.sum(-1))
+    m = torch.tensor([[True, False], [True, True]])
+    assert torch.equal(sum_last(m), m.sum(-1))
+
+
+def test_sum_last_in_inference_mode_then_autograd():
+    """The cached vector of ones made under inference mode still works with autograd."""
+    from diffcontact import reductions
+
+    reductions._ones.cache_clear()
+    with torch.inference_mode():
+        sum_last(torch.randn(5000, 2))
+    x = torch.randn(5000, 2, requires_grad=True)
+    sum_last(x).sum().backward()
+    assert torch.equal(x.grad, torch.ones_like(x))
