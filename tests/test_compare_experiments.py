@@ -86,7 +86,10 @@ def test_mismatch_evaluates_lcp_runs_on_both_test_sets(compare, shared, capsys):
     assert not runs["BP5-e/CM-CD-CLNN"]["trained"]  # the models experiment's run
     lcp = runs["BP5-e_LCP/CM-CD-CLNN"]
     on_cm = lcp["also_on"]["BP5-e"]
-    assert on_cm["rel_err_mean"] > 0 and on_cm["rel_err_mean"] != lcp["rel_err_mean"]
+    # (on BP5-e's frictionless contacts CM and LCP agree to ~1e-14, so the two errors may
+    # be equal: the evaluation on the CM test set is checked by its own files)
+    assert on_cm["rel_err_mean"] > 0
+    assert list(out.rglob("BP5-e_LCP*/**/evaluation-on-BP5-e/metrics.json"))
     meta = json.loads((out / "data" / "BP5-e_LCP" / "metadata.json").read_text())
     assert meta["contact_model"] == "LCP"
     body = _section(doc, "mismatch")

@@ -108,7 +108,10 @@ class SolverSettings:
         gap: interior-point target for the complementarity gap per cone and the
             residuals (scaled), before polishing (float64: 1e-9, float32: 1e-4).
         max_iter: interior-point iteration cap.
-        polish_steps: Newton steps on the natural map.
+        polish_steps: Newton steps on the natural map. The Warp backend first tries twice
+            as many from zero on a problem without a fast path (several contacts) and
+            keeps the result where it converges to a regular point (a unique minimiser);
+            the interior point solves the others.
         retries: re-solves, each with a 100x tighter interior-point gap, of the
             problems the polish could not finish.
         kkt_reg: relative regularisation ``delta`` of ``A`` in the polish and

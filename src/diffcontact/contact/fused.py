@@ -553,6 +553,10 @@ _RECORD_LOCK = threading.Lock()
 # as needed up to this size, instead of allocating one per call
 _KEEP_WORKSPACE_BYTES = 1 << 21
 
+# a problem without a fast path (several contacts) first tries this many times
+# ``polish_steps`` Newton steps from zero, then the interior point (warp_kernels._solve_row)
+FIRST_STEPS_FACTOR = 2
+
 
 def _recorded(key: tuple, record) -> _Recorded:
     """The recorded launch of ``key`` in this thread, made by ``record()`` if missing."""
@@ -625,7 +629,7 @@ def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings)
     n_arg = len(args)
     args += [n, 0, d, K, int(warm), int(settings.check_inputs), 2]
     args += [settings.retries, settings.max_iter]
-    args += [settings.polish_steps]
+    args += [settings.polish_steps, FIRST_STEPS_FACTOR * settings.polish_steps]
     args += [
         scalar(x)
         for x in (

@@ -58,12 +58,13 @@ def penetration_target(
     it respects the equality constraints (S.22), and mapped back with ``J_C`` (S.23).
     No gradient flows through it.
 
-    The pseudo-inverse is the damped one, ``J_C^T (J_C J_C^T + lambda I)^-1`` with
-    ``lambda = sqrt(eps)`` times the largest diagonal entry of ``J_C J_C^T`` (a
-    Cholesky solve, ten times cheaper than an SVD): it equals ``pinv(J_C)`` to a
-    relative ``sqrt(eps)`` on well-conditioned contacts, ignores padded zero rows and
-    redundant contacts as ``pinv`` does, and damps nearly redundant ones where
-    ``pinv`` would amplify them by ``1 / sigma_min``.
+    ``pinv(J_C) v`` is ``J_C^T (J_C J_C^T)^-1 v`` where ``J_C`` has full row rank (padded
+    zero rows aside): two Cholesky solves instead of an SVD, ten times cheaper. Where
+    its rows are (nearly) dependent, several contacts on one body with more rows than
+    degrees of freedom, the damped pseudo-inverse ``J_C^T (J_C J_C^T + lambda I)^-1``
+    (``lambda = sqrt(eps)`` times the largest diagonal entry of ``J_C J_C^T``) stands in:
+    it agrees with ``pinv`` to ``sqrt(eps)`` relative on the range of ``J_C`` and ignores
+    the dependent part as ``pinv`` does. No host synchronisation.
 
     Args:
         J_C: (..., K*d, D) contact Jacobian (padded rows may be zero).
@@ -82,18 +83,32 @@ def penetration_target(
         v_d = torch.zeros(*depth.shape, d, dtype=J_C.dtype, device=J_C.device)
         v_d[..., 0] = fraction * depth / dt
         v_d = v_d.flatten(-2)
-        G = J_C @ J_C.transpose(-1, -2)  # (..., K*d, K*d)
-        finfo = torch.finfo(G.dtype)
-        lam = (finfo.eps**0.5 * G.diagonal(dim1=-2, dim2=-1).amax(-1)).clamp_min(finfo.tiny)
-        G.diagonal(dim1=-2, dim2=-1).add_(lam.unsqueeze(-1))
-        L, _ = torch.linalg.cholesky_ex(G)  # positive definite by lambda (NaN in: NaN out)
-        y = torch.cholesky_solve(v_d.unsqueeze(-1), L)
-        v_star = (J_C.transpose(-1, -2) @ y).squeeze(-1)
+        v_star = _pinv_apply(J_C, v_d)
         if J_E is not None and J_E.shape[-2] > 0:
             JJt = J_E @ J_E.transpose(-1, -2)
             corr = torch.linalg.solve(JJt, (J_E @ v_star.unsqueeze(-1)))
             v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
         return (J_C @ v_star.unsqueeze(-1)).squeeze(-1)
+
+
+def _pinv_apply(J: Tensor, v: Tensor) -> Tensor:
+    """``pinv(J) v`` for ``J: (..., m, D)``, ``v: (..., m)`` (see :func:`penetration_target`)."""
+    G = J @ J.transpose(-1, -2)  # (..., m, m)
+    diag = G.diagonal(dim1=-2, dim2=-1)
+    finfo = torch.finfo(G.dtype)
+    scale = diag.amax(-1, keepdim=True).clamp_min(finfo.tiny)  # (..., 1)
+    padded = diag <= 0  # zero rows (v is zero there): a unit pivot keeps them out
+    exact = G + torch.diag_embed(torch.where(padded, scale, 0))
+    L, info = torch.linalg.cholesky_ex(exact)
+    pivots = L.diagonal(dim1=-2, dim2=-1).square()
+    dependent = (info != 0) | (pivots < finfo.eps**0.5 * scale).any(-1)
+    damped = G + (finfo.eps**0.5 * scale).unsqueeze(-1) * torch.eye(
+        G.shape[-1], dtype=G.dtype, device=G.device
+    )
+    L_damped, _ = torch.linalg.cholesky_ex(damped)  # positive definite (NaN in: NaN out)
+    L = torch.where(dependent[..., None, None], L_damped, L)
+    y = torch.cholesky_solve(v.unsqueeze(-1), L)
+    return (J.transpose(-1, -2) @ y).squeeze(-1)
 
 
 def two_phase_impulse(

@@ -1552,6 +1552,7 @@ def _solve_row(
     target: Any,
     tol: Any,
     polish_steps: int,
+    first_steps: int,
     blowup: Any,
     eps: Any,
     tiny: Any,
@@ -1562,7 +1563,8 @@ def _solve_row(
     piv: wp.array2d(dtype=wp.int32),
 ):
     """The solve of ``_forward`` for workspace row r: polish of the guess in vec[r, F_]
-    (if ``guessed``), else interior point and polish with retries. Leaves the polished
+    (if ``guessed``), else ``first_steps`` Newton steps from zero; where that does not
+    finish, interior point and polish with retries. Leaves the polished
     point (f, F, P, dmu, dl in their rows of vec; the LU factorisation of dF/df in M[r],
     piv[r]); returns (residual, interior-point iterations, interior point diverged)."""
     rho = sc[r, SC_RHO]
@@ -1579,6 +1581,21 @@ def _solve_row(
             piv,
         )  # fmt: skip
         kept = res <= target
+    else:
+        # Newton from zero first: kept where it converges to a point where dF/df is
+        # regular, an isolated and so (convex problem) the unique minimiser, the one the
+        # interior point would have found; else (a minimiser that may not be unique,
+        # which the interior point's central path picks) the interior point
+        for i in range(n):
+            vec[r, F_, i] = type(gap)(0.0)
+        res = _polish(
+            Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, first_steps, eps, vec, M, V,
+            piv,
+        )  # fmt: skip
+        umin = inf
+        for i in range(n):
+            umin = wp.min(umin, wp.abs(M[r, i, i]))
+        kept = res <= target and umin > type(gap)(FLAT)
     if not kept:
         g = gap
         for _attempt in range(retries + 1):
@@ -1723,6 +1740,7 @@ def fused_forward(
     retries: int,
     max_iter: int,
     polish_steps: int,
+    first_steps: int,
     gap: Any,
     target: Any,
     tol: Any,
@@ -1820,8 +1838,8 @@ def fused_forward(
             guessed = True
         res, iterations, _div = _solve_row(
             Am, bm, mum, lowerm, Aipm, bipm, muipm, loweripm, apex, act, sc, r, d, K, guessed,
-            gap, max_iter, retries, target, tol, polish_steps, blowup, eps, tiny, inf, vec, M, V,
-            piv,
+            gap, max_iter, retries, target, tol, polish_steps, first_steps, blowup, eps, tiny, inf,
+            vec, M, V, piv,
         )  # fmt: skip
         if p == 0:
             res0 = res
