@@ -9,7 +9,7 @@
     python benchmarks/run.py backends [...]  # the solver's torch vs Warp backends (backends.py)
     python benchmarks/run.py contact_models [...]  # one impulse: CM vs CMr vs Coulomb
     python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
-    python benchmarks/run.py reductions [...]  # sums over a short last dim (reductions.py)
+    python benchmarks/run.py fastops [...]  # sums over a short last dim (fastops.py)
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -30,7 +30,7 @@ SUITES = (
     "backends",
     "contact_models",
     "threads",
-    "reductions",
+    "fastops",
 )
 
 

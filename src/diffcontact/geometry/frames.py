@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffcontact.reductions import dot_last
+from diffcontact.fastops import dot_last
 
 __all__ = [
     "contact_frame",

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from diffcontact.fastops import dot_last, left_matmul
 from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
@@ -187,14 +188,22 @@ class EqualityConstraints:
         ``w = G_ce x + w0`` and ``u0, w0: (E_dot, dim)``.
         """
         P, P_x = self.num_points, x.shape[-2]
-        G_ab, G_ce = (G.to(dtype=x.dtype, device=x.device) for G in self._index_selectors)
-        anchors = self.anchors.to(dtype=x.dtype, device=x.device)
-        u0 = G_ab[:, P:] @ anchors
-        w0 = G_ce[:, P:] @ anchors
-        G_ab, G_ce = G_ab[:, :P], G_ce[:, :P]
-        if P_x != P:
-            G_ab, G_ce = F.pad(G_ab, (0, P_x - P)), F.pad(G_ce, (0, P_x - P))
-        return G_ab, G_ce, u0, w0
+        key = (x.dtype, x.device, P_x)
+        tables = self._selector_tables.get(key)
+        if tables is None:  # constants of the indices: made once per dtype, device and P_x
+            G_ab, G_ce = (G.to(dtype=x.dtype, device=x.device) for G in self._index_selectors)
+            A_ab, A_ce = G_ab[:, P:], G_ce[:, P:]
+            G_ab, G_ce = G_ab[:, :P], G_ce[:, :P]
+            if P_x != P:
+                G_ab, G_ce = F.pad(G_ab, (0, P_x - P)), F.pad(G_ce, (0, P_x - P))
+            tables = self._selector_tables[key] = (G_ab, G_ce, A_ab, A_ce)
+        G_ab, G_ce, A_ab, A_ce = tables
+        anchors = self.anchors.to(dtype=x.dtype, device=x.device)  # (may carry a gradient)
+        return G_ab, G_ce, A_ab @ anchors, A_ce @ anchors
+
+    @cached_property
+    def _selector_tables(self) -> dict:
+        return {}
 
     def _lin_weight(self, x: Tensor) -> Tensor:
         W = self.lin_weight.to(dtype=x.dtype, device=x.device)
@@ -234,8 +243,8 @@ class EqualityConstraints:
         self._check(x)
         P_x, dim = x.shape[-2], self.dim
         G_ab, G_ce, u0, w0 = self._selectors(x)
-        u = G_ab @ x + u0  # (..., E_dot, dim)
-        w = G_ce @ x + w0
+        u = left_matmul(G_ab, x) + u0  # (..., E_dot, dim)
+        w = left_matmul(G_ce, x) + w0
         J_dot = G_ab[:, :, None] * w[..., :, None, :] + G_ce[:, :, None] * u[..., :, None, :]
         J_dot = J_dot.flatten(-2)  # (..., E_dot, P_x*dim)
         W = self._lin_weight(x)
@@ -282,8 +291,8 @@ class EqualityConstraints:
         self._check(x)
         self._check(v, "v")
         G_ab, G_ce, _, _ = self._selectors(x)
-        du = G_ab @ v
-        dw = G_ce @ v
+        du = left_matmul(G_ab, v)
+        dw = left_matmul(G_ce, v)
         K_dot = G_ce[:, :, None] * du[..., :, None, :] + G_ab[:, :, None] * dw[..., :, None, :]
         K_dot = K_dot.flatten(-2)
         batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
@@ -305,7 +314,7 @@ class EqualityConstraints:
         self._check(x)
         self._check(v, "v")
         G_ab, G_ce, _, _ = self._selectors(x)
-        term = 2.0 * ((G_ab @ v) * (G_ce @ v)).sum(-1)
+        term = 2.0 * dot_last(left_matmul(G_ab, v), left_matmul(G_ce, v))
         batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
         term = term.expand(*batch, term.shape[-1])
         return torch.cat([term, term.new_zeros(*batch, self.num_linear * self.dim)], dim=-1)

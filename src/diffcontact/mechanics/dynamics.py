@@ -14,6 +14,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from diffcontact.fastops import left_matmul
 from diffcontact.mechanics.bodies import kron_identity
 from diffcontact.mechanics.constraints import EqualityConstraints
 from diffcontact.shapes import broadcast_shapes
@@ -92,13 +93,14 @@ def lagrangian_vector_field(
     Returns:
         ``(..., P, dim)`` acceleration ``dv/dt`` (``dx/dt = v``).
     """
-    f = M_inv @ grad_V  # M^-1 grad V, (..., P, dim)
+    f = left_matmul(M_inv, grad_V)  # M^-1 grad V, (..., P, dim)
     if constraints is None or constraints.num_equations == 0:
         return -f
     P, dim = x.shape[-2:]
     J = constraints.jacobian(x)  # (..., E, D)
     Jr = J.unflatten(-1, (P, dim))  # (..., E, P, dim)
-    MJ = M_inv.unsqueeze(-3) @ Jr  # rows of (M^-1 J^T)^T, (..., E, P, dim)
+    # rows of (M^-1 J^T)^T, (..., E, P, dim); one product for a model's shared masses
+    MJ = left_matmul(M_inv if M_inv.dim() == 2 else M_inv.unsqueeze(-3), Jr)
     A = torch.einsum("...epc,...fpc->...ef", Jr, MJ)
     rhs = torch.einsum("...epc,...pc->...e", Jr, f) - constraints.jacobian_dot_v(x, v)
     lam = _solve_spd(A, rhs.unsqueeze(-1)).squeeze(-1)

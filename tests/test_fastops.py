@@ -1,9 +1,9 @@
-"""``diffcontact.reductions``: the fast sums equal torch's sums, values and gradients."""
+"""``diffcontact.fastops``: the fast sums equal torch's sums, values and gradients."""
 
 import pytest
 import torch
 
-from diffcontact.reductions import dot_last, sum_last
+from diffcontact.fastops import dot_last, sum_last
 
 
 @pytest.mark.parametrize("shape", [(5,), (7, 2), (1024, 10, 2), (3, 4, 3), (6, 9), (4, 0)])
@@ -39,11 +39,31 @@ def test_integer_and_bool_fall_back_to_sum():
 
 def test_sum_last_in_inference_mode_then_autograd():
     """The cached vector of ones made under inference mode still works with autograd."""
-    from diffcontact import reductions
+    from diffcontact import fastops
 
-    reductions._ones.cache_clear()
+    fastops._ones.cache_clear()
     with torch.inference_mode():
         sum_last(torch.randn(5000, 2))
     x = torch.randn(5000, 2, requires_grad=True)
     sum_last(x).sum().backward()
     assert torch.equal(x.grad, torch.ones_like(x))
+
+
+@pytest.mark.parametrize("batch", [(3,), (200, 15), (7, 5, 40)])
+def test_left_matmul_equals_matmul_values_and_gradients(batch):
+    """Both paths (one product over the batch, or broadcast @) equal G @ X."""
+    from diffcontact.fastops import left_matmul
+
+    gen = torch.Generator().manual_seed(0)
+    G = torch.randn(4, 6, generator=gen, dtype=torch.float64, requires_grad=True)
+    X = torch.randn(*batch, 6, 2, generator=gen, dtype=torch.float64, requires_grad=True)
+    W = torch.randn(*batch, 4, 2, generator=gen, dtype=torch.float64)
+    got = left_matmul(G, X)
+    want = G @ X
+    torch.testing.assert_close(got, want, rtol=1e-14, atol=1e-14)
+    g_got = torch.autograd.grad((got * W).sum(), (G, X))
+    g_want = torch.autograd.grad((want * W).sum(), (G, X))
+    for a, b in zip(g_got, g_want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)
+    batched = G.detach().expand(*batch, 4, 6)  # a batched G takes the plain product
+    torch.testing.assert_close(left_matmul(batched, X.detach()), want.detach())

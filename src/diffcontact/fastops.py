@@ -1,0 +1,63 @@
+"""Tensor operations cheap enough for the per-step hot paths.
+
+Two patterns that torch 2.13 runs far below the hardware's speed on the CPU, and their
+replacements (``python benchmarks/run.py fastops`` times each pair):
+
+- sums over a short last dimension: ``torch.sum(x, -1)`` over 2 or 3 numbers runs a
+  cascade sum per row, about 13 ns per row (270 us for 1024 x 10 contact vectors in
+  float64); a product with a vector of ones computes the same sums in a tenth of the
+  time (:func:`sum_last`, :func:`dot_last`). For two numbers the result is bitwise the
+  same (one addition); for three or more the order of the additions may differ.
+- an unbatched matrix applied to a batch, ``G @ X`` with ``G: (R, P)`` and
+  ``X: (..., P, k)``: broadcasting runs one tiny product per batch element (and its
+  backward pass more of them, 2-3x slower); :func:`left_matmul` runs one matrix product
+  over the whole batch.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from torch import Tensor
+
+# above this many numbers per row torch's own sum is as fast
+_SHORT = 8
+# a product's backward pass (an outer product) costs more than a sum's (a broadcast): below
+# this many numbers the gain of the forward pass does not pay for it
+_SMALL_GRAD = 1 << 12
+# left_matmul: from this many matrices in the batch one product over all of them pays off
+_MANY = 1 << 10
+
+
+@functools.lru_cache(maxsize=64)
+def _ones(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    with torch.inference_mode(False):  # usable in autograd even if first made in inference
+        return torch.ones(size, dtype=dtype, device=device)
+
+
+def sum_last(x: Tensor) -> Tensor:
+    """``x.sum(-1)``: ``(..., m) -> (...)``, differentiable; fast for small ``m``."""
+    m = x.shape[-1]
+    if m > _SHORT or m == 0 or not x.is_floating_point() or x.dim() < 2:
+        return x.sum(-1)
+    if x.requires_grad and x.numel() < _SMALL_GRAD:
+        return x.sum(-1)
+    return x @ _ones(m, x.dtype, x.device)
+
+
+def dot_last(a: Tensor, b: Tensor) -> Tensor:
+    """``(a * b).sum(-1)`` with broadcasting: ``(..., m), (..., m) -> (...)``."""
+    return sum_last(a * b)
+
+
+def left_matmul(G: Tensor, X: Tensor) -> Tensor:
+    """``G @ X`` for ``G: (R, P)`` (or batched ``(..., R, P)``) and ``X: (..., P, k)``.
+
+    An unbatched ``G`` applied to many matrices (at least 1024) is one matrix product over
+    the whole batch (``einsum``); otherwise ``@`` (broadcast, where fewer tiny products
+    cost less than the einsum's reshapes). Differentiable in both.
+    """
+    if G.dim() == 2 and X.dim() > 2 and X.numel() >= _MANY * X.shape[-1] * X.shape[-2]:
+        return torch.einsum("rp,...pk->...rk", G, X)
+    return G @ X
