@@ -67,3 +67,15 @@ def test_left_matmul_equals_matmul_values_and_gradients(batch):
         torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)
     batched = G.detach().expand(*batch, 4, 6)  # a batched G takes the plain product
     torch.testing.assert_close(left_matmul(batched, X.detach()), want.detach())
+
+
+def test_shared_returns_the_broadcast_matrix_only():
+    from diffcontact.fastops import shared
+
+    M = torch.randn(4, 4, dtype=torch.float64)
+    assert shared(M.expand(7, 4, 4)).shape == (4, 4) and torch.equal(shared(M.expand(7, 4, 4)), M)
+    assert shared(M.expand(2, 3, 4, 4)).shape == (4, 4)
+    B = torch.randn(7, 4, 4, dtype=torch.float64)
+    assert shared(B) is B and shared(M) is M
+    J = torch.randn(7, 6, 4, dtype=torch.float64)
+    torch.testing.assert_close(J @ shared(M.expand(7, 4, 4)), J @ M.expand(7, 4, 4))

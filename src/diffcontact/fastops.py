@@ -61,3 +61,12 @@ def left_matmul(G: Tensor, X: Tensor) -> Tensor:
     if G.dim() == 2 and X.dim() > 2 and X.numel() >= _MANY * X.shape[-1] * X.shape[-2]:
         return torch.einsum("rp,...pk->...rk", G, X)
     return G @ X
+
+
+def shared(T: Tensor) -> Tensor:
+    """``T: (..., m, k)`` without its broadcast leading dimensions: where ``T`` is one
+    ``(m, k)`` matrix expanded over a batch (stride 0), that matrix, so that ``X @ T`` is
+    one matrix product instead of a batch of tiny ones; else ``T`` itself."""
+    if T.dim() > 2 and all(s == 0 for s in T.stride()[:-2]):
+        return T[(0,) * (T.dim() - 2)]
+    return T
