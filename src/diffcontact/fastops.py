@@ -9,9 +9,10 @@ replacements (``python benchmarks/run.py fastops`` times each pair):
   time (:func:`sum_last`, :func:`dot_last`). For two numbers the result is bitwise the
   same (one addition); for three or more the order of the additions may differ.
 - an unbatched matrix applied to a batch, ``G @ X`` with ``G: (R, P)`` and
-  ``X: (..., P, k)``: broadcasting runs one tiny product per batch element (and its
-  backward pass more of them, 2-3x slower); :func:`left_matmul` runs one matrix product
-  over the whole batch.
+  ``X: (..., P, k)``: broadcasting runs one tiny product per batch element;
+  :func:`left_matmul` runs one matrix product over the whole batch (on BD5's mass matrix
+  times constraint rows, 200 x 15 x 15 x 2 in float64: 3x faster forward, 1.5x forward
+  + backward).
 """
 
 from __future__ import annotations

@@ -56,6 +56,10 @@ no part in the iterations (:func:`interior_point_solve`'s ``active``) and the po
 does not move along null directions of ``A`` (:func:`_polish`), so a state gets the
 same impulse whichever states share its batch (to rounding: LAPACK factorises a
 padded matrix with another blocking; ``tests/systems/test_batch_invariance.py``).
+The Warp backend's Newton steps from zero (``SolverSettings.polish_steps``) keep their
+result only where they end at a regular point of the natural map, an isolated and so
+(convex problem) the unique minimiser: where the minimiser may not be unique, the
+interior point picks it as above.
 A minimum-norm choice (a Tikhonov term ``tau I``) was not taken: in floating point it
 fixes the free components only to ``eps / tau`` and would bias every solution by
 ``tau``.
