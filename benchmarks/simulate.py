@@ -12,13 +12,15 @@ and 1024 ropes of 200 points (Rope-D400) over their horizon (19 steps).
 diffcontact (``System.simulate``, then again with the backward pass of the final
 positions) and in MuJoCo (``mujoco.rollout`` on the matched scene of
 ``benchmarks/mujoco_scene.py``, one and two threads) side by side, with the ratio to
-MuJoCo on one thread and how far the two simulators' positions are apart. It needs the
-optional ``mujoco`` package.
+MuJoCo on one thread and how far the two simulators' positions are apart. Each row is
+the median of 3 timed calls (``--quick``: 1), the simulators taking turns, after one
+full-size warm-up call of each. It needs the optional ``mujoco`` package.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 
@@ -69,7 +71,7 @@ def _timed(fn, device: str) -> tuple[float, object]:
 
 
 def compare_mujoco(
-    n: int, steps: int, device: str, dtype: torch.dtype, task: str = COMPARE_TASK
+    n: int, steps: int, device: str, dtype: torch.dtype, task: str = COMPARE_TASK, repeats: int = 3
 ) -> dict:
     """Time diffcontact and MuJoCo on the same ``n`` scenes of ``task`` for ``steps`` steps.
 
@@ -100,26 +102,28 @@ def compare_mujoco(
         traj[:, -1, 0].sum().backward()
         return z.grad
 
-    # warm-up (device caches, allocator, kernel loads, MuJoCo's first call)
-    system.simulate(z0[: min(n, 8)], steps=2)
-    zw = z0[: min(n, 8)].clone().requires_grad_(True)
-    system.simulate(zw, steps=2)[:, -1, 0].sum().backward()
+    # warm-up: one full-size call of each (device caches, the allocator's first touch of
+    # the memory, recorded kernel launches, MuJoCo's first call), then the median of
+    # `repeats` timed calls, the simulators taking turns
     rollers = {k: Roller(scene, k) for k in MUJOCO_THREADS}
+    calls = {"diffcontact simulate": ours, "diffcontact + gradient": ours_grad}
+    for k, roll in rollers.items():
+        calls[f"MuJoCo rollout {k} thr"] = lambda roll=roll: roll(init, steps)
+    for fn in calls.values():
+        fn()
+    walls: dict[str, list[float]] = {name: [] for name in calls}
+    outputs: dict[str, object] = {}
+    for _ in range(repeats):
+        for name, fn in calls.items():
+            wall, outputs[name] = _timed(fn, "cpu" if name.startswith("MuJoCo") else device)
+            walls[name].append(wall)
     for roll in rollers.values():
-        roll(init[: min(n, 8)], 2)
-
-    rows = []
-    wall, traj = _timed(ours, device)
-    rows.append(("diffcontact simulate", wall))
-    wall, grad = _timed(ours_grad, device)
+        roll.close()
+    traj, grad = outputs["diffcontact simulate"], outputs["diffcontact + gradient"]
     if not bool(torch.isfinite(grad).all()):
         raise RuntimeError("the gradient of the final positions is not finite")
-    rows.append(("diffcontact + gradient", wall))
-    mj_states = {}
-    for k, roll in rollers.items():
-        wall, mj_states[k] = _timed(lambda roll=roll: roll(init, steps), "cpu")
-        rows.append((f"MuJoCo rollout {k} thr", wall))
-        roll.close()
+    rows = [(name, statistics.median(w)) for name, w in walls.items()]
+    mj_states = {k: outputs[f"MuJoCo rollout {k} thr"] for k in MUJOCO_THREADS}
     base = rows[2][1]
 
     x_ours = traj[:, :, 0].detach().to(device="cpu", dtype=torch.float64)
@@ -165,7 +169,8 @@ def main_compare(args: argparse.Namespace, dtype: torch.dtype) -> int:
         return 2
     n, steps = COMPARE_QUICK_SIZE if args.quick else COMPARE_SIZE
     n, steps = args.n or n, args.steps or steps
-    r = compare_mujoco(n, steps, args.device, dtype)
+    repeats = 1 if args.quick else 3
+    r = compare_mujoco(n, steps, args.device, dtype, repeats=repeats)
     print(f"simulation: diffcontact vs MuJoCo on a matched {COMPARE_TASK} scene")
     for line in machine_header(args.device, dtype):
         print(line)
@@ -173,7 +178,10 @@ def main_compare(args: argparse.Namespace, dtype: torch.dtype) -> int:
         f"MuJoCo {r['mujoco_version']}: mujoco.rollout on the CPU in float64, Euler, elliptic "
         f"cones, soft contacts (timeconst {r['timeconst']:g} s; benchmarks/mujoco_scene.py)"
     )
-    print(f"{n} scenes x {steps} steps, dt {dc.load_system(COMPARE_TASK).config.dt:g} s")
+    print(
+        f"{n} scenes x {steps} steps, dt {dc.load_system(COMPARE_TASK).config.dt:g} s; median of "
+        f"{repeats} timed call(s) each after a full-size warm-up, the simulators taking turns"
+    )
     head = (
         f"{'simulator':>24} | {'wall s':>8} {'ms/step':>9} {'state-steps/s':>14} | "
         f"{'/ MuJoCo 1 thr':>14}"
