@@ -27,6 +27,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from diffcontact.fastops import dot_last
+
 from .base import GeometryBase, SparseJacobian, broadcast_batch, gather_points
 from .frames import material_point_weights, safe_norm, safe_normalize, tangent_basis
 
@@ -51,12 +53,12 @@ def closest_rim_point(
     e1 = body_points[..., 1, :] - x0
     e3 = body_points[..., 3, :] - x0
     a, len_e3 = safe_normalize(e3)
-    s = (normal * a).sum(-1)
+    s = dot_last(normal, a)
     e = normal - s.unsqueeze(-1) * a
     eps = 16.0 * float(torch.finfo(body_points.dtype).eps)
     len_e = safe_norm(e)
     regular = (len_e > eps).unsqueeze(-1)
-    e1_perp = e1 - (e1 * a).sum(-1, keepdim=True) * a
+    e1_perp = e1 - dot_last(e1, a).unsqueeze(-1) * a
     fallback, _ = safe_normalize(e1_perp)
     u = torch.where(regular, e / torch.where(regular, len_e.unsqueeze(-1), 1.0), fallback)
     p = x0 - radius.unsqueeze(-1) * u
@@ -139,7 +141,7 @@ class RimPlane(GeometryBase):
         k = torch.arange(self.n_candidates, device=x.device)
         idx = k.expand(*x.shape[:-2], -1)
         _, _, pl, _, (p, _, _, _) = self._closest(x, idx // self.n_planes, idx % self.n_planes)
-        return (pl[..., :3] * p).sum(-1) + pl[..., 3]
+        return dot_last(pl[..., :3], p) + pl[..., 3]
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of candidates ``idx``.

@@ -23,6 +23,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from diffcontact.fastops import dot_last
+
 from .base import ContactGeometry, GeometryBase, SparseJacobian, broadcast_batch, gather_points
 from .frames import safe_norm, safe_normalize
 
@@ -87,7 +89,7 @@ class RopeBending(GeometryBase):
         """
         _, seg = _rope_points(x, self.first_point, self.n_points, self.anchor)
         a, b = seg[..., :-1, :], seg[..., 1:, :]
-        theta = torch.atan2(_cross(a, b), (a * b).sum(-1))
+        theta = torch.atan2(_cross(a, b), dot_last(a, b))
         return self.max_angle - theta.abs()
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
@@ -107,10 +109,10 @@ class RopeBending(GeometryBase):
         p_mid = gather_points(x, f + idx)
         p_next = gather_points(x, f + idx + 1)
         a, b = p_mid - p_prev, p_next - p_mid
-        theta = torch.atan2(_cross(a, b), (a * b).sum(-1))
+        theta = torch.atan2(_cross(a, b), dot_last(a, b))
         # theta = phi_b - phi_a, d phi / d s = perp(s) / |s|^2
-        g_a = -_perp(a) / (a * a).sum(-1, keepdim=True)
-        g_b = _perp(b) / (b * b).sum(-1, keepdim=True)
+        g_a = -_perp(a) / dot_last(a, a).unsqueeze(-1)
+        g_b = _perp(b) / dot_last(b, b).unsqueeze(-1)
         sign = torch.where(theta >= 0, -1.0, 1.0).to(x).unsqueeze(-1)  # gap = max - |theta|
         g_prev = torch.where((idx > 0).unsqueeze(-1), -g_a, torch.zeros_like(g_a))
         values = sign.unsqueeze(-2) * torch.stack((g_prev, g_a - g_b, g_b), dim=-2)
