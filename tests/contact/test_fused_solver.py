@@ -440,6 +440,8 @@ def test_batch_split_over_cores_is_bitwise_the_same(monkeypatch):
     thread's arithmetic), and in a fresh process the first (recording) calls of the parts
     run at the same time safely."""
     d, n, K = 2, 40, 5
+    monkeypatch.setattr(fused, "_SPLIT_SLOWER", float("inf"))  # never back off here
+    monkeypatch.setitem(fused._split_state, "skip", 0)
     A, b, mu, lower, active = mixed_family(n, K, d, seed=21)
     w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(2), dtype=F64)
 
@@ -621,3 +623,33 @@ def test_trailing_inactive_contacts_are_trimmed_exactly():
     torch.testing.assert_close(gb[:5, :C], hb, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(gmu[:5, :3], hmu, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(gl[:5, :3], hl, rtol=1e-10, atol=1e-12)
+
+
+def test_split_backs_off_when_a_core_is_busy(monkeypatch):
+    """A split whose other part finishes late (a busy core) makes the next calls run the
+    whole range on the calling thread, then a split is tried again."""
+    import threading
+    import time
+
+    monkeypatch.setattr(fused, "_cores", lambda: 2)
+    monkeypatch.setitem(fused._split_state, "skip", 0)
+    monkeypatch.setattr(fused, "_SPLIT_BACKOFF", 3)
+    calls = []
+
+    def run(first, count, slow_pool=True):
+        main = threading.current_thread() is threading.main_thread()
+        calls.append((main, first, count))
+        if not main and slow_pool:
+            time.sleep(0.05)
+
+    parts = [(0, 5), (5, 5)]
+    fused._run_parts(run, parts)
+    assert sorted(calls) == [(False, 5, 5), (True, 0, 5)]
+    assert fused._split_state["skip"] == 3
+    for _ in range(3):
+        calls.clear()
+        fused._run_parts(run, parts)
+        assert calls == [(True, 0, 10)]  # the whole range on this thread
+    calls.clear()
+    fused._run_parts(lambda f, c: run(f, c, slow_pool=False), parts)  # probes again
+    assert sorted(calls) == [(False, 5, 5), (True, 0, 5)]

@@ -16,7 +16,8 @@ fused (NVIDIA Warp) one.
   recorded for the call's signature with new pointers (:class:`_Recorded`: tens of
   microseconds less per call than packing Warp's arguments anew), and on the CPU a large
   batch is split into ranges of problems launched on several cores at once
-  (:func:`_parts`; Warp runs a CPU launch on one core). Two shortcuts of the kernel that
+  (:func:`_parts`; Warp runs a CPU launch on one core), unless a recent split found a
+  core busy (:func:`_run_parts`). Two shortcuts of the kernel that
   the reference does not take (results equal to its tolerance, tests in
   ``tests/contact/test_fused_solver.py``): each problem is solved only up to its last
   active contact (the simulator pads at the end; trailing inactive contacts are
@@ -51,6 +52,7 @@ import re
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from types import ModuleType
 from typing import TYPE_CHECKING
@@ -717,18 +719,36 @@ def _parts(n: int, C: int, device: torch.device) -> list[tuple[int, int]]:
     return [(bounds[i], bounds[i + 1] - bounds[i]) for i in range(parts)]
 
 
+# a split whose other parts finish this much later than this thread's own part had a core
+# that was not free (another process, or torch's OpenMP threads still spinning after an
+# operation): the next _SPLIT_BACKOFF calls run on this thread alone, then a split is tried
+# again; so that a busy machine gets the one-core time, not a multiple of it
+_SPLIT_SLOWER = 1.5
+_SPLIT_BACKOFF = 64
+_split_state = {"skip": 0}
+
+
 def _run_parts(run, parts: list[tuple[int, int]]) -> None:
     """``run(first, count)`` for every part: the first on this thread, the others on the
-    pool's at the same time (a Warp CPU launch releases the GIL); the first error raised."""
+    pool's at the same time (a Warp CPU launch releases the GIL); the first error raised.
+    Runs the whole range on this thread instead while a recent split was slowed down by a
+    busy core (:data:`_SPLIT_SLOWER`); results are bitwise the same either way."""
+    if len(parts) > 1 and _split_state["skip"] > 0:
+        _split_state["skip"] -= 1
+        parts = [(parts[0][0], sum(count for _, count in parts))]
     if len(parts) == 1:
         run(*parts[0])
         return
+    start = time.perf_counter()
     futures = [_pool(_cores() - 1).submit(run, *part) for part in parts[1:]]
     try:
         run(*parts[0])
+        own = time.perf_counter() - start
     finally:
         for future in futures:
             future.result()
+    if time.perf_counter() - start > _SPLIT_SLOWER * own:
+        _split_state["skip"] = _SPLIT_BACKOFF
 
 
 class FusedConeQP(torch.autograd.Function):
