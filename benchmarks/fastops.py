@@ -11,7 +11,7 @@ the hot paths differentiate), for float64 and float32, with the ratio plain / fa
   shapes of BD5's constrained dynamics in a training step of 200 chunks: the inverse
   mass matrix (15 x 15) times the constraint Jacobian's rows (200 x 15 x 15 x 2), and a
   constraint selector (15 x 15, a constant) times positions (200 x 15 x 2), where
-  ``left_matmul`` keeps ``@`` (fewer than 1024 matrices); backward to the operands that
+  ``left_matmul`` keeps ``@`` (fewer than 16384 numbers); backward to the operands that
   carry a gradient there (both, resp. the positions).
 
 Medians over repetitions after a warm-up call.

@@ -27,8 +27,8 @@ _SHORT = 8
 # a product's backward pass (an outer product) costs more than a sum's (a broadcast): below
 # this many numbers the gain of the forward pass does not pay for it
 _SMALL_GRAD = 1 << 12
-# left_matmul: from this many matrices in the batch one product over all of them pays off
-_MANY = 1 << 10
+# left_matmul: from this many numbers in X one product over the whole batch pays off
+_MANY = 1 << 14
 
 
 @functools.lru_cache(maxsize=64)
@@ -55,11 +55,11 @@ def dot_last(a: Tensor, b: Tensor) -> Tensor:
 def left_matmul(G: Tensor, X: Tensor) -> Tensor:
     """``G @ X`` for ``G: (R, P)`` (or batched ``(..., R, P)``) and ``X: (..., P, k)``.
 
-    An unbatched ``G`` applied to many matrices (at least 1024) is one matrix product over
-    the whole batch (``einsum``); otherwise ``@`` (broadcast, where fewer tiny products
-    cost less than the einsum's reshapes). Differentiable in both.
+    An unbatched ``G`` applied to a large ``X`` (at least 16384 numbers) is one matrix
+    product over the whole batch (``einsum``); otherwise ``@`` (broadcast, where fewer
+    tiny products cost less than the einsum's reshapes). Differentiable in both.
     """
-    if G.dim() == 2 and X.dim() > 2 and X.numel() >= _MANY * X.shape[-1] * X.shape[-2]:
+    if G.dim() == 2 and X.dim() > 2 and X.numel() >= _MANY:
         return torch.einsum("rp,...pk->...rk", G, X)
     return G @ X
 
