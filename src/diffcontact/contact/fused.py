@@ -719,11 +719,12 @@ def _parts(n: int, C: int, device: torch.device) -> list[tuple[int, int]]:
     return [(bounds[i], bounds[i + 1] - bounds[i]) for i in range(parts)]
 
 
-# a split whose other parts finish this much later than this thread's own part had a core
-# that was not free (another process, or torch's OpenMP threads still spinning after an
-# operation): the next _SPLIT_BACKOFF calls run on this thread alone, then a split is tried
-# again; so that a busy machine gets the one-core time, not a multiple of it
-_SPLIT_SLOWER = 1.5
+# a split that took longer than this share of what one core would have taken (its own part's
+# time times the number of parts) gained little or nothing: a core was not free (another
+# process, or torch's OpenMP threads still spinning after an operation). The next
+# _SPLIT_BACKOFF calls run on this thread alone, then a split is tried again; so that a
+# busy machine gets the one-core time, not a multiple of it
+_SPLIT_SLOWER = 0.9
 _SPLIT_BACKOFF = 64
 _split_state = {"skip": 0}
 
@@ -731,8 +732,8 @@ _split_state = {"skip": 0}
 def _run_parts(run, parts: list[tuple[int, int]]) -> None:
     """``run(first, count)`` for every part: the first on this thread, the others on the
     pool's at the same time (a Warp CPU launch releases the GIL); the first error raised.
-    Runs the whole range on this thread instead while a recent split was slowed down by a
-    busy core (:data:`_SPLIT_SLOWER`); results are bitwise the same either way."""
+    Runs the whole range on this thread instead while a recent split gained little over
+    one core (:data:`_SPLIT_SLOWER`); results are bitwise the same either way."""
     if len(parts) > 1 and _split_state["skip"] > 0:
         _split_state["skip"] -= 1
         parts = [(parts[0][0], sum(count for _, count in parts))]
@@ -747,7 +748,7 @@ def _run_parts(run, parts: list[tuple[int, int]]) -> None:
     finally:
         for future in futures:
             future.result()
-    if time.perf_counter() - start > _SPLIT_SLOWER * own:
+    if time.perf_counter() - start > _SPLIT_SLOWER * len(parts) * own:
         _split_state["skip"] = _SPLIT_BACKOFF
 
 
