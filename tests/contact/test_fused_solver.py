@@ -440,8 +440,9 @@ def test_batch_split_over_cores_is_bitwise_the_same(monkeypatch):
     thread's arithmetic), and in a fresh process the first (recording) calls of the parts
     run at the same time safely."""
     d, n, K = 2, 40, 5
-    monkeypatch.setattr(fused, "_SPLIT_SLOWER", float("inf"))  # never back off here
-    monkeypatch.setitem(fused._split_state, "skip", 0)
+    # always split here: split known to be faster, no probes of one core
+    monkeypatch.setattr(fused, "_split_state", {"calls": 2, "split": 0.0, "single": 1.0})
+    monkeypatch.setattr(fused, "_PROBE_EVERY", 10**9)
     A, b, mu, lower, active = mixed_family(n, K, d, seed=21)
     w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(2), dtype=F64)
 
@@ -625,31 +626,37 @@ def test_trailing_inactive_contacts_are_trimmed_exactly():
     torch.testing.assert_close(gl[:5, :3], hl, rtol=1e-10, atol=1e-12)
 
 
-def test_split_backs_off_when_a_core_is_busy(monkeypatch):
-    """A split whose other part finishes late (a busy core) makes the next calls run the
-    whole range on the calling thread, then a split is tried again."""
+def test_split_follows_the_faster_mode(monkeypatch):
+    """The batch split is used while it is faster per unit of work than one core and left
+    while a busy core makes it slower, probing the other mode every _PROBE_EVERY calls."""
     import threading
     import time
 
     monkeypatch.setattr(fused, "_cores", lambda: 2)
-    monkeypatch.setitem(fused._split_state, "skip", 0)
-    monkeypatch.setattr(fused, "_SPLIT_BACKOFF", 3)
-    calls = []
+    monkeypatch.setattr(fused, "_split_state", {"calls": 0, "split": None, "single": None})
+    monkeypatch.setattr(fused, "_PROBE_EVERY", 4)
+    monkeypatch.setattr(fused, "_EMA", 1.0)  # the latest measurement decides
+    modes, busy = [], {"pool": 0.0}
 
-    def run(first, count, slow_pool=True):
+    def run(first, count):
         main = threading.current_thread() is threading.main_thread()
-        calls.append((main, first, count))
-        if not main and slow_pool:
-            time.sleep(0.05)
+        if count == 10:
+            modes.append("single")
+        elif main:
+            modes.append("split")
+        time.sleep(0.002 * count / 10 if main else busy["pool"])
 
     parts = [(0, 5), (5, 5)]
-    fused._run_parts(run, parts)
-    assert sorted(calls) == [(False, 5, 5), (True, 0, 5)]
-    assert fused._split_state["skip"] == 3
-    for _ in range(3):
-        calls.clear()
-        fused._run_parts(run, parts)
-        assert calls == [(True, 0, 10)]  # the whole range on this thread
-    calls.clear()
-    fused._run_parts(lambda f, c: run(f, c, slow_pool=False), parts)  # probes again
-    assert sorted(calls) == [(False, 5, 5), (True, 0, 5)]
+    for _ in range(8):  # idle: the split takes half the time
+        fused._run_parts(run, parts, 1)
+    assert modes == ["single", "split", "split", "split", "single", "split", "split", "split"]
+    busy["pool"] = 0.02  # the other core is busy: splitting is 10x slower
+    modes.clear()
+    for _ in range(8):
+        fused._run_parts(run, parts, 1)
+    assert modes[-3:] == ["single", "single", "single"]
+    busy["pool"] = 0.0  # free again: a probe finds the split faster and takes it back
+    modes.clear()
+    for _ in range(8):
+        fused._run_parts(run, parts, 1)
+    assert modes[-2:] == ["split", "split"]

@@ -16,9 +16,9 @@ fused (NVIDIA Warp) one.
   recorded for the call's signature with new pointers (:class:`_Recorded`: tens of
   microseconds less per call than packing Warp's arguments anew), and on the CPU a large
   batch is split into ranges of problems launched on several cores at once
-  (:func:`_parts`; Warp runs a CPU launch on one core), unless a recent split found a
-  core busy (:func:`_run_parts`). Two shortcuts of the kernel that
-  the reference does not take (results equal to its tolerance, tests in
+  (:func:`_parts`; Warp runs a CPU launch on one core) where splitting has recently
+  been faster than one core (measured as calls run, :func:`_run_parts`). Two shortcuts
+  of the kernel that the reference does not take (results equal to its tolerance, tests in
   ``tests/contact/test_fused_solver.py``): each problem is solved only up to its last
   active contact (the simulator pads at the end; trailing inactive contacts are
   decoupled, with zero impulse and gradient), and a problem without a fast path (several
@@ -719,37 +719,44 @@ def _parts(n: int, C: int, device: torch.device) -> list[tuple[int, int]]:
     return [(bounds[i], bounds[i + 1] - bounds[i]) for i in range(parts)]
 
 
-# a split that took longer than this share of what one core would have taken (its own part's
-# time times the number of parts) gained little or nothing: a core was not free (another
-# process, or torch's OpenMP threads still spinning after an operation). The next
-# _SPLIT_BACKOFF calls run on this thread alone, then a split is tried again; so that a
-# busy machine gets the one-core time, not a multiple of it
-_SPLIT_SLOWER = 0.9
-_SPLIT_BACKOFF = 64
-_split_state = {"skip": 0}
+# Whether to split is measured as calls run: a split pays on an idle machine and costs where
+# another process (or torch's OpenMP threads, spinning after an operation) holds a core.
+# Each call runs the mode (split or one core) with the lower recent cost per unit of work
+# (problems x C^2; exponential averages), and every _PROBE_EVERY-th call the other mode, so
+# that a change of load is noticed: a busy machine gets the one-core time, not a multiple.
+_PROBE_EVERY = 32
+_EMA = 0.3
+_split_state: dict = {"calls": 0, "split": None, "single": None}
 
 
-def _run_parts(run, parts: list[tuple[int, int]]) -> None:
+def _run_parts(run, parts: list[tuple[int, int]], weight: int) -> None:
     """``run(first, count)`` for every part: the first on this thread, the others on the
     pool's at the same time (a Warp CPU launch releases the GIL); the first error raised.
-    Runs the whole range on this thread instead while a recent split gained little over
-    one core (:data:`_SPLIT_SLOWER`); results are bitwise the same either way."""
-    if len(parts) > 1 and _split_state["skip"] > 0:
-        _split_state["skip"] -= 1
-        parts = [(parts[0][0], sum(count for _, count in parts))]
+    Runs the whole range on this thread instead where that has recently been faster per
+    unit of work (``weight`` per problem; see :data:`_PROBE_EVERY`). Results are bitwise
+    the same either way."""
     if len(parts) == 1:
         run(*parts[0])
         return
+    state = _split_state
+    state["calls"] += 1
+    split, single = state["split"], state["single"]
+    prefer_split = split is None or (single is not None and split <= single)
+    use_split = prefer_split != (state["calls"] % _PROBE_EVERY == 1)
+    total = sum(count for _, count in parts)
     start = time.perf_counter()
-    futures = [_pool(_cores() - 1).submit(run, *part) for part in parts[1:]]
-    try:
-        run(*parts[0])
-        own = time.perf_counter() - start
-    finally:
-        for future in futures:
-            future.result()
-    if time.perf_counter() - start > _SPLIT_SLOWER * len(parts) * own:
-        _split_state["skip"] = _SPLIT_BACKOFF
+    if use_split:
+        futures = [_pool(_cores() - 1).submit(run, *part) for part in parts[1:]]
+        try:
+            run(*parts[0])
+        finally:
+            for future in futures:
+                future.result()
+    else:
+        run(parts[0][0], total)
+    cost = (time.perf_counter() - start) / (weight * total)
+    key = "split" if use_split else "single"
+    state[key] = cost if state[key] is None else (1 - _EMA) * state[key] + _EMA * cost
 
 
 class FusedConeQP(torch.autograd.Function):
@@ -801,7 +808,9 @@ class FusedConeQP(torch.autograd.Function):
             ws_pointers, work_buf = _workspace_pointers(None, ws)
             pointers += ws_pointers
             _run_parts(
-                lambda first, count: _recorded(key, record)(n, pointers, first, count), parts
+                lambda first, count: _recorded(key, record)(n, pointers, first, count),
+                parts,
+                C * C,
             )
         del work_buf
         ctx.save_for_backward(keep)
@@ -848,6 +857,7 @@ class FusedConeQP(torch.autograd.Function):
         _run_parts(
             lambda first, count: _recorded(key, record)(n, pointers, first, count),
             _parts(n, C, device),
+            C * C,
         )
         grads = [None if x is None else _as(x, in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
         if not ctx.needs_input_grad[1]:
