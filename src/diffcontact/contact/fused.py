@@ -721,28 +721,33 @@ def _parts(n: int, C: int, device: torch.device) -> list[tuple[int, int]]:
 
 # Whether to split is measured as calls run: a split pays on an idle machine and costs where
 # another process (or torch's OpenMP threads, spinning after an operation) holds a core.
-# Each call runs the mode (split or one core) with the lower recent cost per unit of work
-# (problems x C^2; exponential averages), and every _PROBE_EVERY-th call the other mode, so
-# that a change of load is noticed: a busy machine gets the one-core time, not a multiple.
+# For each kind of launch (kernel and problem size) each call runs the mode (split or one
+# core) with the lower recent time per problem (exponential averages), and every
+# _PROBE_EVERY-th call the other mode, so that a change of load is noticed: a busy machine
+# gets the one-core time, not a multiple of it.
 _PROBE_EVERY = 32
 _EMA = 0.3
-_split_state: dict = {"calls": 0, "split": None, "single": None}
+_split_state: dict = {}
 
 
-def _run_parts(run, parts: list[tuple[int, int]], weight: int) -> None:
+def _run_parts(run, parts: list[tuple[int, int]], kind: tuple) -> None:
     """``run(first, count)`` for every part: the first on this thread, the others on the
     pool's at the same time (a Warp CPU launch releases the GIL); the first error raised.
-    Runs the whole range on this thread instead where that has recently been faster per
-    unit of work (``weight`` per problem; see :data:`_PROBE_EVERY`). Results are bitwise
-    the same either way."""
+    Runs the whole range on this thread instead where that has recently been faster for
+    launches of this ``kind`` (see :data:`_PROBE_EVERY`). Results are bitwise the same
+    either way."""
     if len(parts) == 1:
         run(*parts[0])
         return
-    state = _split_state
+    try:
+        state = _split_state[kind]
+    except KeyError:
+        state = _split_state[kind] = {"calls": 0, "split": None, "single": None}
     state["calls"] += 1
     split, single = state["split"], state["single"]
+    # the first call splits, the second runs on one core, then the faster; probes after
     prefer_split = split is None or (single is not None and split <= single)
-    use_split = prefer_split != (state["calls"] % _PROBE_EVERY == 1)
+    use_split = prefer_split != (state["calls"] % _PROBE_EVERY == 0)
     total = sum(count for _, count in parts)
     start = time.perf_counter()
     if use_split:
@@ -754,7 +759,7 @@ def _run_parts(run, parts: list[tuple[int, int]], weight: int) -> None:
                 future.result()
     else:
         run(parts[0][0], total)
-    cost = (time.perf_counter() - start) / (weight * total)
+    cost = (time.perf_counter() - start) / total
     key = "split" if use_split else "single"
     state[key] = cost if state[key] is None else (1 - _EMA) * state[key] + _EMA * cost
 
@@ -810,7 +815,7 @@ class FusedConeQP(torch.autograd.Function):
             _run_parts(
                 lambda first, count: _recorded(key, record)(n, pointers, first, count),
                 parts,
-                C * C,
+                ("forward", C, d, work),
             )
         del work_buf
         ctx.save_for_backward(keep)
@@ -857,7 +862,7 @@ class FusedConeQP(torch.autograd.Function):
         _run_parts(
             lambda first, count: _recorded(key, record)(n, pointers, first, count),
             _parts(n, C, device),
-            C * C,
+            ("backward", C, d, work, want_A),
         )
         grads = [None if x is None else _as(x, in_dtype) for x in (grad_A, grad_b, grad_mu, grad_l)]
         if not ctx.needs_input_grad[1]:
