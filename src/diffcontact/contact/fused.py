@@ -24,8 +24,8 @@ fused (NVIDIA Warp) one.
   decoupled, with zero impulse and gradient), and a problem without a fast path (several
   contacts) first tries ``2 polish_steps`` Newton steps from zero, kept where they end
   at a regular point of the natural map, i.e. at the unique minimiser; the interior
-  point solves the others (BP5: 60 of 61 multi-contact compression problems of a step
-  finish without it, 15.6 -> 3.4 us each). :func:`solve` and
+  point solves the others (on BP5 nearly all multi-contact problems finish without it;
+  ``SolverStatus.iterations`` counts the interior point's iterations). :func:`solve` and
   :func:`polish` run the interior point and the polish alone on rows that the torch
   code of ``cone_qp._forward`` selected (that function with ``backend="warp"``; tests
   use it to look inside the algorithm);

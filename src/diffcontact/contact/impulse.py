@@ -60,9 +60,9 @@ def penetration_target(
     No gradient flows through it.
 
     ``pinv(J_C) v`` is ``J_C^T (J_C J_C^T)^-1 v`` where ``J_C`` has full row rank (padded
-    zero rows aside): two Cholesky solves instead of an SVD, ten times cheaper. Where
-    its rows are (nearly) dependent, several contacts on one body with more rows than
-    degrees of freedom, the damped pseudo-inverse ``J_C^T (J_C J_C^T + lambda I)^-1``
+    zero rows aside): Cholesky solves instead of an SVD. Where its rows are (nearly)
+    dependent, several contacts on one body with more rows than degrees of freedom, the
+    damped pseudo-inverse ``J_C^T (J_C J_C^T + lambda I)^-1``
     (``lambda = sqrt(eps)`` times the largest diagonal entry of ``J_C J_C^T``) stands in:
     it agrees with ``pinv`` to ``sqrt(eps)`` relative on the range of ``J_C`` and ignores
     the dependent part as ``pinv`` does. No host synchronisation.
