@@ -96,6 +96,15 @@ def _rim_weights(x: Tensor, body_points: Tensor, is_disk: Tensor, p: Tensor) -> 
     return torch.where(is_disk.unsqueeze(-1), w, point_w)
 
 
+def _cached_tables(cache: dict, device: torch.device, dtype: torch.dtype, make) -> tuple:
+    """``make()``'s tensors moved to ``device``, made once per device and dtype and kept in
+    ``cache`` (making index tensors anew costs microseconds per call in the step)."""
+    tables = cache.get((device, dtype))
+    if tables is None:
+        tables = cache[(device, dtype)] = tuple(t.to(device) for t in make())
+    return tables
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class CirclePairs(GeometryBase):
     """Circle-circle candidates of all body pairs ``i < j`` (lexicographic).
@@ -153,24 +162,13 @@ class CirclePairs(GeometryBase):
         return dist - r_i - r_j
 
     def _gap_tables(self, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, ...]:
-        """The points of the pairs' centres and their radii, each ``(K,)``, on ``device``
-        (made once per device and dtype: making index tensors costs microseconds)."""
-        key = (device, dtype)
-        tables = self._tables.get(key)
-        if tables is None:
-            centres = self.body_points[:, 0]
-            r = self.radii.to(dtype)
-            tables = tuple(
-                t.to(device)
-                for t in (
-                    centres[self.pair_i],
-                    centres[self.pair_j],
-                    r[self.pair_i],
-                    r[self.pair_j],
-                )
-            )
-            self._tables[key] = tables
-        return tables
+        """The points of the pairs' centres and their radii, each ``(K,)``."""
+
+        def make() -> tuple[Tensor, ...]:
+            centres, r = self.body_points[:, 0], self.radii.to(dtype)
+            return centres[self.pair_i], centres[self.pair_j], r[self.pair_i], r[self.pair_j]
+
+        return _cached_tables(self._tables, device, dtype, make)
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of pairs ``idx``.
@@ -271,21 +269,13 @@ class CircleWalls(GeometryBase):
         Returns:
             ``(..., K)``, body-major.
         """
-        key = (x.device, x.dtype)
-        tables = self._tables.get(key)
-        if tables is None:  # made once per device and dtype
+
+        def make() -> tuple[Tensor, ...]:
             w = self.walls.to(x.dtype)
-            tables = tuple(
-                t.to(x.device)
-                for t in (
-                    self.body_points[:, 0],
-                    w[:, :2].T.contiguous(),
-                    w[:, 2],
-                    self.radii.to(x.dtype).unsqueeze(-1),
-                )
-            )
-            self._tables[key] = tables
-        centres, normals, offsets, r = tables
+            r = self.radii.to(x.dtype).unsqueeze(-1)
+            return self.body_points[:, 0], w[:, :2].T.contiguous(), w[:, 2], r
+
+        centres, normals, offsets, r = _cached_tables(self._tables, x.device, x.dtype, make)
         c = x.index_select(-2, centres)  # (..., B, 2)
         return (c @ normals + offsets - r).flatten(-2)  # (..., B, W)
 

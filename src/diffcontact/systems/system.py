@@ -1111,7 +1111,8 @@ class System:
         states = [z0]
         # the gaps of each state, for the tunnelling check: the contact resolution's own
         # (a step's positions are final there unless the position projection moves them)
-        gaps: list[Tensor] | None = None if iterations else [self.gaps(z0.detach()[:, 0])]
+        keep_gaps = not iterations and on_tunnelling != "ignore"
+        gaps: list[Tensor] | None = [self.gaps(z0.detach()[:, 0])] if keep_gaps else None
         z = z0
         iterator: Any = range(steps)
         if progress:
