@@ -25,7 +25,13 @@ fused (NVIDIA Warp) one.
   contacts) first tries ``2 polish_steps`` Newton steps from zero, kept where they end
   at a regular point of the natural map, i.e. at the unique minimiser; the interior
   point solves the others (on BP5 nearly all multi-contact problems finish without it;
-  ``SolverStatus.iterations`` counts the interior point's iterations). :func:`solve` and
+  ``SolverStatus.iterations`` counts the interior point's iterations). Each Newton system
+  is solved reduced to the contacts that press, in per-contact bases of the projection's
+  range (``warp_kernels._reduced_factor``): separating and padded contacts, and in 2D the
+  normal of each sliding contact's ray, drop out of the factorisation, which for d <= 2 is
+  a Cholesky one; a factorisation is reused while the projection's derivative is
+  unchanged. On the CPU each calling thread keeps its forward workspace between calls
+  (:data:`_KEEP_WORKSPACE_BYTES`, :func:`release_workspace`). :func:`solve` and
   :func:`polish` run the interior point and the polish alone on rows that the torch
   code of ``cone_qp._forward`` selected (that function with ``backend="warp"``; tests
   use it to look inside the algorithm);
@@ -559,9 +565,14 @@ class _Recorded:
 _RECORDED = threading.local()
 _MAX_RECORDED = 32
 _RECORD_LOCK = threading.Lock()
-# on the CPU (where launches are synchronous) a recording keeps its forward workspace, grown
-# as needed up to this size, instead of allocating one per call
-_KEEP_WORKSPACE_BYTES = 1 << 21
+# On the CPU (where launches are synchronous) each calling thread keeps one forward
+# workspace, grown as needed up to this size, instead of allocating one per call: a fresh
+# allocation of this size comes from the operating system, and every page the kernel then
+# touches for the first time costs a page fault (at 30 contacts, about as much as the
+# solve's own arithmetic). Only the pages a solve touches take memory; release_workspace()
+# frees the buffer.
+_KEEP_WORKSPACE_BYTES = 1 << 30
+_LOCAL = threading.local()
 
 # a problem without a fast path (several contacts) first tries this many times
 # ``polish_steps`` Newton steps from zero, then the interior point (warp_kernels._solve_row)
@@ -602,7 +613,8 @@ def _forward_workspace(n: int, C: int, K: int, dtype, device) -> _Layout:
 
     ws = _Layout(dtype, device)
     rows = 2 * n
-    for name in ("A0", "Am", "Aipm", "M", "V"):
+    ws.add("diag0", (rows, C))
+    for name in ("Am", "Aipm", "M", "V"):
         ws.add(name, (rows, C, C))
     ws.add("vec", (rows, N_SLOTS, C))
     for name in ("b0", "bm", "bipm"):
@@ -616,7 +628,7 @@ def _forward_workspace(n: int, C: int, K: int, dtype, device) -> _Layout:
 
 
 _WS_NAMES = (
-    "A0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc piv act".split()
+    "diag0 Am Aipm M V vec b0 bm bipm mu0 lower0 mum lowerm muipm loweripm apex sc piv act".split()
 )
 _SAVED_NAMES = ("sv", "LU", "piv", "scratch")
 
@@ -667,22 +679,28 @@ def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings)
     dynamic = [(i, 1) for i in range(6)]
     dynamic += [(i, 1) for i in range(first_out, len(args) - 1)] + [(len(args) - 1, 0)]
     dynamic += [(i, 2) for i in range(first_ws, first_out)]
-    launch = _Recorded("fused_forward", n, args, dynamic, work, device, n_arg, n_arg + 1)
-    launch.workspace = None  # the kept workspace buffer (CPU)
-    return launch
+    return _Recorded("fused_forward", n, args, dynamic, work, device, n_arg, n_arg + 1)
 
 
-def _workspace_pointers(launch: _Recorded | None, ws: _Layout):
+def _workspace_pointers(ws: _Layout):
     """The workspace's array pointers, and the buffer to keep alive until the launch
-    returns: ``launch``'s own (grown as needed) when one is given, else a new one."""
-    if launch is None:
+    returns: on the CPU this thread's kept buffer (see :data:`_KEEP_WORKSPACE_BYTES`),
+    else a new one (CUDA's caching allocator reuses memory by itself)."""
+    if ws.device.type != "cpu" or ws.nbytes > _KEEP_WORKSPACE_BYTES:
         buf = ws.allocate()
     else:
-        buf = launch.workspace
+        buf = getattr(_LOCAL, "workspace", None)
         if buf is None or buf.numel() < ws.nbytes:
-            buf = launch.workspace = ws.allocate()
+            _LOCAL.workspace = None  # (free the old buffer first)
+            buf = _LOCAL.workspace = ws.allocate()
     base = buf.data_ptr()
     return [base + offset for *_, offset in ws.specs], buf
+
+
+def release_workspace() -> None:
+    """Free the calling thread's kept CPU workspace of the fused solver (the next solve
+    allocates a new one)."""
+    _LOCAL.workspace = None
 
 
 # --- the batch split over CPU cores ----------------------------------------------------------
@@ -804,14 +822,13 @@ class FusedConeQP(torch.autograd.Function):
         pointers.append(flags.data_ptr())
         ws = _forward_workspace(n, C, C // d, work, device)
         parts = _parts(n, C, device)
+        # one workspace, shared by the parts where the batch is split (each problem has
+        # its own rows)
+        ws_pointers, work_buf = _workspace_pointers(ws)
+        pointers += ws_pointers
         if len(parts) == 1:
-            launch = _recorded(key, record)
-            keep_ws = device.type == "cpu" and ws.nbytes <= _KEEP_WORKSPACE_BYTES
-            ws_pointers, work_buf = _workspace_pointers(launch if keep_ws else None, ws)
-            launch(n, pointers + ws_pointers)
-        else:  # one workspace shared by the parts (each problem has its own rows)
-            ws_pointers, work_buf = _workspace_pointers(None, ws)
-            pointers += ws_pointers
+            _recorded(key, record)(n, pointers)
+        else:
             _run_parts(
                 lambda first, count: _recorded(key, record)(n, pointers, first, count),
                 parts,

@@ -9,9 +9,17 @@ The thread runs, for its problem, the same algorithm as the reference solver:
 2. the natural-map Newton polish of :func:`diffcontact.contact.cone_qp._polish`
    (backtracking line search on the residual; where the Jacobian is nearly singular the
    step with its component along the null space of ``A`` removed is tried first);
-3. the natural map, the projection's derivatives and the LU factorisation (LAPACK's
-   ``getrf`` layout: packed ``L \\ U`` and 1-based row interchanges) of ``dF/df`` at the
-   final point, which the implicit backward pass reuses.
+3. the natural map, the projection's derivatives and the factorisation of ``dF/df`` at
+   the final point, which the implicit backward pass reuses.
+
+The Newton systems are solved reduced (:func:`_reduced_factor`): in per-contact bases of
+the range and null space of ``dPi/dz``, ``dF/df`` is block triangular with an identity
+block, so only the range block is factorised (LU in LAPACK's ``getrf`` layout: packed
+``L \\ U`` and 1-based row interchanges; for ``d <= 2`` the block is symmetric positive
+definite and gets a Cholesky factorisation instead). Separating and padded contacts drop
+out, and for ``d <= 2`` so does the normal of each sliding contact's ray. The test-only
+kernels (``fused_solve``, ``fused_polish``) still return the full LU factorisation, for
+the reference's backward.
 
 Dense linear algebra (Cholesky, LU with partial pivoting, and for the null space of ``A``
 a pivoted Cholesky factorisation with Gram-Schmidt in place of the reference's
@@ -74,6 +82,11 @@ P0 = wp.constant(8)  # dPi/dz at f, 3 rows
 PN0 = wp.constant(11)  # dPi/dz at the trial point, 3 rows
 DELTA = wp.constant(14)  # Newton step
 DFLAT = wp.constant(15)  # Newton step without its null-space component
+RHS = wp.constant(16)  # the reduced Newton system's right-hand side, then solution
+QU0 = wp.constant(17)  # per contact: the bases Q of the reduced Newton system (u0, K)
+QU1 = wp.constant(18)  # (u1, K)
+DK = wp.constant(19)  # per contact: how many leading columns of Q are in the system (K)
+PF0 = wp.constant(21)  # dPi/dz of the reduced factorisation in M, 3 rows
 N_SLOTS = 34
 
 # constants that are not exact in float32, typed float64 (Warp before 1.10 emits float
@@ -857,19 +870,46 @@ def _project(z: Any, mu: Any, lower: Any, d: int):
 
 
 @wp.func
-def _z(
+def _z_block(
     A: wp.array3d(dtype=Any),
     b: wp.array2d(dtype=Any),
     r: int,
     t: int,
-    n: int,
-    i: int,
+    d: int,
+    K: int,
+    k: int,
     rho: Any,
     vec: wp.array3d(dtype=Any),
     f: int,
 ):
-    """Component i of z = f - rho (A f + b), f in row ``f``."""
-    return vec[t, f, i] - rho * (_dot(A, r, i, vec, t, f, n) + b[r, i])
+    """Block k of z = f - rho (A f + b), f in row ``f``, as a padded 3-vector. Each row's
+    sum runs over the columns in order, as :func:`_dot`; blocks of f that are zero (the
+    separating and padded contacts) are skipped, which leaves every sum bitwise the same
+    (a sum that starts at +0 never becomes -0), and f is read once for the d rows."""
+    zero = type(rho)(0.0)
+    i = k * d
+    s0 = zero
+    s1 = zero
+    s2 = zero
+    for k2 in range(K):
+        x = _load(vec, t, f, k2, d)
+        if x[0] != zero or x[1] != zero or x[2] != zero:
+            for q in range(d):
+                j = k2 * d + q
+                s0 = s0 + A[r, i, j] * x[q]
+                if d > 1:
+                    s1 = s1 + A[r, i + 1, j] * x[q]
+                if d > 2:
+                    s2 = s2 + A[r, i + 2, j] * x[q]
+    fk = _load(vec, t, f, k, d)
+    z0 = fk[0] - rho * (s0 + b[r, i])
+    z1 = zero
+    z2 = zero
+    if d > 1:
+        z1 = fk[1] - rho * (s1 + b[r, i + 1])
+    if d > 2:
+        z2 = fk[2] - rho * (s2 + b[r, i + 2])
+    return wp.vector(z0, z1, z2)
 
 
 @wp.func
@@ -893,19 +933,11 @@ def _natural_map(
 ):
     """F(f) = f - Pi(f - rho (A f + b)) and the projection's derivatives at the point in
     row f, into rows res, P (3 rows), dmu, dl; returns ||F||_inf / max(c, ||f||_inf)."""
-    n = K * d
     zero = type(rho)(0.0)
     fmax = zero
     Fmax = zero
     for k in range(K):
-        z0 = _z(A, b, r, t, n, k * d, rho, vec, f)
-        z1 = zero
-        z2 = zero
-        if d > 1:
-            z1 = _z(A, b, r, t, n, k * d + 1, rho, vec, f)
-        if d > 2:
-            z2 = _z(A, b, r, t, n, k * d + 2, rho, vec, f)
-        zk = wp.vector(z0, z1, z2)
+        zk = _z_block(A, b, r, t, d, K, k, rho, vec, f)
         proj, Pk, dmuk, dlk = _project(zk, mu[r, k], lower[r, k], d)
         fk = _load(vec, t, f, k, d)
         Fk = fk - proj
@@ -950,6 +982,253 @@ def _jacobian(
                 if col >= k * d and col < k * d + d:
                     value = value - Pk[i, col - k * d]
                 M[t, row, col] = value
+
+
+@wp.func
+def _block_basis(P: Any, d: int):
+    """The reduced Newton system's basis of one contact block: ``(u0, u1, dk)`` for the
+    orthonormal ``Q = [(u0, u1, 0), (-u1, u0, 0), (0, 0, 1)]`` (its first d rows and
+    columns; :func:`_basis_column`) whose first dk columns span the range of the block P
+    of dPi/dz and whose others span its null space.
+
+    For d <= 2 the contact set's faces are flat (the apex, two rays, the interior), so P
+    is an orthogonal projector: 0, I or u u^T with u along the ray; its rank is its trace.
+    For d = 3 the cone's surface is curved and P is no projector: dk is 0 where P = 0 and
+    d elsewhere, with Q = I."""
+    zero = type(P[0, 0])(0.0)
+    one = type(P[0, 0])(1.0)
+    if d == 3:
+        dk = int(0)
+        for i in range(3):
+            for j in range(3):
+                if P[i, j] != zero:
+                    dk = 3
+        return one, zero, dk
+    trace = P[0, 0] + P[1, 1]
+    if trace > type(one)(1.5):
+        return one, zero, d
+    if not (trace > type(one)(0.5)):
+        return one, zero, 0
+    if d == 1:
+        return one, zero, 1
+    j = _pick(P[0, 0] >= P[1, 1], 0, 1)
+    u0 = P[0, j]
+    u1 = P[1, j]
+    norm = wp.sqrt(u0 * u0 + u1 * u1)
+    return u0 / norm, u1 / norm, 1
+
+
+@wp.func
+def _basis_column(u0: Any, u1: Any, j: int):
+    """Column j of the basis Q of :func:`_block_basis`, as a 3-vector."""
+    zero = type(u0)(0.0)
+    if j == 0:
+        return wp.vector(u0, u1, zero)
+    if j == 1:
+        return wp.vector(-u1, u0, zero)
+    return wp.vector(zero, zero, type(u0)(1.0))
+
+
+@wp.func
+def _column(Q: Any, j: int):
+    return wp.vector(Q[0, j], Q[1, j], Q[2, j])
+
+
+@wp.func
+def _row_entry(A: wp.array3d(dtype=Any), r: int, i0: int, col: int, w: Any, d: int):
+    """sum_p w_p A[r, i0 + p, col] over the nonzero w_p (a zero term would leave the sum
+    bitwise the same)."""
+    s = type(w[0])(0.0)
+    for p in range(d):
+        if w[p] != type(w[0])(0.0):
+            s = s + w[p] * A[r, i0 + p, col]
+    return s
+
+
+@wp.func
+def _reduced_build(
+    A: wp.array3d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    reg: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+):
+    """The blocks H (M[t, :m, :m]) and G (M[t, :m, m:n]) of :func:`_reduced_factor`, the
+    bases (rows QU0, QU1, DK) and the copy of P it depends on (rows PF0..); returns m."""
+    n = K * d
+    zero = type(rho)(0.0)
+    m = int(0)
+    for k in range(K):
+        u0, u1, dk = _block_basis(_load_block(vec, t, P0, k, d), d)
+        vec[t, QU0, k] = u0
+        vec[t, QU1, k] = u1
+        vec[t, DK, k] = type(rho)(dk)
+        m += dk
+    a = int(0)
+    for k in range(K):
+        dk = int(vec[t, DK, k])
+        if dk > 0:
+            Pk = _load_block(vec, t, P0, k, d)
+            uk0 = vec[t, QU0, k]
+            uk1 = vec[t, QU1, k]
+            for i in range(dk):
+                u = _basis_column(uk0, uk1, i)
+                w = wp.vector(
+                    wp.dot(u, _column(Pk, 0)), wp.dot(u, _column(Pk, 1)), wp.dot(u, _column(Pk, 2))
+                )  # P^T u
+                cu = int(0)
+                cv = m
+                for l in range(K):
+                    dl = int(vec[t, DK, l])
+                    # block l of the row rho w^T (A + reg I) (+ (u - w)^T on block k)
+                    x0 = _row_entry(A, r, k * d, l * d, w, d)
+                    x1 = zero
+                    x2 = zero
+                    if d > 1:
+                        x1 = _row_entry(A, r, k * d, l * d + 1, w, d)
+                    if d > 2:
+                        x2 = _row_entry(A, r, k * d, l * d + 2, w, d)
+                    x = rho * wp.vector(x0, x1, x2)
+                    if l == k:
+                        x = x + rho * (reg * w)
+                        x = x + (u - w)
+                    ul0 = vec[t, QU0, l]
+                    ul1 = vec[t, QU1, l]
+                    for j in range(d):
+                        value = wp.dot(x, _basis_column(ul0, ul1, j))
+                        if j < dl:
+                            M[t, a, cu] = value
+                            cu += 1
+                        else:
+                            M[t, a, cv] = value
+                            cv += 1
+                a += 1
+    for a2 in range(d):  # what the factorisation depends on besides A (_same_P)
+        for i in range(n):
+            vec[t, PF0 + a2, i] = vec[t, P0 + a2, i]
+    return m
+
+
+@wp.func
+def _reduced_factor(
+    A: wp.array3d(dtype=Any),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    reg: Any,
+    vec: wp.array3d(dtype=Any),
+    M: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+):
+    """dF/df = I - P + rho P (A + reg I) at the point whose P is in rows P0.., reduced.
+
+    In the per-contact bases Q of :func:`_block_basis` (range coordinates U first,
+    contact by contact, then the null-space ones V), ``Q^T dF/df Q = [[H, G], [0, I]]``:
+    a null-space row of dF/df is a row of the identity (V^T P = 0), and a range row is
+    ``u^T (I - P)`` on its own block plus ``rho u^T P (A + reg I)``. Only the m x m block
+    H is factorised, in place in M[t, :m, :m]; G stays in M[t, :m, m:n]. Separating and
+    padded contacts (P = 0) and, for d <= 2, the normal of each sliding contact's ray drop
+    out, so the factorisation costs m^3, not n^3.
+
+    For d <= 2, P is a projector (u = P^T u), so H = rho U^T (A + reg I) U is symmetric
+    positive definite: Cholesky (lower factor in M, ``piv[t, 0] = 0`` marks it). Where
+    that fails (rounding, A singular) and for d = 3 (H is not symmetric): LU with partial
+    pivoting (LAPACK's layout, pivots in piv[t], 1-based). Writes the bases into rows QU0,
+    QU1 and DK (per contact); returns (m, the smallest pivot of dF/df: min L_jj^2 or
+    min |U_jj|, 1 where m = 0)."""
+    m = _reduced_build(A, r, t, d, K, rho, reg, vec, M)
+    umin = type(rho)(1.0)
+    if m > 0:
+        chol = bool(False)
+        if d <= 2:
+            chol = _cholesky(M, t, m)
+            if chol:
+                piv[t, 0] = 0
+                for j in range(m):
+                    pivot = M[t, j, j] * M[t, j, j]
+                    umin = _pick(j == 0, pivot, wp.min(umin, pivot))
+            else:
+                _reduced_build(A, r, t, d, K, rho, reg, vec, M)  # (the failed one overwrote H)
+        if not chol:
+            umin = _lu_factor(M, piv, t, m)
+    return m, umin
+
+
+@wp.func
+def _same_P(vec: wp.array3d(dtype=Any), t: int, n: int, d: int):
+    """Whether dPi/dz (rows P0..) is bitwise the one of the factorisation in M (rows
+    PF0..): dF/df depends on the point only through it, so the factorisation is reused
+    (for d <= 2, P takes few values: 0, I, the rays' projectors)."""
+    for a in range(d):
+        for i in range(n):
+            if vec[t, P0 + a, i] != vec[t, PF0 + a, i]:
+                return False
+    return True
+
+
+@wp.func
+def _reduced_solve(
+    vec: wp.array3d(dtype=Any),
+    t: int,
+    d: int,
+    K: int,
+    m: int,
+    M: wp.array3d(dtype=Any),
+    piv: wp.array2d(dtype=wp.int32),
+    slot: int,
+):
+    """Solve dF/df x = vec[t, slot] in place, with the factorisation of
+    :func:`_reduced_factor`: y = Q^T x, y_V as given, H y_U = y_U - G y_V, x = Q y."""
+    n = K * d
+    cu = int(0)
+    cv = m
+    for k in range(K):
+        dk = int(vec[t, DK, k])
+        u0 = vec[t, QU0, k]
+        u1 = vec[t, QU1, k]
+        x = _load(vec, t, slot, k, d)
+        for j in range(d):
+            y = wp.dot(x, _basis_column(u0, u1, j))
+            if j < dk:
+                vec[t, RHS, cu] = y
+                cu += 1
+            else:
+                vec[t, RHS, cv] = y
+                cv += 1
+    for a in range(m):
+        s = vec[t, RHS, a]
+        for b in range(m, n):
+            s = s - M[t, a, b] * vec[t, RHS, b]
+        vec[t, RHS, a] = s
+    if m > 0:
+        if piv[t, 0] == 0:  # Cholesky (see _reduced_factor)
+            _cholesky_solve(M, t, m, vec, RHS)
+        else:
+            _lu_solve(M, piv, t, m, vec, RHS)
+    cu = int(0)
+    cv = m
+    for k in range(K):
+        dk = int(vec[t, DK, k])
+        u0 = vec[t, QU0, k]
+        u1 = vec[t, QU1, k]
+        zero = type(u0)(0.0)
+        x = wp.vector(zero, zero, zero)
+        for j in range(d):
+            y = zero
+            if j < dk:
+                y = vec[t, RHS, cu]
+                cu += 1
+            else:
+                y = vec[t, RHS, cv]
+                cv += 1
+            x = x + y * _basis_column(u0, u1, j)
+        _store(vec, t, slot, k, d, x)
 
 
 @wp.func
@@ -1016,22 +1295,27 @@ def _polish(
     V: wp.array3d(dtype=Any),
     piv: wp.array2d(dtype=wp.int32),
 ):
-    """Newton steps on the natural map from vec[t, F_] as the reference's ``_polish``;
-    returns the residual. Leaves F, P, dmu, dl at the final point in their rows and the
-    LU factorisation of dF/df there in M[t], piv[t]."""
+    """Newton steps on the natural map from vec[t, F_] as the reference's ``_polish``
+    (the same steps, solved in the reduced form of :func:`_reduced_factor`). Leaves F, P,
+    dmu, dl at the final point in their rows and the reduced factorisation of dF/df there
+    in M[t], piv[t] and rows QU0, QU1, DK; returns (residual, m, smallest pivot)."""
     n = K * d
     zero = type(rho)(0.0)
     res = _natural_map(A, b, mu, lower, r, t, d, K, rho, c, vec, F_, RES, P0, DMU, DL)
     flat = bool(False)
     rank = int(0)
+    have = bool(False)  # M holds the factorisation for the P in rows PF0..
+    m = int(0)
+    umin = type(rho)(1.0)
     for step in range(steps):
         if res <= target:
             break
-        _jacobian(A, r, t, d, K, rho, reg, vec, M)
-        umin = _lu_factor(M, piv, t, n)
+        if not (have and _same_P(vec, t, n, d)):
+            m, umin = _reduced_factor(A, r, t, d, K, rho, reg, vec, M, piv)
+            have = True
         for i in range(n):
             vec[t, DELTA, i] = -vec[t, RES, i]
-        _lu_solve(M, piv, t, n, vec, DELTA)
+        _reduced_solve(vec, t, d, K, m, M, piv, DELTA)
         for i in range(n):
             if not wp.isfinite(vec[t, DELTA, i]):
                 vec[t, DELTA, i] = zero
@@ -1039,7 +1323,8 @@ def _polish(
             # nearly singular: the minimiser may not be unique; try the step without
             # its component along the null space of A first (no move by rounding)
             flat = True
-            rank = _range_basis(A, r, t, n, M, piv, V, eps)
+            rank = _range_basis(A, r, t, n, M, piv, V, eps)  # (M, piv: its scratch)
+            have = False
         new_res = res
         if flat:  # the step projected onto the range of A
             for i in range(n):
@@ -1056,9 +1341,9 @@ def _polish(
         if not (new_res < res):
             break  # the same point would give the same steps again
         res = new_res
-    _jacobian(A, r, t, d, K, rho, reg, vec, M)
-    _lu_factor(M, piv, t, n)
-    return res
+    if not (have and _same_P(vec, t, n, d)):
+        m, umin = _reduced_factor(A, r, t, d, K, rho, reg, vec, M, piv)
+    return res, m, umin
 
 
 # --- the kernel ------------------------------------------------------------------------
@@ -1093,9 +1378,13 @@ def _polish_into(
     """Polish from vec[t, F_] and write f, the residual, dPi/dz (blocks (C, d)), dPi/dmu,
     dPi/dl and the LU factorisation of dF/df (in place in LU, piv) for thread t."""
     n = K * d
-    res_out[t] = _polish(
+    res, _m, _umin = _polish(
         A, b, mu, lower, r, t, d, K, rho, reg, c, target, polish_steps, eps, vec, LU, V, piv
     )
+    res_out[t] = res
+    # the reference's full factorisation, for its backward pass
+    _jacobian(A, r, t, d, K, rho, reg, vec, LU)
+    _lu_factor(LU, piv, t, n)
     for i in range(n):
         f_out[t, i] = vec[t, F_, i]
         dmu_out[t, i] = vec[t, DMU, i]
@@ -1281,7 +1570,7 @@ def _equilibrate(
     d: int,
     K: int,
     spread: Any,
-    A0: wp.array3d(dtype=Any),
+    diag0: wp.array2d(dtype=Any),
     b0: wp.array2d(dtype=Any),
     mu0: wp.array2d(dtype=Any),
     lower0: wp.array2d(dtype=Any),
@@ -1289,9 +1578,10 @@ def _equilibrate(
     row1: int,
     sv: wp.array3d(dtype=Any),
 ):
-    """``_contact_scales`` and ``S sym(A) S``, ``S b``, ``lower / s`` into row t of the
-    workspace (the scales into sv[t, SV_S], the active mask into sv[t, SV_ACT] and rows t,
-    row1 of ``act``); A and b only up to the last active contact (``_trimmed``)."""
+    """``_contact_scales`` and the diagonal of ``S sym(A) S``, ``S b``, ``lower / s`` into
+    row t of the workspace (the scales into sv[t, SV_S], the active mask into
+    sv[t, SV_ACT] and rows t, row1 of ``act``); b and the diagonal only up to the last
+    active contact (``_trimmed``). The whole matrix is built by :func:`_masked_matrix`."""
     zero = type(spread)(0.0)
     one = type(spread)(1.0)
     top = zero
@@ -1321,16 +1611,12 @@ def _equilibrate(
     for i in range(n):
         si = sv[t, SV_S, i]
         b0[t, i] = b_in[t, i] * si
-        for j in range(n):
-            sj = sv[t, SV_S, j]
-            A0[t, i, j] = type(spread)(0.5) * (
-                A_in[t, i, j] * (si * sj) + A_in[t, j, i] * (sj * si)
-            )
+        diag0[t, i] = type(spread)(0.5) * (A_in[t, i, i] * (si * si) + A_in[t, i, i] * (si * si))
 
 
 @wp.func
 def _prepare(
-    A0: wp.array3d(dtype=Any),
+    diag0: wp.array2d(dtype=Any),
     b0: wp.array2d(dtype=Any),
     mu0: wp.array2d(dtype=Any),
     lower0: wp.array2d(dtype=Any),
@@ -1340,11 +1626,9 @@ def _prepare(
     K: int,
     kkt_reg: Any,
     tiny: Any,
-    Am: wp.array3d(dtype=Any),
     bm: wp.array2d(dtype=Any),
     mum: wp.array2d(dtype=Any),
     lowerm: wp.array2d(dtype=Any),
-    Aipm: wp.array3d(dtype=Any),
     bipm: wp.array2d(dtype=Any),
     muipm: wp.array2d(dtype=Any),
     loweripm: wp.array2d(dtype=Any),
@@ -1352,7 +1636,9 @@ def _prepare(
     sc: wp.array2d(dtype=Any),
 ):
     """The scaled, decoupled problems of ``_forward`` (the polish's ``data`` and the
-    interior point's ``ipm_data``) of workspace row r."""
+    interior point's ``ipm_data``) of workspace row r, but for their matrices
+    (:func:`_masked_matrix`, :func:`_ipm_matrix`); reads the diagonal ``diag0`` of the
+    equilibrated matrix only."""
     zero = type(tiny)(0.0)
     one = type(tiny)(1.0)
     n_act = int(0)
@@ -1365,7 +1651,7 @@ def _prepare(
             lmax = wp.max(lmax, lower0[r, k])
             for j in range(d):
                 i = k * d + j
-                sdiag = sdiag + A0[r, i, i]
+                sdiag = sdiag + diag0[r, i]
                 bmax = wp.max(bmax, wp.abs(b0[r, i]))
     a_s = wp.max(sdiag / type(tiny)(wp.max(n_act, 1)), tiny)
     if not (a_s > type(tiny)(1e3) * tiny):
@@ -1405,19 +1691,95 @@ def _prepare(
                 bi = _pick(a == 0, b_s, zero)
             bm[r, i] = bi
             bipm[r, i] = _pick(free_i, zero, bi) / b_s
+
+
+@wp.func
+def _masked_matrix(
+    A_in: wp.array3d(dtype=Any),
+    sv: wp.array3d(dtype=Any),
+    sc: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    t: int,
+    r: int,
+    d: int,
+    K: int,
+    tikhonov: bool,
+    delta: Any,
+    check: int,
+    asym_tol: Any,
+    flags: wp.array(dtype=wp.int32),
+    Am: wp.array3d(dtype=Any),
+):
+    """The polish's matrix ``A_m`` of workspace row r: on the active contacts ``S sym(A)
+    S`` (from the input A_in[t] and the scales sv[t, SV_S]), or for the certificate's
+    Tikhonov problem (``tikhonov``, r = row1) ``A_m[t] / a_s + delta I``; inactive
+    contacts decoupled (``a_s`` on their diagonal). From the input, one pass over the
+    pairs (i, j >= i), which also makes :func:`_flag_finite`'s tests of this block
+    (finiteness, and where ``check`` symmetry to ``asym_tol``)."""
+    a_s = sc[r, SC_AS]
+    zero = type(a_s)(0.0)
+    half = type(a_s)(0.5)
+    n = K * d
+    if tikhonov:
+        a_t = sc[t, SC_AS]
+        for i in range(n):
+            on_i = act[r, i // d]
+            for j in range(n):
+                v = zero
+                if on_i and act[r, j // d]:
+                    v = Am[t, i, j] / a_t + _pick(i == j, delta, zero)
+                elif (not on_i) and i == j:
+                    v = a_s
+                Am[r, i, j] = v
+        return
+    for i in range(n):
+        k = i // d
+        on_k = act[r, k]
+        si = sv[t, SV_S, i]
+        for j in range(i, n):
+            a = A_in[t, i, j]
+            a_t = A_in[t, j, i]
+            if not (wp.isfinite(a) and wp.isfinite(a_t)):
+                flags[0] = 1
+            if check != 0 and wp.abs(a - a_t) > asym_tol:
+                flags[8] = 1
+            v = zero
+            if on_k and act[r, j // d]:
+                sj = sv[t, SV_S, j]
+                # (the same value for (j, i): the products and the sum commute)
+                v = half * (a * (si * sj) + a_t * (sj * si))
+            elif (not on_k) and i == j:
+                v = a_s
+            Am[r, i, j] = v
+            Am[r, j, i] = v
+
+
+@wp.func
+def _ipm_matrix(
+    Am: wp.array3d(dtype=Any),
+    mum: wp.array2d(dtype=Any),
+    sc: wp.array2d(dtype=Any),
+    r: int,
+    d: int,
+    K: int,
+    Aipm: wp.array3d(dtype=Any),
+):
+    """The interior point's matrix of workspace row r (``_prepare``'s ``A_m / a_s`` with
+    the tangential components of frictionless contacts decoupled), built only for the
+    problems that need the interior point."""
+    a_s = sc[r, SC_AS]
+    zero = type(a_s)(0.0)
+    for k in range(K):
+        for a in range(d):
+            i = k * d + a
+            free_i = d > 1 and a > 0 and mum[r, k] == zero
             for k2 in range(K):
                 for a2 in range(d):
                     j = k2 * d + a2
                     free_j = d > 1 and a2 > 0 and mum[r, k2] == zero
-                    v = zero
-                    if on_i and act[r, k2]:
-                        v = A0[r, i, j]
-                    if (not on_i) and i == j:
-                        v = a_s
-                    Am[r, i, j] = v
                     w = zero
                     if not (free_i or free_j):
-                        w = v
+                        w = Am[r, i, j]
                     if free_i and i == j:
                         w = a_s
                     Aipm[r, i, j] = w / a_s
@@ -1565,8 +1927,9 @@ def _solve_row(
     """The solve of ``_forward`` for workspace row r: polish of the guess in vec[r, F_]
     (if ``guessed``), else ``first_steps`` Newton steps from zero; where that does not
     finish, interior point and polish with retries. Leaves the polished
-    point (f, F, P, dmu, dl in their rows of vec; the LU factorisation of dF/df in M[r],
-    piv[r]); returns (residual, interior-point iterations, interior point diverged)."""
+    point (f, F, P, dmu, dl in their rows of vec; the reduced factorisation of dF/df of
+    :func:`_reduced_factor` in M[r], piv[r]); returns (residual, interior-point
+    iterations, interior point diverged, the size m of the factorised block)."""
     rho = sc[r, SC_RHO]
     reg = sc[r, SC_REG]
     c = sc[r, SC_C]
@@ -1575,8 +1938,9 @@ def _solve_row(
     diverged = bool(False)
     res = inf
     kept = bool(False)
+    m = int(0)
     if guessed:
-        res = _polish(
+        res, m, _umin = _polish(
             Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, polish_steps, eps, vec, M, V,
             piv,
         )  # fmt: skip
@@ -1588,15 +1952,13 @@ def _solve_row(
         # which the interior point's central path picks) the interior point
         for i in range(n):
             vec[r, F_, i] = type(gap)(0.0)
-        res = _polish(
+        res, m, umin = _polish(
             Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, first_steps, eps, vec, M, V,
             piv,
         )  # fmt: skip
-        umin = inf
-        for i in range(n):
-            umin = wp.min(umin, wp.abs(M[r, i, i]))
         kept = res <= target and umin > type(gap)(FLAT)
     if not kept:
+        _ipm_matrix(Am, mum, sc, r, d, K, Aipm)
         g = gap
         for _attempt in range(retries + 1):
             _ok, div, it = _interior_point(
@@ -1607,7 +1969,7 @@ def _solve_row(
             diverged = div
             for i in range(n):
                 vec[r, F_, i] = vec[r, F_, i] * c
-            res = _polish(
+            res, m, _umin = _polish(
                 Am, bm, mum, lowerm, r, r, d, K, rho, reg, c, target, polish_steps, eps, vec, M,
                 V, piv,
             )  # fmt: skip
@@ -1618,7 +1980,7 @@ def _solve_row(
         if not act[r, k]:
             for j in range(d):
                 vec[r, F_, k * d + j] = type(gap)(0.0)
-    return res, iterations, diverged
+    return res, iterations, diverged, m
 
 
 @wp.func
@@ -1681,6 +2043,7 @@ def _flag_finite(
     t: int,
     n: int,
     K: int,
+    n_skip: int,
     has_warm: int,
     check: int,
     flags: wp.array(dtype=wp.int32),
@@ -1689,27 +2052,30 @@ def _flag_finite(
     where ``check``, flags[6..9] = 1 where mu < 0, lower < 0, A is not symmetric (to
     ``1e-6 max_i |A_ii| + 1e-12``) or has a negative diagonal entry (below ``-1e-9 max_i
     |A_ii|``), the tests of ``solve_cone_qp``'s ``check_inputs`` (every thread that finds
-    one writes the same value)."""
+    one writes the same value). The leading n_skip x n_skip block of A is left to
+    :func:`_masked_matrix`, which reads it anyway; returns the symmetry tolerance."""
+    scale = wp.abs(A_in[t, 0, 0])
     if check != 0:
-        scale = wp.abs(A_in[t, 0, 0])
         for i in range(n):
             scale = wp.max(scale, wp.abs(A_in[t, i, i]))
         for i in range(n):
             if A_in[t, i, i] < -(type(scale)(1e-9) * scale):
                 flags[9] = 1
-            for j in range(n):
-                asym = wp.abs(A_in[t, i, j] - A_in[t, j, i])
-                if asym > type(scale)(1e-6) * scale + type(scale)(1e-12):
-                    flags[8] = 1
         for k in range(K):
             if mu_in[t, k] < type(scale)(0.0):
                 flags[6] = 1
             if lower_in[t, k] < type(scale)(0.0):
                 flags[7] = 1
-    for i in range(n):
-        for j in range(n):
-            if not wp.isfinite(A_in[t, i, j]):
+    asym_tol = type(scale)(1e-6) * scale + type(scale)(1e-12)
+    for i in range(n):  # one pass over the pairs (i, j >= i) outside the leading block
+        for j in range(wp.max(i, n_skip), n):
+            a = A_in[t, i, j]
+            a_t = A_in[t, j, i]
+            if not (wp.isfinite(a) and wp.isfinite(a_t)):
                 flags[0] = 1
+            if check != 0 and wp.abs(a - a_t) > asym_tol:
+                flags[8] = 1
+    for i in range(n):
         if not wp.isfinite(b_in[t, i]):
             flags[1] = 1
         if has_warm != 0:
@@ -1720,6 +2086,7 @@ def _flag_finite(
             flags[2] = 1
         if not wp.isfinite(lower_in[t, k]):
             flags[3] = 1
+    return asym_tol
 
 
 @wp.kernel
@@ -1755,7 +2122,7 @@ def fused_forward(
     size_again: Any,
     slope_max: Any,
     sqrt_eps: Any,
-    A0: wp.array3d(dtype=Any),
+    diag0: wp.array2d(dtype=Any),
     Am: wp.array3d(dtype=Any),
     Aipm: wp.array3d(dtype=Any),
     M: wp.array3d(dtype=Any),
@@ -1788,18 +2155,23 @@ def fused_forward(
     compute dtype: ``A_in`` (n, C, C), ``b_in`` (n, C), ``mu_in``, ``lower_in``,
     ``active_in`` (n, K), ``warm_in`` (n, C) where ``has_warm``). Writes f (n, C) in the
     caller's scale, the status (n,), and for the backward pass f', dPi/dz, dPi/dmu, dPi/dl,
-    the scales, the mask and rho into ``sv`` (n, N_SV, C) and the LU factorisation of dF/df
-    into ``LU_out``, ``piv_out``. Workspace arrays have 2 n rows (see above). Sets
+    the scales, the mask and rho into ``sv`` (n, N_SV, C) and the reduced factorisation of
+    dF/df (:func:`_reduced_factor`) into ``LU_out``, ``piv_out``. Workspace arrays have
+    2 n rows (see above). Sets
     ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
     ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
     bad input (see ``_flag_finite``; zeros on entry). Thread i solves problem t = first + i
     (a launch may cover a range of the problems)."""
     t = wp.tid() + first
     zero = type(tol)(0.0)
-    _flag_finite(A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, has_warm, check, flags)
+    # (the leading block of the solve's contacts is checked where _masked_matrix reads it)
+    n_solve = _trimmed(active_in, t, K_all) * d
+    asym_tol = _flag_finite(
+        A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, n_solve, has_warm, check, flags
+    )
     row1 = n_total + t
     _equilibrate(
-        A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, A0, b0, mu0, lower0, act,
+        A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, diag0, b0, mu0, lower0, act,
         row1, sv,
     )  # fmt: skip
     # the trailing inactive contacts are decoupled (identity rows, zero impulse): the solve
@@ -1820,15 +2192,15 @@ def fused_forward(
             b_s = sc[t, SC_BS]
             for i in range(n):
                 b0[r, i] = bm[t, i] / b_s
-                for j in range(n):
-                    A0[r, i, j] = Am[t, i, j] / a_s + _pick(i == j, delta, zero)
+                diag0[r, i] = Am[t, i, i] / a_s + delta  # (_prepare's a_s)
             for k in range(K):
                 mu0[r, k] = mum[t, k]
                 lower0[r, k] = zero
         _prepare(
-            A0, b0, mu0, lower0, act, r, d, K, kkt_reg, tiny, Am, bm, mum, lowerm, Aipm, bipm,
-            muipm, loweripm, apex, sc,
+            diag0, b0, mu0, lower0, act, r, d, K, kkt_reg, tiny, bm, mum, lowerm, bipm, muipm,
+            loweripm, apex, sc,
         )  # fmt: skip
+        _masked_matrix(A_in, sv, sc, act, t, r, d, K, p == 1, delta, check, asym_tol, flags, Am)
         guessed = _guess(Am, bm, mum, lowerm, act, r, d, K, tiny, inf, vec)
         if p == 0 and has_warm != 0 and not guessed:
             for k in range(K):
@@ -1836,7 +2208,7 @@ def fused_forward(
                     i = k * d + j
                     vec[r, F_, i] = _pick(act[r, k], warm_in[t, i] / sv[t, SV_S, i], zero)
             guessed = True
-        res, iterations, _div = _solve_row(
+        res, iterations, _div, m = _solve_row(
             Am, bm, mum, lowerm, Aipm, bipm, muipm, loweripm, apex, act, sc, r, d, K, guessed,
             gap, max_iter, retries, target, tol, polish_steps, first_steps, blowup, eps, tiny, inf,
             vec, M, V, piv,
@@ -1858,8 +2230,9 @@ def fused_forward(
                 f_out[t, i] = fi * sv[t, SV_S, i]
                 size = wp.max(size, wp.abs(fi / c))
                 piv_out[t, i] = piv[t, i]
-                for j in range(n):
-                    LU_out[t, i, j] = M[t, i, j]
+                if i < m:  # (rows m.. of the reduced factorisation are not used)
+                    for j in range(n):
+                        LU_out[t, i, j] = M[t, i, j]
                 for a in range(d):
                     sv[t, SV_P + a, i] = vec[t, P0 + a, i]
             for i in range(n, K_all * d):  # the trimmed contacts: zero impulse
@@ -1934,25 +2307,67 @@ def fused_backward(
     for i in range(n):
         g = grad_f[t, i] * sv[t, SV_S, i]
         vec[t, 0, i] = _pick(sv[t, SV_ACT, i] != zero, g, zero)
-    # solve (P L U)^T v = g: U^T y = g, L^T w = y, v = P w
-    for i in range(n):
-        s = vec[t, 0, i]
-        for k in range(i):
-            s = s - LU[t, k, i] * vec[t, 0, k]
-        vec[t, 0, i] = s / LU[t, i, i]
-    for ii in range(n):
-        i = n - 1 - ii
-        s = vec[t, 0, i]
-        for k in range(i + 1, n):
-            s = s - LU[t, k, i] * vec[t, 0, k]
-        vec[t, 0, i] = s
-    for jj in range(n):
-        j = n - 1 - jj
-        p = piv[t, j] - 1
-        if p != j:
-            tmp = vec[t, 0, j]
-            vec[t, 0, j] = vec[t, 0, p]
-            vec[t, 0, p] = tmp
+    # v = dF/df^-T g with the forward's reduced factorisation (``_reduced_factor``; its
+    # per-contact bases again from P): Q^T dF/df Q = [[H, G], [0, I]], so with y = Q^T g
+    # (range coordinates first, into row 1): H^T y_U = y_U, y_V = y_V - G^T y_U, v = Q y
+    m = int(0)
+    for k in range(K):
+        _u0, _u1, dk = _block_basis(_load_block(sv, t, SV_P, k, d), d)
+        m += dk
+    cu = int(0)
+    cv = m
+    for k in range(K):
+        u0, u1, dk = _block_basis(_load_block(sv, t, SV_P, k, d), d)
+        x = _load(vec, t, 0, k, d)
+        for j in range(d):
+            y = wp.dot(x, _basis_column(u0, u1, j))
+            if j < dk:
+                vec[t, 1, cu] = y
+                cu += 1
+            else:
+                vec[t, 1, cv] = y
+                cv += 1
+    if m > 0 and piv[t, 0] == 0:  # H = L L^T (see _reduced_factor)
+        _cholesky_solve(LU, t, m, vec, 1)
+    else:  # H = P L U (LAPACK pivots): U^T y = g, L^T w = y, y = P w
+        for i in range(m):
+            s = vec[t, 1, i]
+            for k in range(i):
+                s = s - LU[t, k, i] * vec[t, 1, k]
+            vec[t, 1, i] = s / LU[t, i, i]
+        for ii in range(m):
+            i = m - 1 - ii
+            s = vec[t, 1, i]
+            for k in range(i + 1, m):
+                s = s - LU[t, k, i] * vec[t, 1, k]
+            vec[t, 1, i] = s
+        for jj in range(m):
+            j = m - 1 - jj
+            p = piv[t, j] - 1
+            if p != j:
+                tmp = vec[t, 1, j]
+                vec[t, 1, j] = vec[t, 1, p]
+                vec[t, 1, p] = tmp
+    for j in range(m, n):
+        s = vec[t, 1, j]
+        for i in range(m):
+            s = s - LU[t, i, j] * vec[t, 1, i]
+        vec[t, 1, j] = s
+    cu = int(0)
+    cv = m
+    for k in range(K):
+        u0, u1, dk = _block_basis(_load_block(sv, t, SV_P, k, d), d)
+        x = wp.vector(zero, zero, zero)
+        for j in range(d):
+            y = zero
+            if j < dk:
+                y = vec[t, 1, cu]
+                cu += 1
+            else:
+                y = vec[t, 1, cv]
+                cv += 1
+            x = x + y * _basis_column(u0, u1, j)
+        _store(vec, t, 0, k, d, x)
     # P^T v per block, into row 1
     for k in range(K):
         for i in range(d):
