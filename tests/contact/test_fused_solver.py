@@ -304,6 +304,35 @@ def test_gradients_equal_the_reference_backends():
         torch.testing.assert_close(g_w, g_t, rtol=1e-7, atol=1e-9)
 
 
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_reduced_newton_systems_match_the_reference(d):
+    """The kernel solves each Newton system reduced to the contacts that press, in bases of
+    the projection's range (for d <= 2 the sliding contacts keep one coordinate, and the
+    block is Cholesky-factorised; for d = 3 an LU of the pressing contacts' rows). On
+    problems where most contacts slide, some stick and some separate, impulses and
+    gradients equal the reference's full factorisation."""
+    n, K = 24, 8
+    A, b, mu, lower = random_problems(n, K, d, seed=21, lower_frac=0.3)
+    gen = torch.Generator().manual_seed(21)
+    if d > 1:  # large tangential loads: most pressing contacts slide
+        b = b.clone()
+        b.view(n, K, d)[..., 1:] *= 1 + 4 * torch.rand(n, K, 1, generator=gen, dtype=F64)
+    w = torch.randn(n, K * d, generator=gen, dtype=F64)
+    out = []
+    for settings in (TORCH, WARP):
+        xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+        f = solve_cone_qp(*xs[:3], d, xs[3], settings=settings)
+        out.append((f.detach(), *torch.autograd.grad((f * w).sum(), xs)))
+    (f_t, *g_t), (f_w, *g_w) = out
+    assert rel_diff(f_w, f_t).max() <= RTOL
+    if d > 1:  # the family exercises the sliding reduction
+        fn, ft = f_t.view(n, K, d)[..., 0], f_t.view(n, K, d)[..., 1:].norm(dim=-1)
+        sliding = (fn > 1e-9) & ((ft - mu * fn).abs() <= 1e-9 * (1 + fn))
+        assert sliding.sum() >= n * K // 4
+    for a, b_ in zip(g_w, g_t, strict=True):
+        torch.testing.assert_close(a, b_, rtol=1e-7, atol=1e-9)
+
+
 def test_batch_invariance():
     """A problem gets bitwise the same impulse alone, inside a random batch, and with its
     padded contacts removed (each problem is one thread's arithmetic)."""
@@ -390,7 +419,9 @@ def test_recorded_launches_replay_new_data():
     with new data pointers (and on the CPU a new number of problems): replays give bitwise
     what a fresh recording gives, for new data of the same shapes, for fewer and more
     problems, for inputs with other strides (broadcast A), for warm starts, in the
-    backward pass, and from several threads at once (each has its own)."""
+    backward pass, and from several threads at once (each has its own). The replays also
+    reuse the thread's kept workspace (left as other problems left it); fresh recordings
+    start from a new one."""
     import threading
 
     d, n, K = 2, 8, 4
@@ -404,6 +435,7 @@ def test_recorded_launches_replay_new_data():
 
     def fresh(*args):
         fused._RECORDED.__dict__.clear()
+        fused.release_workspace()
         return run(*args)
 
     A0, b0, mu0, lower0, active0 = sets[0]
