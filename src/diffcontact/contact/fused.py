@@ -568,8 +568,8 @@ _RECORD_LOCK = threading.Lock()
 # On the CPU (where launches are synchronous) each calling thread keeps one forward
 # workspace, grown as needed up to this size, instead of allocating one per call: a fresh
 # allocation of this size comes from the operating system, and every page the kernel then
-# touches for the first time costs a page fault (at 30 contacts, about as much as the
-# solve's own arithmetic). Only the pages a solve touches take memory; release_workspace()
+# touches for the first time costs a page fault (at 30 contacts a large share of the
+# solve's time). Only the pages a solve touches take memory; release_workspace()
 # frees the buffer.
 _KEEP_WORKSPACE_BYTES = 1 << 30
 _LOCAL = threading.local()

@@ -2164,20 +2164,19 @@ def fused_forward(
     (a launch may cover a range of the problems)."""
     t = wp.tid() + first
     zero = type(tol)(0.0)
-    # (the leading block of the solve's contacts is checked where _masked_matrix reads it)
-    n_solve = _trimmed(active_in, t, K_all) * d
+    # the trailing inactive contacts are decoupled (identity rows, zero impulse): the solve
+    # runs on the contacts up to the last active one (callers pad at the end); its leading
+    # block of A is checked where _masked_matrix reads it
+    K = _trimmed(active_in, t, K_all)
+    n = K * d
     asym_tol = _flag_finite(
-        A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, n_solve, has_warm, check, flags
+        A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, n, has_warm, check, flags
     )
     row1 = n_total + t
     _equilibrate(
         A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, diag0, b0, mu0, lower0, act,
         row1, sv,
     )  # fmt: skip
-    # the trailing inactive contacts are decoupled (identity rows, zero impulse): the solve
-    # runs on the contacts up to the last active one (callers pad at the end)
-    K = _trimmed(act, t, K_all)
-    n = K * d
     again = bool(False)
     cert = bool(False)
     res0 = zero
