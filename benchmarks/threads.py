@@ -11,7 +11,10 @@ this script, standing for another user's job), side by side in one run:
   including the steps it spends probing);
 - one friction-cone QP solve, forward + backward, at batch 1024 with 5 contacts,
   on the fused (Warp, when installed) and the reference (torch) backends, with 1
-  thread and with all available cores.
+  thread and with all available cores;
+- a rollout ``System.simulate`` of 1024 scenes of ``--task`` over 100 steps with
+  ``threads=1``, all cores, and its default ``threads="auto"`` (the governor timing
+  the rollout's own steps, :func:`diffcontact.threads.thread_scope`).
 
 Every cell is the mean seconds (or ms) per step over the timed steps after one
 warm-up step; ``x best`` is the ratio to the fastest cell of its row and load.
@@ -82,6 +85,52 @@ def solver_fn(backend: str, batch: int = 1024, contacts: int = 5):
     return step
 
 
+class Rollout:
+    """``System.simulate`` of ``batch`` scenes over ``steps`` steps; ``run(threads)`` is one
+    call with that ``threads`` option. ``auto_cell`` times the default ``"auto"`` and reads
+    the choice of the governor the call made."""
+
+    def __init__(self, task: str, batch: int = 1024, steps: int = 100) -> None:
+        import diffcontact as dc
+
+        self.system = dc.load_system(task)
+        self.z0 = self.system.sample_initial_conditions(batch, seed=0)
+        self.steps = steps
+
+    def run(self, threads) -> None:
+        self.system.simulate(self.z0, self.steps, threads=threads)
+
+    def __call__(self) -> None:  # fixed cells: the thread count time_fixed set
+        self.run(None)
+
+    def auto_cell(self, max_threads: int, reps: int) -> tuple[float, int, float]:
+        import diffcontact.threads as threads_mod
+
+        made = []
+        original = threads_mod.ThreadGovernor
+
+        class Recording(original):
+            def __init__(self, *args, **kwargs) -> None:
+                super().__init__(*args, **kwargs)
+                made.append(self)
+
+        torch.set_num_threads(max_threads)
+        threads_mod.ThreadGovernor = Recording
+        try:
+            self.run("auto")  # warm-up
+            times = []
+            for _ in range(reps):
+                t0 = time.perf_counter()
+                self.run("auto")
+                times.append(time.perf_counter() - t0)
+        finally:
+            threads_mod.ThreadGovernor = original
+        last = made[-1]
+        windows = [n for _, n, _ in last.history]
+        share = windows.count(1) / len(windows) if windows else 0.0
+        return statistics.mean(times), last.choice, share
+
+
 def time_fixed(step, threads: int, reps: int) -> float:
     torch.set_num_threads(threads)
     step()  # warm-up
@@ -117,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer steps (about two minutes)")
-    ap.add_argument("--task", default="BP5", help="training task (default BP5)")
+    ap.add_argument("--task", default="BP5", help="training and rollout task (default BP5)")
     ap.add_argument("--batch-size", type=int, default=200, help="training chunks per step")
     ap.add_argument("--steps", type=int, default=None, help="auto steps (48; quick 24)")
     ap.add_argument(
@@ -149,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [(f"train step {args.task} (s)", train_step_fn(args.task, args.batch_size), 1.0, True)]
     backends = (["warp"] if have_warp else []) + ["torch"]
     rows += [(f"solve K=5 B=1024 f+b {b} (ms)", solver_fn(b), 1e3, False) for b in backends]
+    rows.append((f"simulate {args.task} 1024x100 (s)", Rollout(args.task), 1.0, True))
     for load in ("idle", "busy"):
         for name, step, scale, auto in rows:
             if load == "busy":
@@ -170,15 +220,22 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(initial)
     print(
         "x best: time / the fastest cell of the row (1 thread, all cores, auto). auto: the "
-        "ThreadGovernor of train(threads='auto'), its probes included."
+        "ThreadGovernor of train(threads='auto') (simulate: of simulate's default "
+        "threads='auto', inside each call; the share counts its windows), its probes included."
     )
     return 0
 
 
 def _row(step, cores: int, reps: int, auto_steps: int, auto: bool):
+    if isinstance(step, Rollout):  # whole calls: a few repetitions, the governor inside
+        reps = max(2, reps // 2)
     one = time_fixed(step, 1, reps)
     many = time_fixed(step, cores, reps)
-    return one, many, (time_auto(step, cores, auto_steps) if auto else None)
+    if not auto:
+        return one, many, None
+    if isinstance(step, Rollout):
+        return one, many, step.auto_cell(cores, reps)
+    return one, many, time_auto(step, cores, auto_steps)
 
 
 if __name__ == "__main__":

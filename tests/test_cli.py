@@ -125,6 +125,15 @@ def test_bad_numbers(capsys, flag, value):
 
 
 @needs_systems
+@pytest.mark.parametrize("value", ["0", "many"])
+def test_bad_threads(capsys, tmp_path, value):
+    out = tmp_path / "x.npz"
+    code, _, err = run(capsys, "simulate", "BP5", "--threads", value, "--out", str(out))
+    assert_usage_error(code, err, "argument --threads")
+    assert not out.exists()
+
+
+@needs_systems
 def test_missing_config_file(capsys, tmp_path):
     missing = tmp_path / "nope.yaml"
     code, _, err = run(capsys, "simulate", str(missing), "--out", str(tmp_path / "x.npz"))

@@ -1,11 +1,21 @@
-"""The thread governor: it picks the faster thread count and follows a change of load."""
+"""The thread governor: it picks the faster thread count and follows a change of load; the
+``threads`` option of the loops of steps (simulate, optimize) uses it."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from diffcontact.threads import ThreadGovernor, _cgroup_quota, available_cores, parse_threads
+import diffcontact.threads as threads_mod
+from diffcontact.threads import (
+    ThreadGovernor,
+    _cgroup_quota,
+    available_cores,
+    claim_threads,
+    governed,
+    parse_threads,
+    thread_scope,
+)  # fmt: skip
 
 
 class FakeClock:
@@ -91,7 +101,21 @@ def test_restore_puts_back_the_initial_count():
     assert torch.get_num_threads() == 2
 
 
+def test_one_thread_first_leaves_a_loaded_cpu_after_two_steps():
+    """first=1 (short loops): the probe of two threads stops after two spiking steps."""
+    clock = FakeClock()
+    g = ThreadGovernor(2, first=1, clock=clock)
+    used = run(g, clock, 40, lambda i, n: 3.5 if n == 2 else 1.0)
+    assert used[: g.window] == [1] * g.window and used[g.window : g.window + 2] == [2, 2]
+    assert set(used[g.window + 2 :]) == {1} and g.choice == 1
+    idle = ThreadGovernor(2, first=1, clock=clock)
+    used = run(idle, clock, 40, lambda i, n: 1.0 if n == 2 else 1.6)
+    assert idle.choice == 2 and used[-1] == 2
+
+
 def test_bad_arguments():
+    with pytest.raises(ValueError, match="first must be"):
+        ThreadGovernor(4, first=2)
     with pytest.raises(ValueError, match="max_threads"):
         ThreadGovernor(0)
     with pytest.raises(ValueError, match="window"):
@@ -149,3 +173,94 @@ def test_more_load_does_not_send_it_back_to_several_threads():
     assert busier.count(2) / len(busier) < 0.1
     assert used[400 + 3 * g.window :].count(2) / len(used[400 + 3 * g.window :]) > 0.85
     assert g.threads == 2 and g.choice == 2
+
+
+# ------------------------------------------------------------------ thread_scope
+
+
+class SlowManyClock:
+    """Advances by a step's cost at every reading: two threads cost 3, one thread 1 (a loaded
+    CPU), so the time between a step's start and stop is the cost of the threads in use."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        self.now += 3.0 if torch.get_num_threads() > 1 else 1.0
+        return self.now
+
+
+@pytest.fixture
+def two_cores(monkeypatch):
+    """Two available cores and torch at two threads; governors made by thread_scope read the
+    loaded-CPU clock above (their instances are collected in the list yielded)."""
+    made = []
+
+    class Recording(ThreadGovernor):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, clock=SlowManyClock(), **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(threads_mod, "available_cores", lambda: 2)
+    monkeypatch.setattr(threads_mod, "ThreadGovernor", Recording)
+    torch.set_num_threads(2)
+    return made
+
+
+def test_thread_scope_governs_a_long_loop_and_puts_the_threads_back(two_cores):
+    with thread_scope("auto", "cpu", steps=60) as scope:
+        assert governed()
+        used = []
+        for _ in range(60):
+            with scope.step():
+                used.append(torch.get_num_threads())
+    assert len(two_cores) == 1 and scope is two_cores[0]
+    assert scope.choice == 1 and used[-1] == 1  # two threads were slower here
+    assert torch.get_num_threads() == 2 and not governed()
+
+
+def test_thread_scope_leaves_short_nested_and_none_loops_alone(two_cores):
+    for threads, steps in (("auto", threads_mod.MIN_AUTO_STEPS - 1), (None, 100)):
+        with thread_scope(threads, "cpu", steps) as scope:
+            assert scope.choice is None and not governed()
+            with scope.step():
+                assert torch.get_num_threads() == 2
+    with claim_threads(), thread_scope("auto", "cpu", 100) as scope:
+        assert scope.choice is None
+    with thread_scope("auto", "meta", 100) as scope:  # not a CPU loop
+        assert scope.choice is None
+    assert two_cores == []
+    with thread_scope(1, "cpu", 5):  # a fixed count applies, short or nested
+        assert torch.get_num_threads() == 1 and governed()
+    assert torch.get_num_threads() == 2
+    with pytest.raises(ValueError, match="threads must be"):
+        with thread_scope("fast", "cpu", 100):
+            pass
+
+
+def test_simulate_governs_its_steps_without_changing_the_result(two_cores):
+    import diffcontact as dc
+
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(8, seed=0)
+    auto = system.simulate(z0, 40)
+    assert len(two_cores) == 1 and two_cores[0].choice == 1
+    assert torch.get_num_threads() == 2
+    fixed = system.simulate(z0, 40, threads=None)
+    assert len(two_cores) == 1
+    torch.testing.assert_close(auto, fixed, rtol=0, atol=1e-12)
+    with claim_threads():  # inside a training step or a planning iteration: left alone
+        system.simulate(z0, 40)
+    assert len(two_cores) == 1
+    with pytest.raises(ValueError, match="threads must be"):
+        system.simulate(z0, 40, threads=0)
+
+
+def test_the_training_callback_claims_the_threads():
+    from diffcontact.learning.training.governor import thread_callback
+
+    callback = thread_callback(1, "cpu")
+    callback.setup(None, None, "fit")
+    assert governed() and torch.get_num_threads() == 1
+    callback.teardown(None, None, "fit")
+    assert not governed()

@@ -34,7 +34,7 @@ import time
 from typing import NoReturn
 
 from diffcontact import __version__
-from diffcontact.cli_args import non_negative_int, one_line, positive_int
+from diffcontact.cli_args import non_negative_int, one_line, positive_int, threads_arg
 from diffcontact.contact.registry import contact_models
 
 EXIT_USAGE = 2
@@ -123,6 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--fps", type=positive_int, default=20, help="GIF frames per second (default 20)"
     )
+    sim.add_argument(
+        "--threads", type=threads_arg, default="auto", metavar="N|auto",
+        help="torch CPU threads (default auto: 1 or all available cores, whichever the "
+        "timed steps show faster; several threads slow down on a loaded CPU)",
+    )  # fmt: skip
     sim.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=_cmd_simulate)
 
@@ -197,7 +202,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     try:
         z0 = system.sample_initial_conditions(args.n, seed=args.seed, device=args.device)
         traj = system.simulate(
-            z0, steps=steps, contact_model=args.contact_model, progress=not args.quiet
+            z0,
+            steps=steps,
+            contact_model=args.contact_model,
+            progress=not args.quiet,
+            threads=args.threads,
         )
     except ValueError as err:
         raise UsageError(one_line(err)) from None

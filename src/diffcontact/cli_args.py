@@ -30,6 +30,19 @@ positive_int = int_at_least(1)
 non_negative_int = int_at_least(0)
 
 
+def threads_arg(text: str) -> int | str:
+    """An argparse type for ``--threads``: ``auto`` or an integer >= 1."""
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or >= 1, got {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """An argparse type accepting finite numbers > 0."""
     try:

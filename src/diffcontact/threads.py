@@ -17,6 +17,11 @@ of issue 11). No fixed number is right on a shared machine, so the default of
   keeps the faster, probes the other again after a while (less often each
   time the probe loses) and at once when the steps become markedly slower
   than they were, which is what a competing process starting up looks like.
+- :func:`thread_scope` is the ``threads`` option of every loop of steps
+  (``System.simulate``, hence data generation, evaluation and ``diffcontact
+  simulate``; ``diffcontact.optimize``): ``"auto"``, their default, governs the
+  loop's steps; a loop inside a governed one (a rollout inside a training step
+  or a planning iteration) leaves the threads to the outer one.
 
 Nothing here changes results: the thread count changes the order of
 floating-point reductions only inside torch's parallel kernels (last-bit
@@ -25,15 +30,29 @@ differences), never the algorithm.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import statistics
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 
-__all__ = ["ThreadGovernor", "available_cores", "parse_threads"]
+__all__ = [
+    "ThreadGovernor", "available_cores", "claim_threads", "governed", "parse_threads",
+    "thread_scope",
+]  # fmt: skip
+
+MIN_AUTO_STEPS = 24
+"""Loops of fewer steps are not governed by ``threads="auto"`` (the threads are left as
+they are): the governor needs two windows of 8 steps to compare the candidates, so a
+shorter loop would only pay for the probe."""
+
+_GOVERNED = 0  # open thread scopes (the thread count is process-wide, so is this)
+_GOVERNED_LOCK = threading.Lock()
 
 
 def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
@@ -91,9 +110,9 @@ class ThreadGovernor:
     ``1`` and ``max_threads``, and works in windows of ``window`` steps, the
     first step of each window discarded (it pays for the switch):
 
-    1. measure a window with ``max_threads``, then one with 1 thread; keep the
-       one whose median step time is lower (ties within ``margin`` go to the
-       current one);
+    1. measure a window with ``max_threads`` (or ``first``), then one with the
+       other; keep the one whose median step time is lower (ties within
+       ``margin`` go to the current one);
     2. run ``interval`` windows with the choice, then probe the other for one
        window; a probe that loses doubles ``interval`` (up to
        ``max_interval``), one that wins switches and resets it;
@@ -116,6 +135,10 @@ class ThreadGovernor:
         margin: relative advantage a probe needs to win.
         slowdown: relative slowdown of the choice that triggers a probe.
         spike: slowdown of single steps that ends a window early.
+        first: the candidate measured first (default ``max_threads``; ``1`` suits a
+            short loop, where a first window of several threads on a loaded CPU
+            would cost most: a probe of several threads after a window of one ends
+            after two steps when they are ``spike`` times slower).
         clock: the time function (for tests).
 
     Attributes:
@@ -134,6 +157,7 @@ class ThreadGovernor:
         margin: float = 0.1,
         slowdown: float = 0.3,
         spike: float = 3.0,
+        first: int | None = None,
         clock=time.perf_counter,
     ) -> None:
         if max_threads is None:
@@ -156,12 +180,15 @@ class ThreadGovernor:
         self._times: list[float] = []
         self._t0: float | None = None
         self._best: dict[int, float] = {}  # last median of each candidate
-        self._choice = self.max_threads
+        if first is not None and int(first) not in (1, self.max_threads):
+            raise ValueError(f"first must be 1 or max_threads ({self.max_threads}), got {first}")
+        start = self.max_threads if first is None else int(first)
+        self._choice = start
         self._probing = False
         self._windows_since_probe = 0
         self._initial = torch.get_num_threads()
-        self.threads = self.max_threads
-        self._apply(self.max_threads)
+        self.threads = start
+        self._apply(start)
 
     # ------------------------------------------------------------------ timing
     def start(self) -> None:
@@ -252,3 +279,82 @@ class _Step:
 
     def __exit__(self, *exc: object) -> None:
         self.governor.stop()
+
+
+def governed() -> bool:
+    """Whether a :func:`thread_scope` (or ``train()``'s thread option) is open: the
+    threads are someone else's to set."""
+    return _GOVERNED > 0
+
+
+@contextlib.contextmanager
+def claim_threads() -> Iterator[None]:
+    """Mark the threads as set by the caller for the ``with`` block: a
+    ``thread_scope("auto")`` opened inside leaves them alone (``train()`` holds
+    this while its own governor runs)."""
+    global _GOVERNED
+    with _GOVERNED_LOCK:
+        _GOVERNED += 1
+    try:
+        yield
+    finally:
+        with _GOVERNED_LOCK:
+            _GOVERNED -= 1
+
+
+class _Ungoverned:
+    """What :func:`thread_scope` yields when nothing is timed: ``step()`` does nothing."""
+
+    choice: int | None = None
+
+    def step(self) -> contextlib.AbstractContextManager[None]:
+        return contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def thread_scope(
+    threads: int | str | None,
+    device: torch.device | str = "cpu",
+    steps: int | None = None,
+) -> Iterator[ThreadGovernor | _Ungoverned]:
+    """torch's CPU threads for a loop of steps; put back when the loop ends.
+
+    Use as ``with thread_scope(threads, device, steps) as scope:`` and wrap each
+    step in ``with scope.step():``.
+
+    Args:
+        threads: ``"auto"``: a :class:`ThreadGovernor` times the steps and chooses
+            between one thread and ``min(available_cores(), torch.get_num_threads())``,
+            measuring one thread first;
+            nothing is done on a non-CPU device, for fewer than
+            :data:`MIN_AUTO_STEPS` steps, or inside another open scope (the outer
+            loop governs). An integer fixes the count for the loop (inside
+            another scope too). ``None`` leaves torch alone.
+        device: where the loop computes.
+        steps: the loop's length, if known.
+
+    Yields:
+        The governor, or an object whose ``step()`` does nothing.
+
+    Raises:
+        ValueError: a bad ``threads`` value (:func:`parse_threads`).
+    """
+    threads = parse_threads(threads)
+    cpu = torch.device(device).type == "cpu"
+    short = steps is not None and steps < MIN_AUTO_STEPS
+    if threads is None or not cpu or (threads == "auto" and (governed() or short)):
+        yield _Ungoverned()
+        return
+    initial = torch.get_num_threads()
+    try:
+        with claim_threads():
+            if threads == "auto":
+                top = min(available_cores(), initial)
+                if top > 1:  # one thread first: cheap to leave where it loses
+                    yield ThreadGovernor(top, first=1)
+                    return
+                threads = 1
+            torch.set_num_threads(int(threads))
+            yield _Ungoverned()
+    finally:
+        torch.set_num_threads(initial)

@@ -244,6 +244,7 @@ def test_non_finite_gradient_names_the_variable(two_balls):
         (dict(variables=[Velocity(0)], iterations=0), "iterations must be an integer >= 1"),
         (dict(variables=[Velocity(0)], starts={"velocity[0]": [1.0, 2.0]}), "shape"),
         (dict(variables=[Velocity(0)], starts={"spin": [[1.0]]}), "unknown variable"),
+        (dict(variables=[Velocity(0)], threads="many"), "threads must be"),
     ],
 )
 def test_bad_arguments_are_named(two_balls, kwargs, match):
@@ -264,3 +265,31 @@ def test_bad_state_and_objective_shapes(two_balls):
     with pytest.raises(ControlError, match=r"objective must return shape \(2,\)"):
         dc.optimize(system, z0, lambda tr: tr.sum(), variables=var, starts=2, steps=2,
                     progress=False)  # fmt: skip
+
+
+def test_iterations_are_governed_once_not_per_rollout(two_balls, monkeypatch):
+    """threads="auto": one governor times the iterations (forward and backward); the rollouts
+    inside leave the threads to it, and the count is put back at the end."""
+    import diffcontact.threads as threads_mod
+
+    system, z0 = two_balls
+    made = []
+
+    class Recording(threads_mod.ThreadGovernor):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(threads_mod, "available_cores", lambda: 2)
+    monkeypatch.setattr(threads_mod, "ThreadGovernor", Recording)
+    initial = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        res = dc.optimize(
+            system, z0, _final(1, torch.zeros(2)), variables=[Velocity(0)], steps=30,
+            iterations=30, progress=False,
+        )  # fmt: skip
+        assert res.iterations == 30 and len(made) == 1
+        assert made[0]._steps == 30 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(initial)

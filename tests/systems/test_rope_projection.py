@@ -156,3 +156,23 @@ def test_gradient_through_the_projection_with_equality_constraints():
 
     results = assert_gradients_close(project, [base.mass.clone(), z], n_directions=2, rtol=1e-4)
     assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
+
+
+@pytest.mark.parametrize("task", ["Rope", "BD5", "CP3"])
+def test_metric_norms_of_the_sparse_rows_equal_the_dense_ones(task):
+    """The projection's distance scale ||J_k||_{M^-1}, computed from the sparse rows, equals
+    the dense product for diagonal (rope), block (disks) and per-state mass matrices."""
+    from diffcontact.systems.projection import _metric_norms
+
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(5, seed=2)
+    ctx = system._context(z0, system.parameters(), z0.shape[0])
+    x = z0[:, 0]
+    n, P, dim = x.shape
+    K = ctx.geometry.n_candidates
+    J = ctx.geometry.jacobian(x, torch.arange(K).expand(n, K))[:, :, 0].reshape(n, K, P * dim)
+    for M_inv in (ctx.M_inv, ctx.M_inv * torch.linspace(1.0, 2.0, n, dtype=F64).view(n, 1, 1)):
+        Mi = M_inv.expand(n, P, P) if M_inv.dim() == 2 else M_inv
+        big = torch.kron(Mi, torch.eye(dim, dtype=F64))  # (n, P dim, P dim)
+        dense = torch.einsum("nkd,nde,nke->nk", J, big, J).sqrt()
+        torch.testing.assert_close(_metric_norms(ctx.geometry, x, M_inv), dense, rtol=1e-12, atol=0)

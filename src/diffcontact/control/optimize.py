@@ -14,6 +14,7 @@ into their box (and into a parameter's physical range, e.g. ``cor`` in
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from torch import Tensor
 
 from diffcontact.control.planner import Planner, as_planner
 from diffcontact.control.variables import Parameter, Variable, as_bounds
+from diffcontact.threads import parse_threads, thread_scope
 
 __all__ = ["ControlError", "OptimizeResult", "optimize"]
 
@@ -179,6 +181,7 @@ def optimize(
     seed: int = 0,
     progress: bool = True,
     contact_model: Any = "CM",
+    threads: int | str | None = "auto",
 ) -> OptimizeResult:
     """Optimise parts of the initial state and/or physical parameters through ``simulate``.
 
@@ -206,6 +209,11 @@ def optimize(
         seed: seeds the random starts.
         progress: show a progress bar.
         contact_model: the contact model of a System planner.
+        threads: torch's CPU threads during the iterations (put back afterwards):
+            ``"auto"`` (default) times the iterations and runs them on one thread or
+            on all available cores, whichever is faster now (from 24 iterations on;
+            fewer leave it to each rollout); an integer fixes the count; ``None``
+            leaves torch alone (:func:`diffcontact.threads.thread_scope`).
 
     Returns:
         :class:`OptimizeResult`.
@@ -230,6 +238,10 @@ def optimize(
         raise ControlError(f"variables: names must be distinct, got {names}")
     if optimizer not in OPTIMIZERS:
         raise ControlError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
+    try:
+        threads = parse_threads(threads)
+    except ValueError as err:
+        raise ControlError(str(err)) from None
     iterations = _check_int("iterations", iterations, 1)
     steps = planner.system.default_steps if steps is None else _check_int("steps", steps, 1)
     if patience is not None:
@@ -303,7 +315,9 @@ def optimize(
             from tqdm.auto import tqdm
 
             bar = tqdm(total=iterations, desc=f"optimize ({planner.name})", unit="it")
+        threads_held = contextlib.ExitStack()
         try:
+            scope = threads_held.enter_context(thread_scope(threads, device, iterations))
             for it in range(iterations):
                 last: dict[str, Tensor] = {}
 
@@ -326,7 +340,8 @@ def optimize(
                             )
                     return obj.sum()
 
-                opt.step(closure)
+                with scope.step():
+                    opt.step(closure)
                 with torch.no_grad():
                     for val, (lo, hi) in zip(values, dev_bounds, strict=True):
                         val.copy_(torch.maximum(torch.minimum(val, hi), lo))
@@ -348,6 +363,7 @@ def optimize(
                     stopped = "patience"
                     break
         finally:
+            threads_held.close()
             if bar is not None:
                 bar.close()
         for v in values:

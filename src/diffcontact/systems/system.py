@@ -72,6 +72,7 @@ from diffcontact.systems.config import (
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import project_positions
+from diffcontact.threads import thread_scope
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
 
@@ -1046,6 +1047,7 @@ class System:
         solver_settings: SolverSettings | None = None,
         on_tunnelling: str = "warn",
         position_projection: int | None = None,
+        threads: int | str | None = "auto",
     ) -> Tensor:
         """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
@@ -1079,6 +1081,15 @@ class System:
             position_projection: override of the config's ``position_projection``:
                 Gauss-Newton iterations of the position-level projection onto the
                 admissible set after each step (:meth:`project_positions`); 0: off.
+            threads: torch's CPU threads during the rollout (put back afterwards):
+                ``"auto"`` (default) times the steps and runs them on one thread or
+                on all available cores, whichever is faster now (several threads
+                are far slower than one on a CPU another process is using; a
+                rollout of fewer than 24 steps, or one inside a training step or a
+                planning iteration, leaves the threads alone;
+                :func:`diffcontact.threads.thread_scope`); an integer fixes the
+                count; ``None`` leaves torch's setting alone. Results do not depend
+                on it beyond the last bits of torch's parallel reductions.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
@@ -1119,29 +1130,31 @@ class System:
             from tqdm.auto import tqdm
 
             iterator = tqdm(iterator, desc=f"simulate {self.name}", unit="step")
-        for step in iterator:
-            z1 = self._integrate(z, ctx, dynamics)
-            try:
-                res = self._resolve(z1, ctx, model, fraction, solver_settings)
-                z = self._project(res, ctx, iterations, solver_settings)
-                if gaps is not None:
-                    gaps.append(res.gaps)
-            except (ValueError, torch.linalg.LinAlgError) as err:
-                # a state that blew up inside the step fails in the first linear algebra
-                # that meets it (the solver's input check, or an SVD / factorisation of
-                # the penetration target): say which states and why
-                nonfinite = not bool(torch.isfinite(z1.detach()).all())
-                if "NaN or infinite" not in str(err) and not nonfinite:
-                    raise
-                states.append(z1)
-                raise ValueError(self._nonfinite_message(states, step + 1)) from err
-            except ConeQPError as err:
-                failure = ConeQPError(
-                    self._solver_failure_message(err, z0, z1, step + 1), err.status
-                )
-                failure.states = err.states  # trajectory indices, for callers that go on
-                raise failure from err
-            states.append(z)
+        with thread_scope(threads, z0.device, steps) as scope:
+            for step in iterator:
+                with scope.step():
+                    z1 = self._integrate(z, ctx, dynamics)
+                    try:
+                        res = self._resolve(z1, ctx, model, fraction, solver_settings)
+                        z = self._project(res, ctx, iterations, solver_settings)
+                        if gaps is not None:
+                            gaps.append(res.gaps)
+                    except (ValueError, torch.linalg.LinAlgError) as err:
+                        # a state that blew up inside the step fails in the first linear algebra
+                        # that meets it (the solver's input check, or an SVD / factorisation of
+                        # the penetration target): say which states and why
+                        nonfinite = not bool(torch.isfinite(z1.detach()).all())
+                        if "NaN or infinite" not in str(err) and not nonfinite:
+                            raise
+                        states.append(z1)
+                        raise ValueError(self._nonfinite_message(states, step + 1)) from err
+                    except ConeQPError as err:
+                        failure = ConeQPError(
+                            self._solver_failure_message(err, z0, z1, step + 1), err.status
+                        )
+                        failure.states = err.states  # trajectory indices, for callers that go on
+                        raise failure from err
+                    states.append(z)
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
             raise ValueError(self._nonfinite_message(states, steps))

@@ -60,6 +60,7 @@ from diffcontact.learning.models.protocol import OptimizerSettings
 from diffcontact.learning.models.registry import BASELINE_MODELS
 from diffcontact.systems import PhysicalParams, System, load_config
 from diffcontact.systems.graph import EDGE_KINDS, ENVIRONMENT
+from diffcontact.threads import thread_scope
 
 __all__ = [
     "BASELINE_MODELS",
@@ -703,6 +704,7 @@ class _CLNNWithContactNet(nn.Module):
         progress: bool = False,
         penetration_fraction: float | None = None,
         on_tunnelling: str = "warn",
+        threads: int | str | None = "auto",
     ) -> Tensor:
         """``(N, 2, P, dim)`` -> ``(N, steps + 1, 2, P, dim)``: ``System.simulate`` with the
         learned parameters and the contact network as the contact model.
@@ -721,6 +723,7 @@ class _CLNNWithContactNet(nn.Module):
             penetration_fraction=penetration_fraction,
             check_overlap=check_overlap,
             on_tunnelling=on_tunnelling,
+            threads=threads,
         )
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:
@@ -943,11 +946,13 @@ class INSPCP(nn.Module):
         check_overlap: bool = True,
         solver_settings: Any = None,
         progress: bool = False,
+        threads: int | str | None = "auto",
     ) -> Tensor:
         """``(N, 2, P, dim)`` -> ``(N, steps + 1, 2, P, dim)`` by repeated :meth:`step`.
 
         Differentiable with respect to the weights and ``z0``; runs in ``z0``'s
-        dtype and on its device. ``solver_settings`` is not used.
+        dtype and on its device. ``solver_settings`` is not used; ``threads`` is
+        ``System.simulate``'s.
 
         Raises:
             ValueError: a bad ``z0`` or ``steps``, overlapping bodies in ``z0``
@@ -968,9 +973,11 @@ class INSPCP(nn.Module):
             iterator = tqdm(iterator, desc=f"simulate {system.name} ({self.model_name})")
         states = [z0]
         z = z0
-        for _ in iterator:
-            z = self.step(z)
-            states.append(z)
+        with thread_scope(threads, z0.device, steps) as scope:
+            for _ in iterator:
+                with scope.step():
+                    z = self.step(z)
+                states.append(z)
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):
             raise ValueError(

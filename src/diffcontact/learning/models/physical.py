@@ -536,6 +536,7 @@ class LearnedModel(nn.Module):
         check_overlap: bool = True,
         solver_settings: Any = None,
         on_tunnelling: str = "warn",
+        threads: int | str | None = "auto",
     ) -> Tensor:
         """Roll out trajectories with the learned parameters: ``System.simulate``'s contract.
 
@@ -546,7 +547,7 @@ class LearnedModel(nn.Module):
             contact_model, eps, dynamics: accepted for interchangeability with
                 ``System.simulate``; they must match the model (or be ``None``).
             progress, penetration_fraction, check_overlap, solver_settings,
-                on_tunnelling: as in :meth:`System.simulate`.
+                on_tunnelling, threads: as in :meth:`System.simulate`.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)``, differentiable with respect to the
@@ -564,6 +565,7 @@ class LearnedModel(nn.Module):
             check_overlap=check_overlap,
             solver_settings=solver_settings,
             on_tunnelling=on_tunnelling,
+            threads=threads,
         )
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:

@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import lightning.pytorch as pl
 import torch
 
-from diffcontact.threads import ThreadGovernor, available_cores
+from diffcontact.threads import ThreadGovernor, available_cores, claim_threads
 
 __all__ = ["ThreadCallback", "thread_callback"]
 
 
 class ThreadCallback(pl.Callback):
     """Sets torch's CPU threads for a run and puts the previous count back at its end.
+
+    While the run lasts the threads are claimed (:func:`~diffcontact.threads.claim_threads`):
+    rollouts inside it (``System.simulate(threads="auto")``) leave them to this callback.
 
     Args:
         threads: a fixed count, or ``None`` to let ``governor`` choose.
@@ -27,9 +31,13 @@ class ThreadCallback(pl.Callback):
         self.threads = threads
         self.governor = governor
         self._initial: int | None = None
+        self._claim: contextlib.ExitStack | None = None
 
     def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
         self._initial = torch.get_num_threads()
+        if self._claim is None:
+            self._claim = contextlib.ExitStack()
+            self._claim.enter_context(claim_threads())
         if self.threads is not None:
             torch.set_num_threads(self.threads)
 
@@ -44,6 +52,9 @@ class ThreadCallback(pl.Callback):
             self.governor.stop()
 
     def teardown(self, trainer: Any, pl_module: Any, stage: str) -> None:
+        if self._claim is not None:
+            self._claim.close()
+            self._claim = None
         if self._initial is not None:
             torch.set_num_threads(self._initial)
 
