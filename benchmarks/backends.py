@@ -24,6 +24,8 @@ kernel on a fresh machine: its time is printed once). See benchmarks/README.md.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import tempfile
 import time
 
 import torch
@@ -194,6 +196,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spatial-contacts", type=int, nargs="+", default=[4, 10])
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--cold-cache",
+        action="store_true",
+        help="compile the Warp kernels into an empty, temporary kernel cache (the header's "
+        "first solve then times the compilation a new install pays once per dtype and device)",
+    )
     args = ap.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
@@ -213,10 +221,18 @@ def main(argv: list[str] | None = None) -> int:
     import warp
 
     print(f"warp {warp.__version__}; Warp CPU kernels run on one thread")
-    t0 = time.perf_counter()
-    time_backend(spatial_problems(1, 2, args.seed), 1, "warp", device, reps=1)
-    first = time.perf_counter() - t0
-    print(f"first Warp solve (initialise Warp, compile or load the kernel): {first:.1f} s")
+    with contextlib.ExitStack() as stack:
+        if args.cold_cache:  # before Warp initialises, which reads the setting
+            warp.config.kernel_cache_dir = stack.enter_context(tempfile.TemporaryDirectory())
+        t0 = time.perf_counter()
+        time_backend(spatial_problems(1, 2, args.seed), 1, "warp", device, reps=1)
+        first = time.perf_counter() - t0
+        cache = "empty kernel cache: compile" if args.cold_cache else "compile or load the kernels"
+        print(f"first Warp solve and backward (initialise Warp, {cache}): {first:.1f} s")
+        return _compare(args, batches, device)
+
+
+def _compare(args: argparse.Namespace, batches, device: torch.device) -> int:
     families = [("BP5", bp5_problems(max(batches), args.seed))]
     families += [
         (f"3D-{K}", spatial_problems(max(batches), K, args.seed + K)) for K in args.spatial_contacts

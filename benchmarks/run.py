@@ -10,6 +10,7 @@
     python benchmarks/run.py contact_models [...]  # one impulse: CM vs CMr vs Coulomb
     python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
     python benchmarks/run.py fastops [...]  # sums over a short last dim (fastops.py)
+    python benchmarks/run.py launches [...]  # torch ops, CUDA launches and syncs per step
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -31,6 +32,7 @@ SUITES = (
     "contact_models",
     "threads",
     "fastops",
+    "launches",
 )
 
 

@@ -219,6 +219,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
     ap.add_argument(
+        "--scenes",
+        type=int,
+        default=None,
+        help="scenes per row instead of each row's default (e.g. 4096 on a GPU)",
+    )
+    ap.add_argument(
         "--compare",
         choices=("mujoco",),
         default=None,
@@ -237,7 +243,11 @@ def main(argv: list[str] | None = None) -> int:
     dtype = getattr(torch, args.dtype)
     if args.compare == "mujoco":
         return main_compare(args, dtype)
+    if args.scenes is not None and args.scenes < 1:
+        ap.error(f"--scenes must be >= 1, got {args.scenes}")
     cases = QUICK_CASES if args.quick else DEFAULT_CASES + (EXTRA_CASES if args.all_tasks else [])
+    if args.scenes is not None:
+        cases = [(task, args.scenes, steps) for task, _, steps in cases]
 
     print("ground-truth simulation: System.simulate (RK4 + detection + two-phase impulse)")
     for line in machine_header(args.device, dtype):

@@ -91,7 +91,10 @@ def test_cuda_matches_cpu():
             gaps = geo_gpu.gaps(xc.cuda())
             J = geo_gpu.jacobian(xc.cuda(), idx.cuda())
             assert gaps.device.type == "cuda" and gaps.dtype == dtype
-            torch.testing.assert_close(gaps.cpu(), geo.gaps(xc))
-            torch.testing.assert_close(J.cpu(), geo.jacobian(xc, idx))
+            # float32: the rope's rows divide by segment lengths (1/len ~ 10-20), where
+            # the GPU's and the CPU's rounding differ by up to ~1e-5 relative
+            tol = {} if dtype == DT else {"rtol": 1e-4, "atol": 1e-5}
+            torch.testing.assert_close(gaps.cpu(), geo.gaps(xc), **tol)
+            torch.testing.assert_close(J.cpu(), geo.jacobian(xc, idx), **tol)
             # the CPU-held geometry also works on CUDA inputs
             torch.testing.assert_close(geo.gaps(xc.cuda()).cpu(), geo.gaps(xc))

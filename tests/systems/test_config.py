@@ -249,6 +249,15 @@ def test_bad_initial_states_are_rejected():
     outside[3, 0, 4, 0] = 1.1  # body 4 through wall 2 (x = 1)
     with pytest.raises(ValueError, match=r"z0\[3\]: body 4 penetrates wall 2"):
         system.simulate(outside)
+    # float32: a clear overlap still raises; a gap within rounding of a limit does not
+    with pytest.raises(ValueError, match=r"(?s)\(gap < -3\.5e-04\).*body 0 and body 2 overlap"):
+        system.simulate(overlap.float())
+    grazing = z0.clone()
+    k = int(grazing[0, 0, :, 0].argmax())  # the body nearest wall 2 (x = 1), moved 1e-5 into it
+    grazing[0, 0, k, 0] = 1.0 - float(system.config.radii[k]) + 1e-5
+    with pytest.raises(ValueError, match=rf"z0\[0\]: body {k} penetrates wall 2 \(gap -1e-05\)"):
+        system.simulate(grazing, steps=1)
+    assert system.simulate(grazing.float(), steps=1, on_tunnelling="ignore").isfinite().all()
     with pytest.raises(ValueError, match=r"steps must be a non-negative integer"):
         system.simulate(z0, steps=-1)
     with pytest.raises(ValueError, match=r"unknown contact model 'Stribeck'.*CM, CMr"):

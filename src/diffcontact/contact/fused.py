@@ -217,22 +217,39 @@ def _load() -> tuple[ModuleType, ModuleType]:
     return wp, warp_kernels
 
 
-@functools.cache
+# every kernel of warp_kernels that the solver launches
+KERNELS = ("fused_solve", "fused_polish", "fused_forward", "fused_backward")
+
+
 def _kernel(name: str, dtype: torch.dtype):
     """Kernel ``name`` of :mod:`~diffcontact.contact.warp_kernels` instantiated for one
     float type (launching a concrete overload skips Warp's per-launch type inference)."""
+    return _overloads(dtype)[name]
+
+
+@functools.cache
+def _overloads(dtype: torch.dtype) -> dict:
+    """Every kernel's overload for one float type, registered together.
+
+    Warp compiles a whole module at its first launch on a device, with the overloads
+    registered by then; registering one more later changes the module and compiles all of
+    it again. Registering the four kernels of a dtype at once makes that one compilation
+    per dtype and device (the CUDA compiler takes minutes for this module)."""
     import typing
 
     wp, kernels = _load()
-    kernel = getattr(kernels, name)
     scalar = wp.float64 if dtype == torch.float64 else wp.float32
-    types = {}
-    for arg in kernel.adj.args:
-        if wp.types.is_array(arg.type) and arg.type.dtype is typing.Any:
-            types[arg.label] = wp.array(dtype=scalar, ndim=arg.type.ndim)
-        elif arg.type is typing.Any:
-            types[arg.label] = scalar
-    return wp.overload(kernel, types)
+    out = {}
+    for name in KERNELS:
+        kernel = getattr(kernels, name)
+        types = {}
+        for arg in kernel.adj.args:
+            if wp.types.is_array(arg.type) and arg.type.dtype is typing.Any:
+                types[arg.label] = wp.array(dtype=scalar, ndim=arg.type.ndim)
+            elif arg.type is typing.Any:
+                types[arg.label] = scalar
+        out[name] = wp.overload(kernel, types)
+    return out
 
 
 class _Polished:

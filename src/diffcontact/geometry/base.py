@@ -225,13 +225,16 @@ class ContactGeometry(GeometryBase):
         return torch.cat([p.gaps(x) for p in self.parts], dim=-1)
 
     def gap_widths(self) -> Tensor:
-        """``(K,)`` the parts' widths (``inf`` for a part without ``gap_widths``)."""
+        """``(K,)`` the parts' widths (``inf`` for a part without ``gap_widths``), on the
+        device of the first part whose widths live on one (a rope moved to CUDA)."""
+        widths = [p.gap_widths() if hasattr(p, "gap_widths") else None for p in self.parts]
+        device = next((w.device for w in widths if w is not None and w.device.type != "cpu"), None)
         return torch.cat(
             [
-                p.gap_widths().to(torch.float64)
-                if hasattr(p, "gap_widths")
-                else torch.full((p.n_candidates,), math.inf, dtype=torch.float64)
-                for p in self.parts
+                w.to(dtype=torch.float64, device=device)
+                if w is not None
+                else torch.full((p.n_candidates,), math.inf, dtype=torch.float64, device=device)
+                for p, w in zip(self.parts, widths, strict=True)
             ]
         )
 

@@ -30,6 +30,7 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
@@ -697,9 +698,13 @@ class System:
             raise ValueError(f"{name} contains NaN or infinite values (states {rows[:10]})")
 
     def _check_no_overlap(self, z: Tensor, name: str) -> None:
+        """Raise if a state of ``z`` starts with a negative gap. Below float64 a gap down to
+        ``-sqrt(eps)`` is taken as rounding: a state sampled on a limit (a rope's bending
+        or length limit) and cast to float32 lands up to ~1e-5 past it."""
         with torch.no_grad():
             gaps = self.gaps(z[..., 0, :, :].detach())
-        bad = gaps < 0
+        tol = 0.0 if z.dtype == torch.float64 else math.sqrt(torch.finfo(z.dtype).eps)
+        bad = gaps < -tol
         if bool(bad.any()):
             rows, cols = bad.nonzero(as_tuple=True)
             items = [
@@ -708,7 +713,8 @@ class System:
             ]
             more = "" if rows.numel() <= 8 else f"\n  ... and {rows.numel() - 8} more"
             raise ValueError(
-                f"{name} has overlapping bodies or violated limits (gap < 0) in "
+                f"{name} has overlapping bodies or violated limits "
+                f"(gap < {f'-{tol:.1e}' if tol else '0'}) in "
                 f"{int(bad.any(-1).sum())} of {z.shape[0]} states:\n  " + "\n  ".join(items) + more
             )
 

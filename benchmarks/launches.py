@@ -1,0 +1,152 @@
+"""Benchmark: how much work a step launches, not how long it takes.
+
+    python benchmarks/run.py launches [--device cpu|cuda] [--tasks BP5 CP3 Rope] [--quick]
+
+For one simulation step (``System.simulate`` of ``--scenes`` BP5 scenes, averaged over 10
+steps) and one training step of CM-CD-CLNN per task (batch 200 chunks of 5 states, as
+``benchmarks/train.py`` times it), prints the wall time and the number of torch operations
+(dispatches, forward and backward). With ``--device cuda`` it adds, from the torch
+profiler, the CUDA kernel launches, the host synchronisations (``cudaStreamSynchronize``,
+``cudaDeviceSynchronize``, ...), the ``cudaMemcpyAsync`` calls (on the step's path these
+are device-to-host reads, such as ``.item()`` or ``nonzero``, each also a
+synchronisation) and the share of the wall time the GPU was busy. A step whose GPU is busy
+for a small share of its wall time is bound by launches and synchronisations, not by the
+GPU's arithmetic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+import diffcontact as dc
+from backends import count_dispatches
+from common import machine_header, sync
+from train import make_chunks
+
+SIM_TASK = "BP5"
+SIM_STEPS = 10
+LAUNCH_NAMES = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx")
+
+
+def cuda_counts(fn) -> dict:
+    """Kernel launches, synchronisations, memcpy calls and GPU-busy seconds of ``fn()``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    launches = syncs = copies = 0
+    for event in prof.events():
+        name = event.name
+        if name in LAUNCH_NAMES:
+            launches += 1
+        elif name.startswith(("cuda", "cu")) and "Synchronize" in name:
+            syncs += 1
+        elif name == "cudaMemcpyAsync":
+            copies += 1
+    # the kernels' own events (an operator's device time repeats that of its kernels)
+    cuda = torch.autograd.DeviceType.CUDA
+    busy = sum(e.device_time_total for e in prof.events() if e.device_type == cuda) * 1e-6
+    return {"launches": launches, "syncs": syncs, "copies": copies, "gpu_busy_s": busy}
+
+
+def measure(fn, device: str, per: int) -> dict:
+    """Wall time (median of 3), torch operations and, on CUDA, launches per ``per`` units."""
+    fn()  # warm-up
+    times = []
+    for _ in range(3):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    wall = sorted(times)[1]
+    out = {"wall_ms": 1e3 * wall / per, "ops": count_dispatches(fn) / per}
+    if device == "cuda":
+        counts = cuda_counts(fn)
+        out.update({k: v / per for k, v in counts.items() if k != "gpu_busy_s"})
+        out["gpu_busy"] = counts["gpu_busy_s"] / wall
+    return out
+
+
+def simulate_row(scenes: int, device: str) -> dict:
+    system = dc.load_system(SIM_TASK)
+    z0 = system.sample_initial_conditions(scenes, seed=0).to(device)
+    return measure(lambda: system.simulate(z0, steps=SIM_STEPS), device, SIM_STEPS)
+
+
+def train_row(task: str, device: str, batch: int) -> dict:
+    from diffcontact.learning.models.physical import LearnedModel
+    from diffcontact.learning.training.module import rollout_loss
+
+    chunks = make_chunks(task, batch).to(device)
+    model = LearnedModel(dc.load_system(task).config, model="CM-CD-CLNN").to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+
+    def step() -> None:
+        opt.zero_grad()
+        rollout_loss(model, chunks).backward()
+        opt.step()
+
+    return measure(step, device, 1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="64 scenes, batch 32, BP5 only")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--scenes", type=int, default=1024, help="BP5 scenes of the simulate row")
+    ap.add_argument("--tasks", nargs="+", default=None, help="training rows (default BP5 CP3 Rope)")
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device available")
+    if args.scenes < 1:
+        ap.error(f"--scenes must be >= 1, got {args.scenes}")
+    tasks = args.tasks or (["BP5"] if args.quick else ["BP5", "CP3", "Rope"])
+    unknown = sorted(set(tasks) - set(dc.list_tasks()))
+    if unknown:
+        ap.error(f"unknown task(s) {', '.join(unknown)}; choose from {', '.join(dc.list_tasks())}")
+    scenes, batch = (64, 32) if args.quick else (args.scenes, 200)
+
+    print("work per step: torch operations (and CUDA launches and synchronisations)")
+    for line in machine_header(args.device, torch.float64):
+        print(line)
+    cuda = args.device == "cuda"
+    head = f"{'row':>24} | {'ms':>8} {'torch ops':>10}"
+    if cuda:
+        head += f" {'launches':>9} {'syncs':>6} {'memcpy':>7} {'GPU busy':>9}"
+    print(head)
+    print("-" * len(head))
+    rows = [(f"simulate {SIM_TASK} x{scenes} /step", lambda: simulate_row(scenes, args.device))]
+    rows += [
+        (f"train {task} b{batch} /step", lambda t=task: train_row(t, args.device, batch))
+        for task in tasks
+    ]
+    for name, fn in rows:
+        r = fn()
+        line = f"{name:>24} | {r['wall_ms']:>8.1f} {r['ops']:>10.0f}"
+        if cuda:
+            line += (
+                f" {r['launches']:>9.0f} {r['syncs']:>6.1f} {r['copies']:>7.1f} "
+                f"{r['gpu_busy']:>8.0%}"
+            )
+        print(line, flush=True)
+    print(
+        "ms: wall time per step (median of 3 calls after a warm-up). torch ops: dispatched "
+        "operations, forward and backward."
+        + (
+            " launches: CUDA kernel launches; syncs: host synchronisations; memcpy: "
+            "cudaMemcpyAsync calls (device-to-host reads on this path); GPU busy: the "
+            "kernels' time over the wall time."
+            if cuda
+            else ""
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
