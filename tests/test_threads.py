@@ -27,7 +27,9 @@ class FakeClock:
 
 
 @pytest.fixture(autouse=True)
-def keep_threads():
+def keep_threads(monkeypatch):
+    """Each test starts with torch's threads and no remembered loop (and puts both back)."""
+    monkeypatch.setattr(threads_mod, "_SETTLED", {})
     n = torch.get_num_threads()
     yield
     torch.set_num_threads(n)
@@ -264,3 +266,38 @@ def test_the_training_callback_claims_the_threads():
     assert governed() and torch.get_num_threads() == 1
     callback.teardown(None, None, "fit")
     assert not governed()
+
+
+def _loop(steps: int) -> list[int]:
+    with thread_scope("auto", "cpu", steps=steps) as scope:
+        used = []
+        for _ in range(steps):
+            with scope.step():
+                used.append(torch.get_num_threads())
+    return used
+
+
+def test_a_loop_after_a_loaded_one_starts_settled_on_one_thread(two_cores):
+    first = _loop(60)
+    window = two_cores[0].window
+    assert first[:window] == [1] * window and 2 in first  # probed after its first window
+    second = _loop(60)
+    assert two_cores[1]._settled and second[: 2 * window] == [1] * (2 * window)
+    # the probe schedule goes on across loops: the second one probes when the first's
+    # interval is used up, not after its own first window
+    g1, g2 = two_cores
+    probes = [n for _, n, _ in g2.history].count(2)
+    assert probes <= 1 and g2.interval >= g1.interval
+    assert torch.get_num_threads() == 2 and not governed()
+
+
+def test_the_memory_expires_and_a_loop_on_several_threads_clears_it(two_cores, monkeypatch):
+    _loop(60)
+    assert 2 in threads_mod._SETTLED
+    monkeypatch.setattr(threads_mod, "MEMORY_S", 0.0)
+    _loop(60)
+    assert not two_cores[1]._settled  # too old: measured afresh (and loaded again)
+    idle = two_cores[1]
+    idle._choice = 2  # as if several threads had won
+    threads_mod._remember(idle)
+    assert 2 not in threads_mod._SETTLED

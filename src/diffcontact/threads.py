@@ -51,8 +51,18 @@ MIN_AUTO_STEPS = 24
 they are): the governor needs two windows of 8 steps to compare the candidates, so a
 shorter loop would only pay for the probe."""
 
+MEMORY_S = 60.0
+"""For this many seconds after a governed loop ended on one thread (a loaded CPU), the next
+``threads="auto"`` loop on as many cores starts settled on one thread: it goes on with the
+last loop's probe schedule (the windows since its last probe of several threads, and its
+interval) instead of probing after its first window. A run of short rollouts on a busy
+machine then pays for a probe every few calls, not in every call."""
+
 _GOVERNED = 0  # open thread scopes (the thread count is process-wide, so is this)
 _GOVERNED_LOCK = threading.Lock()
+# max_threads -> (time.monotonic() at the end, interval, windows since the last probe) of
+# the last governed loop that ended on one thread
+_SETTLED: dict[int, tuple[float, int, int]] = {}
 
 
 def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
@@ -139,6 +149,10 @@ class ThreadGovernor:
             short loop, where a first window of several threads on a loaded CPU
             would cost most: a probe of several threads after a window of one ends
             after two steps when they are ``spike`` times slower).
+        settled: ``first`` is known to be the faster (an earlier loop's result): the
+            first probe of the other candidate comes after ``interval`` windows, counting
+            ``windows_since_probe`` already run, instead of after the first window.
+        windows_since_probe: with ``settled``, the windows run since the last probe.
         clock: the time function (for tests).
 
     Attributes:
@@ -158,6 +172,8 @@ class ThreadGovernor:
         slowdown: float = 0.3,
         spike: float = 3.0,
         first: int | None = None,
+        settled: bool = False,
+        windows_since_probe: int = 0,
         clock=time.perf_counter,
     ) -> None:
         if max_threads is None:
@@ -185,7 +201,8 @@ class ThreadGovernor:
         start = self.max_threads if first is None else int(first)
         self._choice = start
         self._probing = False
-        self._windows_since_probe = 0
+        self._settled = bool(settled)
+        self._windows_since_probe = int(windows_since_probe) if settled else 0
         self._initial = torch.get_num_threads()
         self.threads = start
         self._apply(start)
@@ -220,6 +237,11 @@ class ThreadGovernor:
     @property
     def choice(self) -> int:
         return self._choice
+
+    @property
+    def windows_since_probe(self) -> int:
+        """Windows of the chosen count run since the other was last probed."""
+        return self._windows_since_probe
 
     def step(self) -> _Step:
         """Context manager timing one step: ``with governor.step(): ...``."""
@@ -262,7 +284,8 @@ class ThreadGovernor:
             if n > 1
             else median < previous * (1.0 - self.slowdown)
         )
-        if other not in self._best or changed or self._windows_since_probe >= self.interval:
+        unknown = other not in self._best and not self._settled
+        if unknown or changed or self._windows_since_probe >= self.interval:
             if changed:
                 self.interval = self._interval0
             self._probing = True
@@ -351,10 +374,36 @@ def thread_scope(
             if threads == "auto":
                 top = min(available_cores(), initial)
                 if top > 1:  # one thread first: cheap to leave where it loses
-                    yield ThreadGovernor(top, first=1)
+                    governor = _remembered_governor(top)
+                    yield governor
+                    _remember(governor)
                     return
                 threads = 1
             torch.set_num_threads(int(threads))
             yield _Ungoverned()
     finally:
         torch.set_num_threads(initial)
+
+
+def _remembered_governor(top: int) -> ThreadGovernor:
+    """A governor measuring one thread first, settled on it if a loop on ``top`` cores
+    ended on one thread less than :data:`MEMORY_S` seconds ago."""
+    last = _SETTLED.get(top)
+    if last is None or time.monotonic() - last[0] > MEMORY_S:
+        return ThreadGovernor(top, first=1)
+    _, interval, windows = last
+    return ThreadGovernor(
+        top, first=1, settled=True, interval=interval, windows_since_probe=windows
+    )
+
+
+def _remember(governor: ThreadGovernor) -> None:
+    """Keep the probe schedule of a loop that ended on one thread, forget it for one that
+    ended on several; a loop too short to finish a window changes nothing."""
+    if not governor.history:
+        return
+    if governor.choice == 1:
+        schedule = (governor.interval, governor.windows_since_probe)
+        _SETTLED[governor.max_threads] = (time.monotonic(), *schedule)
+    else:
+        _SETTLED.pop(governor.max_threads, None)

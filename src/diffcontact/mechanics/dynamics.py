@@ -101,10 +101,13 @@ def lagrangian_vector_field(
     Jr = J.unflatten(-1, (P, dim))  # (..., E, P, dim)
     # rows of (M^-1 J^T)^T, (..., E, P, dim); one product for a model's shared masses
     MJ = left_matmul(M_inv if M_inv.dim() == 2 else M_inv.unsqueeze(-3), Jr)
-    A = torch.einsum("...epc,...fpc->...ef", Jr, MJ)
-    rhs = torch.einsum("...epc,...pc->...e", Jr, f) - constraints.jacobian_dot_v(x, v)
-    lam = _solve_spd(A, rhs.unsqueeze(-1)).squeeze(-1)
-    return torch.einsum("...e,...epc->...pc", lam, MJ) - f
+    # products of the flattened (E, P * dim) rows: one batched matmul each (einsum's
+    # permutes and copies cost more than the products at these sizes)
+    MJf = MJ.flatten(-2)
+    A = J @ MJf.transpose(-1, -2)  # (..., E, E)
+    rhs = (J @ f.flatten(-2).unsqueeze(-1)).squeeze(-1) - constraints.jacobian_dot_v(x, v)
+    lam = _solve_spd(A, rhs.unsqueeze(-1))  # (..., E, 1)
+    return (lam.transpose(-1, -2) @ MJf).squeeze(-2).unflatten(-1, (P, dim)) - f
 
 
 def _symplectic(D: int, like: Tensor) -> Tensor:
