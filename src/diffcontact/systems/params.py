@@ -147,6 +147,7 @@ class PhysicalParams:
             "eps": [()],
         }
         meaning = {"mass": "one per body", "second_moments": "one per body and axis"}
+        checks: list[tuple[str, Tensor, Tensor, str]] = []  # name, value, bad entries, range
         for name, allowed in shapes.items():
             value = getattr(self, name)
             if not allowed:
@@ -173,8 +174,6 @@ class PhysicalParams:
                     want += f" ({meaning[name]})" if name in meaning else ""
                 raise ValueError(f"{name} must {want}{batch}; got shape {shape}")
             t = value.detach()
-            if not bool(torch.isfinite(t).all()):
-                raise ValueError(f"{name} contains NaN or infinite values: {_short(t)}")
             low, high, rng = {
                 "mass": (0.0, math.inf, "positive"),
                 "second_moments": (0.0, math.inf, "positive"),
@@ -187,7 +186,19 @@ class PhysicalParams:
             }[name]
             strict = rng == "positive"
             bad = (t <= low) if strict else (t < low)
-            bad = bad | (t > high)
+            bad = bad | (t > high) | ~torch.isfinite(t)
+            checks.append((name, t, bad, rng))
+        # one read of the device per device (a training step validates its parameters in
+        # every rollout; on CUDA each read waits for the queued work), the messages only
+        # when a check fails
+        flags: dict[torch.device, list[Tensor]] = {}
+        for _, t, bad, _ in checks:
+            flags.setdefault(t.device, []).append(bad.any())
+        if not any(bool(torch.stack(f).any()) for f in flags.values()):
+            checks = []
+        for name, t, bad, rng in checks:
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"{name} contains NaN or infinite values: {_short(t)}")
             if bool(bad.any()):
                 raise ValueError(f"{name} must be {rng}, got {_short(t)}")
         if self.potential is not None and not callable(self.potential):
