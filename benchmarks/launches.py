@@ -5,7 +5,10 @@
 For one simulation step (``System.simulate`` of ``--scenes`` BP5 scenes, averaged over 10
 steps) and one training step of CM-CD-CLNN per task (batch 200 chunks of 5 states, as
 ``benchmarks/train.py`` times it), prints the wall time and the number of torch operations
-(dispatches, forward and backward). With ``--device cuda`` it adds, from the torch
+(dispatches, forward and backward) and the host reads among them (``.item()``,
+``bool(tensor)``, ``nonzero``: each a synchronisation on CUDA; on the CPU a lower bound of
+the synchronisations a GPU run has, as ``.tolist()`` and ``.cpu()`` are not among them).
+With ``--device cuda`` it adds, from the torch
 profiler, the CUDA kernel launches, the host synchronisations (``cudaStreamSynchronize``,
 ``cudaDeviceSynchronize``, ...), the ``cudaMemcpyAsync`` calls (on the step's path these
 are device-to-host reads, such as ``.item()`` or ``nonzero``, each also a
@@ -22,7 +25,6 @@ import time
 import torch
 
 import diffcontact as dc
-from backends import count_dispatches
 from common import machine_header, sync
 from train import make_chunks
 
@@ -53,8 +55,35 @@ def cuda_counts(fn) -> dict:
     return {"launches": launches, "syncs": syncs, "copies": copies, "gpu_busy_s": busy}
 
 
-def measure(fn, device: str, per: int) -> dict:
-    """Wall time (median of 3), torch operations and, on CUDA, launches per ``per`` units."""
+# operations that copy a value to the host: on CUDA each waits for the queued work
+READS = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten.is_nonzero")
+
+
+def count_ops(fn, device: str) -> tuple[int, int]:
+    """Torch operations dispatched by ``fn()`` and, among them, host reads of tensors on
+    ``device`` (``.item()``, ``bool(tensor)``, ``nonzero``, ...): on the CPU the count of
+    the reads that would each be a synchronisation on CUDA."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    kind = torch.device(device).type
+
+    class Count(TorchDispatchMode):
+        ops = reads = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.ops += 1
+            if str(func).startswith(READS) and args and args[0].device.type == kind:
+                Count.reads += 1
+            return func(*args, **(kwargs or {}))
+
+    with Count():
+        fn()
+    return Count.ops, Count.reads
+
+
+def measure(fn, device: str, per: int, reads_fn=None) -> dict:
+    """Wall time (median of 3), torch operations, host reads (of ``reads_fn``, default
+    ``fn``) and, on CUDA, launches per ``per`` units."""
     fn()  # warm-up
     times = []
     for _ in range(3):
@@ -64,7 +93,10 @@ def measure(fn, device: str, per: int) -> dict:
         sync(device)
         times.append(time.perf_counter() - t0)
     wall = sorted(times)[1]
-    out = {"wall_ms": 1e3 * wall / per, "ops": count_dispatches(fn) / per}
+    ops, reads = count_ops(fn, device)
+    if reads_fn is not None:
+        _, reads = count_ops(reads_fn, device)
+    out = {"wall_ms": 1e3 * wall / per, "ops": ops / per, "reads": reads / per}
     if device == "cuda":
         counts = cuda_counts(fn)
         out.update({k: v / per for k, v in counts.items() if k != "gpu_busy_s"})
@@ -86,12 +118,17 @@ def train_row(task: str, device: str, batch: int) -> dict:
     model = LearnedModel(dc.load_system(task).config, model="CM-CD-CLNN").to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
 
-    def step() -> None:
+    def forward_backward() -> None:
         opt.zero_grad()
         rollout_loss(model, chunks).backward()
+
+    def step() -> None:
+        forward_backward()
         opt.step()
 
-    return measure(step, device, 1)
+    # host reads without the optimiser's (AdamW reads its step counts, which live on the
+    # CPU whatever the device)
+    return measure(step, device, 1, reads_fn=forward_backward)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -115,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     for line in machine_header(args.device, torch.float64):
         print(line)
     cuda = args.device == "cuda"
-    head = f"{'row':>24} | {'ms':>8} {'torch ops':>10}"
+    head = f"{'row':>24} | {'ms':>8} {'torch ops':>10} {'host reads':>11}"
     if cuda:
         head += f" {'launches':>9} {'syncs':>6} {'memcpy':>7} {'GPU busy':>9}"
     print(head)
@@ -127,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for name, fn in rows:
         r = fn()
-        line = f"{name:>24} | {r['wall_ms']:>8.1f} {r['ops']:>10.0f}"
+        line = f"{name:>24} | {r['wall_ms']:>8.1f} {r['ops']:>10.0f} {r['reads']:>11.1f}"
         if cuda:
             line += (
                 f" {r['launches']:>9.0f} {r['syncs']:>6.1f} {r['copies']:>7.1f} "
@@ -136,7 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         print(line, flush=True)
     print(
         "ms: wall time per step (median of 3 calls after a warm-up). torch ops: dispatched "
-        "operations, forward and backward."
+        "operations, forward and backward. host reads: operations that copy a value of the "
+        "device to the host (.item(), bool(tensor), nonzero; without the optimiser's), each "
+        "a synchronisation on CUDA."
         + (
             " launches: CUDA kernel launches; syncs: host synchronisations; memcpy: "
             "cudaMemcpyAsync calls (device-to-host reads on this path); GPU busy: the "
