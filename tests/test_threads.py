@@ -288,6 +288,7 @@ def test_a_loop_after_a_loaded_one_starts_settled_on_one_thread(two_cores):
     g1, g2 = two_cores
     probes = [n for _, n, _ in g2.history].count(2)
     assert probes <= 1 and g2.interval >= g1.interval
+    assert g2._interval0 == g1._interval0  # a probe that wins or a load change resets to it
     assert torch.get_num_threads() == 2 and not governed()
 
 

@@ -392,9 +392,9 @@ def _remembered_governor(top: int) -> ThreadGovernor:
     if last is None or time.monotonic() - last[0] > MEMORY_S:
         return ThreadGovernor(top, first=1)
     _, interval, windows = last
-    return ThreadGovernor(
-        top, first=1, settled=True, interval=interval, windows_since_probe=windows
-    )
+    governor = ThreadGovernor(top, first=1, settled=True, windows_since_probe=windows)
+    governor.interval = interval  # the schedule goes on; a won probe still resets it to 4
+    return governor
 
 
 def _remember(governor: ThreadGovernor) -> None:
