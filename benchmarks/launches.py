@@ -6,8 +6,8 @@ For one simulation step (``System.simulate`` of ``--scenes`` BP5 scenes, average
 steps) and one training step of CM-CD-CLNN per task (batch 200 chunks of 5 states, as
 ``benchmarks/train.py`` times it), prints the wall time and the number of torch operations
 (dispatches, forward and backward) and the host reads among them (``.item()``,
-``bool(tensor)``, ``nonzero``: each a synchronisation on CUDA; on the CPU a lower bound of
-the synchronisations a GPU run has, as ``.tolist()`` and ``.cpu()`` are not among them).
+``bool(tensor)``, ``nonzero``, ``.tolist()``, a copy to the CPU: each a synchronisation on
+CUDA, so on the CPU a count of the reads a GPU run synchronises on).
 With ``--device cuda`` it adds, from the torch
 profiler, the CUDA kernel launches, the host synchronisations (``cudaStreamSynchronize``,
 ``cudaDeviceSynchronize``, ...), the ``cudaMemcpyAsync`` calls (on the step's path these
@@ -60,25 +60,51 @@ READS = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten
 
 
 def count_ops(fn, device: str) -> tuple[int, int]:
-    """Torch operations dispatched by ``fn()`` and, among them, host reads of tensors on
-    ``device`` (``.item()``, ``bool(tensor)``, ``nonzero``, ...): on the CPU the count of
-    the reads that would each be a synchronisation on CUDA."""
+    """Torch operations dispatched by ``fn()`` and the host reads of tensors on ``device``
+    among its calls (``.item()``, ``bool(tensor)``, ``nonzero``, ``.tolist()``,
+    ``.numpy()``, a copy to the CPU): on the CPU the count of the reads that would each be
+    a synchronisation on CUDA."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     kind = torch.device(device).type
+    reads = 0
 
     class Count(TorchDispatchMode):
-        ops = reads = 0
+        ops = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            nonlocal reads
             Count.ops += 1
-            if str(func).startswith(READS) and args and args[0].device.type == kind:
-                Count.reads += 1
+            first = args[0] if args and isinstance(args[0], torch.Tensor) else None
+            if first is not None and first.device.type == kind:
+                to_host = (
+                    func is torch.ops.aten._to_copy.default
+                    and kind != "cpu"
+                    and torch.device((kwargs or {}).get("device") or kind).type == "cpu"
+                )
+                reads += str(func).startswith(READS) or to_host
             return func(*args, **(kwargs or {}))
 
-    with Count():
-        fn()
-    return Count.ops, Count.reads
+    # .tolist() and .numpy() of a CPU tensor dispatch nothing: count them at the method
+    originals = {name: getattr(torch.Tensor, name) for name in ("tolist", "numpy")}
+
+    def counted(name):
+        def method(self, *args, **kwargs):
+            nonlocal reads
+            reads += self.device.type == kind
+            return originals[name](self, *args, **kwargs)
+
+        return method
+
+    try:
+        for name in originals:
+            setattr(torch.Tensor, name, counted(name))
+        with Count():
+            fn()
+    finally:
+        for name, original in originals.items():
+            setattr(torch.Tensor, name, original)
+    return Count.ops, reads
 
 
 def measure(fn, device: str, per: int, reads_fn=None) -> dict:
@@ -174,8 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "ms: wall time per step (median of 3 calls after a warm-up). torch ops: dispatched "
         "operations, forward and backward. host reads: operations that copy a value of the "
-        "device to the host (.item(), bool(tensor), nonzero; without the optimiser's), each "
-        "a synchronisation on CUDA."
+        "device to the host (.item(), bool(tensor), nonzero, .tolist(); without the "
+        "optimiser's), each a synchronisation on CUDA."
         + (
             " launches: CUDA kernel launches; syncs: host synchronisations; memcpy: "
             "cudaMemcpyAsync calls (device-to-host reads on this path); GPU busy: the "

@@ -790,8 +790,14 @@ class System:
         with torch.no_grad():
             gaps = ctx.geometry.gaps(x.detach())
             active = gaps < 0
-            b = active.any(-1).nonzero().squeeze(-1)  # (n,) the states with a contact
-        n = b.shape[0]
+            counts = active.sum(-1)  # (N,) contacts per state
+            # one read of the device for both sizes (each read is a synchronisation on
+            # CUDA); the states with a contact, in order, by a stable sort instead of a
+            # second read through nonzero
+            n, Ka = 0, 0
+            if counts.numel():
+                n, Ka = torch.stack([(counts > 0).sum(), counts.max()]).tolist()
+            b = torch.argsort((counts == 0).to(torch.uint8), stable=True)[:n]  # (n,)
         if n == 0:
             empty = torch.zeros(0, dtype=torch.long, device=z.device)
             zf = z.new_zeros(0, 0, d)
@@ -800,7 +806,6 @@ class System:
                 z.new_zeros(0, 0, D), z.new_zeros(0, 0),
             )  # fmt: skip
         act = active[b]  # (n, K)
-        Ka = int(act.sum(-1).max())
         order = torch.argsort((~act).to(torch.uint8), dim=-1, stable=True)
         idx = order[:, :Ka]  # active candidates first, in candidate order
         mask = act.gather(-1, idx)  # (n, Ka)
