@@ -72,9 +72,12 @@ MARGIN = 0.25
 (0 converged too slowly on whipping ropes, 0.5 and more doubled the problem size)."""
 
 
-def _gather_rows(mask_rows: Tensor) -> tuple[Tensor, Tensor]:
-    """Selected rows first, in row order: ``idx, mask: (n, R)``."""
-    R = max(int(mask_rows.sum(-1).max()), 1)
+def _gather_rows(mask_rows: Tensor, R: int | None = None) -> tuple[Tensor, Tensor]:
+    """Selected rows first, in row order: ``idx, mask: (n, R)`` (``R``: at least the
+    largest number of selected rows of a state, if read already)."""
+    if R is None:
+        R = int(mask_rows.sum(-1).max())
+    R = max(R, 1)
     order = torch.argsort((~mask_rows).to(torch.uint8), dim=-1, stable=True)
     idx = order[:, :R]
     return idx, mask_rows.gather(-1, idx)
@@ -138,16 +141,24 @@ def project_positions(
     if tol is None:
         tol = 1e-10 if x.dtype == torch.float64 else 1e-5
     D = P * dim
+    widths = geometry.gap_widths() if hasattr(geometry, "gap_widths") else None
     with torch.no_grad():
         g0 = geometry.gaps(x.detach()) if gaps is None else gaps.detach()
         violated = g0 < 0
-        b = violated.any(-1).nonzero().squeeze(-1)  # (n,) states to project
-    n = b.shape[0]
+        has = violated.any(-1)  # (N,)
+        # one read of the device (a synchronisation on CUDA) for the states to project and
+        # two properties of the problem: point masses (a diagonal M^-1: no dense
+        # products; all states' checked, a superset of the projected ones) and two-sided
+        # limits (the rope's)
+        flags = [has.sum(), (M_inv == torch.diag_embed(M_inv.diagonal(dim1=-2, dim2=-1))).all()]
+        flags.append(torch.isfinite(widths).any() if widths is not None else has.new_zeros(()))
+        flags = torch.stack([f.to(has.device, torch.int64) for f in flags])
+        n, diagonal, two_sided = flags.tolist()
     if n == 0:
         return x
+    b = torch.argsort((~has).to(torch.uint8), stable=True)[:n]  # (n,) states to project
     x_pred = x[b]  # (n, P, dim)
     Minv_b = M_inv if M_inv.dim() == 2 else M_inv[b]
-    diagonal = bool((Minv_b == torch.diag_embed(Minv_b.diagonal(dim1=-2, dim2=-1))).all())
 
     def minv_rows(rows: Tensor) -> Tensor:
         """``rows M^-1`` for ``rows: (n, R, D)``, ``M^-1 = kron(M_inv, I_dim)`` (symmetric)."""
@@ -164,8 +175,6 @@ def project_positions(
         constraints = None
     phi0 = None if constraints is None else constraints.phi(x_pred)
     K = violated.shape[-1]
-    widths = geometry.gap_widths() if hasattr(geometry, "gap_widths") else None
-    two_sided = widths is not None and bool(torch.isfinite(widths).any())
     width = widths.to(dtype=x.dtype, device=x.device) if two_sided else None  # (K,)
     with torch.no_grad():
         # distances are compared in the mass metric: gap_k / ||J_k||_{M^-1} is the distance
@@ -182,18 +191,21 @@ def project_positions(
     for it in range(iterations):
         with torch.no_grad():
             dist = row_gaps(geometry.gaps(x_i.detach())) / scale_rows  # (n, R_all)
-            if it > 0:
+            # the violated rows, and those a step of about the largest violation can reach
+            worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
+            rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
+            R = rows.sum(-1).max()
+            if it > 0:  # one read: whether a limit is left, and the rows' count
                 left = (dist * scale_rows < -tol).any()
                 if phi0 is not None:  # and the equality constraints are back where they were
                     left = (
                         left | ((constraints.phi(x_i.detach()) - phi0.detach()).abs() > tol).any()
                     )
-                if not bool(left):
+                left, R = torch.stack([left.to(R), R]).tolist()
+                if not left:
                     break  # converged
-            # the violated rows, and those a step of about the largest violation can reach
-            worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
-            mask_rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
-        idx, mask = _gather_rows(mask_rows)
+            mask_rows = rows
+        idx, mask = _gather_rows(mask_rows, int(R))
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
         gap = row_gaps(geometry.gaps(x_i)).gather(-1, idx)  # (n, R)
