@@ -1106,10 +1106,11 @@ class System:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
 
         Raises:
-            ValueError: bad shape, NaN, overlapping bodies in ``z0``, bad
-                parameters or options, an unknown contact model; NaN or infinite
-                states during the rollout (named, with the likely cause); tunnelling
-                with ``on_tunnelling="raise"``.
+            ValueError: bad shape, NaN, overlapping bodies in ``z0`` (a gap below 0;
+                below float64, below ``-sqrt(eps)``: rounding), bad parameters or
+                options, an unknown contact model; NaN or infinite states during the
+                rollout (named, with the likely cause); tunnelling with
+                ``on_tunnelling="raise"``.
             ConeQPError: a contact problem could not be solved; the message names
                 the step, the states (their speeds and penetration) and the likely
                 cause (a blow-up: dt too large; or an ill-conditioned problem).
