@@ -67,7 +67,7 @@ def count_ops(fn, device: str) -> tuple[int, int]:
     from torch.utils._python_dispatch import TorchDispatchMode
 
     kind = torch.device(device).type
-    reads = 0
+    reads = inside = 0  # inside: in a counted method (its own copy is not counted again)
 
     class Count(TorchDispatchMode):
         ops = 0
@@ -76,7 +76,7 @@ def count_ops(fn, device: str) -> tuple[int, int]:
             nonlocal reads
             Count.ops += 1
             first = args[0] if args and isinstance(args[0], torch.Tensor) else None
-            if first is not None and first.device.type == kind:
+            if not inside and first is not None and first.device.type == kind:
                 to_host = (
                     func is torch.ops.aten._to_copy.default
                     and kind != "cpu"
@@ -90,9 +90,13 @@ def count_ops(fn, device: str) -> tuple[int, int]:
 
     def counted(name):
         def method(self, *args, **kwargs):
-            nonlocal reads
+            nonlocal reads, inside
             reads += self.device.type == kind
-            return originals[name](self, *args, **kwargs)
+            inside += 1
+            try:
+                return originals[name](self, *args, **kwargs)
+            finally:
+                inside -= 1
 
         return method
 
