@@ -55,60 +55,23 @@ def cuda_counts(fn) -> dict:
     return {"launches": launches, "syncs": syncs, "copies": copies, "gpu_busy_s": busy}
 
 
-# operations that copy a value to the host: on CUDA each waits for the queued work
-READS = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten.is_nonzero")
-
-
 def count_ops(fn, device: str) -> tuple[int, int]:
-    """Torch operations dispatched by ``fn()`` and the host reads of tensors on ``device``
-    among its calls (``.item()``, ``bool(tensor)``, ``nonzero``, ``.tolist()``,
-    ``.numpy()``, a copy to the CPU): on the CPU the count of the reads that would each be
-    a synchronisation on CUDA."""
+    """Torch operations dispatched by ``fn()``, and its host reads of tensors on ``device``
+    (:func:`diffcontact.testing.count_host_reads`; ``fn`` runs once for each count)."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    kind = torch.device(device).type
-    reads = inside = 0  # inside: in a counted method (its own copy is not counted again)
+    from diffcontact.testing import count_host_reads
 
     class Count(TorchDispatchMode):
         ops = 0
 
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            nonlocal reads
             Count.ops += 1
-            first = args[0] if args and isinstance(args[0], torch.Tensor) else None
-            if not inside and first is not None and first.device.type == kind:
-                to_host = (
-                    func is torch.ops.aten._to_copy.default
-                    and kind != "cpu"
-                    and torch.device((kwargs or {}).get("device") or kind).type == "cpu"
-                )
-                reads += str(func).startswith(READS) or to_host
             return func(*args, **(kwargs or {}))
 
-    # .tolist() and .numpy() of a CPU tensor dispatch nothing: count them at the method
-    originals = {name: getattr(torch.Tensor, name) for name in ("tolist", "numpy")}
-
-    def counted(name):
-        def method(self, *args, **kwargs):
-            nonlocal reads, inside
-            reads += self.device.type == kind
-            inside += 1
-            try:
-                return originals[name](self, *args, **kwargs)
-            finally:
-                inside -= 1
-
-        return method
-
-    try:
-        for name in originals:
-            setattr(torch.Tensor, name, counted(name))
-        with Count():
-            fn()
-    finally:
-        for name, original in originals.items():
-            setattr(torch.Tensor, name, original)
-    return Count.ops, reads
+    with Count():
+        fn()
+    return Count.ops, count_host_reads(fn, device)
 
 
 def measure(fn, device: str, per: int, reads_fn=None) -> dict:

@@ -135,3 +135,60 @@ def assert_usage_error(code: int, err: str, *needles: str) -> None:
     assert lines[0].startswith("diffcontact")
     for needle in needles:
         assert needle in lines[0], lines[0]
+
+
+# operations that copy a value of a tensor to the host
+_READS = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select", "aten.is_nonzero")
+
+
+def count_host_reads(fn: Callable[[], object], device: torch.device | str = "cpu") -> int:
+    """How many times ``fn()`` reads a value of a tensor on ``device`` back to the host:
+    ``.item()``, ``bool(tensor)``, ``nonzero``, ``.tolist()``, ``.numpy()``, a copy to
+    the CPU. On CUDA each one waits for the work queued before it (a synchronisation), so
+    counting them on the CPU shows, without a GPU, how often a loop would stall one.
+
+    The count covers torch operations dispatched in this thread (a dispatch mode) and
+    the two methods that dispatch nothing on the CPU (patched on ``torch.Tensor`` for the
+    call).
+    """
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    kind = torch.device(device).type
+    reads = inside = 0  # inside: in a counted method (its own copy is not counted again)
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            nonlocal reads
+            first = args[0] if args and isinstance(args[0], Tensor) else None
+            if not inside and first is not None and first.device.type == kind:
+                to_host = (
+                    func is torch.ops.aten._to_copy.default
+                    and kind != "cpu"
+                    and torch.device((kwargs or {}).get("device") or kind).type == "cpu"
+                )
+                reads += str(func).startswith(_READS) or to_host
+            return func(*args, **(kwargs or {}))
+
+    originals = {name: getattr(torch.Tensor, name) for name in ("tolist", "numpy")}
+
+    def counted(name: str):
+        def method(self, *args, **kwargs):
+            nonlocal reads, inside
+            reads += self.device.type == kind
+            inside += 1
+            try:
+                return originals[name](self, *args, **kwargs)
+            finally:
+                inside -= 1
+
+        return method
+
+    try:
+        for name in originals:
+            setattr(torch.Tensor, name, counted(name))
+        with Count():
+            fn()
+    finally:
+        for name, original in originals.items():
+            setattr(torch.Tensor, name, original)
+    return reads

@@ -9,6 +9,7 @@ import torch
 import diffcontact as dc
 from diffcontact.mechanics import potential_gradient
 from diffcontact.systems import list_tasks
+from diffcontact.testing import count_host_reads
 
 F64 = torch.float64
 
@@ -288,36 +289,6 @@ def test_a_failed_contact_solve_names_the_states_and_the_cause():
     assert states and all(0 <= s < 8 for s in states)
 
 
-def _host_reads(fn) -> int:
-    """Copies of a value to the host during ``fn()`` (``.item()``, ``bool(tensor)``,
-    ``nonzero``, ``.tolist()``): each one a synchronisation on CUDA."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    reads = 0
-    reading = ("aten._local_scalar_dense", "aten.nonzero", "aten.masked_select")
-
-    class Count(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            nonlocal reads
-            reads += str(func).startswith(reading)
-            return func(*args, **(kwargs or {}))
-
-    tolist = torch.Tensor.tolist
-
-    def counted(self, *args, **kwargs):
-        nonlocal reads
-        reads += 1
-        return tolist(self, *args, **kwargs)
-
-    torch.Tensor.tolist = counted
-    try:
-        with Count():
-            fn()
-    finally:
-        torch.Tensor.tolist = tolist
-    return reads
-
-
 def test_a_step_reads_the_device_three_times():
     """Per step: one read selects the states in contact (how many, and their largest
     contact count), and the fused solver reads its flags once per phase. More would each be
@@ -326,5 +297,5 @@ def test_a_step_reads_the_device_three_times():
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(64, seed=1)
     system.simulate(z0, steps=2)
-    reads = [_host_reads(lambda k=k: system.simulate(z0, steps=k)) for k in (10, 20)]
+    reads = [count_host_reads(lambda k=k: system.simulate(z0, steps=k)) for k in (10, 20)]
     assert (reads[1] - reads[0]) / 10 <= 3
