@@ -62,6 +62,50 @@ def floor(data_dir: Path, rels: list[float], body: int) -> list[dict]:
     return rows
 
 
+def learned_physics(data_dir: Path, learned: dict) -> dict | None:
+    """The rollout error of the *true* system with the learned physical parameters.
+
+    The config's masses (whole scale included), second moments, ``mu`` and ``e_P``
+    are replaced by ``learned`` (``learned.json``'s ``learned`` dict); its potential
+    (gravity, springs) stays the true one and follows the learned masses, so only the
+    learned potential network is left out. The gap between a model's error and this
+    one is the potential network's share. ``None`` where the config's parameters
+    cannot be replaced one for one: per-contact ``mu`` or ``e_P`` where the config holds
+    one number, and rigid bodies (learned second moments). For a body pinned at a pivot
+    (the gyroscope) the data fix its inertia about the pivot only up to a factor shared
+    with the learned potential, so the learned mass does not give the true potential's
+    scale (its learned mass and second moments split that inertia differently).
+    """
+    import diffcontact as dc
+    from diffcontact.learning.data.format import load_dataset
+    from diffcontact.learning.evaluation.metrics import mean_ci95, relative_error, rollout_steps
+
+    ds = load_dataset(data_dir)
+    system = ds.system
+    traj = ds.split("test", dtype=torch.float64).traj
+    cfg = system.config.model_dump(mode="json")
+    new = dict(cfg)
+    mass = [float(m) for m in learned["mass"]]
+    if isinstance(cfg.get("masses"), list) and len(cfg["masses"]) == len(mass):
+        new["masses"] = mass
+    elif "mass" in cfg and len(mass) == 1:
+        new["mass"] = mass[0]
+    else:
+        return None
+    if learned.get("second_moments") is not None:
+        return None
+    for key in ("mu", "cor"):
+        values = [float(v) for v in learned[key]]
+        if len(set(values)) > 1 or not isinstance(cfg.get(key), (int, float)):
+            return None  # per-contact values: not a one-for-one replacement here
+        new[key] = values[0]
+    with torch.no_grad():
+        pred = dc.System(new).simulate(traj[:, 0], rollout_steps(system)).numpy()
+    per_traj = relative_error(pred, traj.numpy())[:, 1:].mean(1)
+    mean, ci = mean_ci95(per_traj)
+    return {"mean": mean, "ci95": ci, "median": float(np.median(per_traj))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_dir", type=Path, help="a dataset (diffcontact generate)")

@@ -168,7 +168,8 @@ PAPER_ROPE = {m: {d: row[i] for d, row in _S10.items()} for i, m in enumerate(SC
 # explanations for the models table (the method's known behaviour; evidence named)
 MODELS_NOTES = (
     "Every model gets the same package-default budget (60 epochs of 4 steps of 200 chunks, "
-    "cosine decay to 1 % of the learning rate). The baselines learn the contact (IN-SP-CP "
+    "cosine decay of the learning rate to zero; the table in docs/results.md of 2026-11-24 "
+    "was made when the decay ended at 1 %). The baselines learn the contact (IN-SP-CP "
     "the whole step) from data; their training losses end one to several orders of "
     "magnitude above the physical models' and fell only a few % over the last 10 epochs "
     "at the decayed rate (loss column). Whether a longer schedule narrows the gap was not "

@@ -144,3 +144,23 @@ def test_chaos_floor_script(tmp_path, capsys):
     assert script.main([str(data), "--rel", "1e-3"]) == 0
     assert "| 1e-03 |" in capsys.readouterr().out
     assert script.main([str(tmp_path / "none")]) == 2
+
+
+def test_learned_physics_with_the_true_parameters_reproduces_the_test_set(tmp_path):
+    """The true system with "learned" = true parameters has error 0; a mass off does not;
+    per-contact values that the config holds as one number are not mapped (None)."""
+    from diffcontact.learning.data.generate import generate_dataset
+
+    script = _load("chaos_floor")
+    data = tmp_path / "CP3"
+    generate_dataset("CP3", data, n_train=2, n_val=2, n_test=3, progress=False)
+    system = dc.load_system("CP3")
+    K = system.n_contacts
+    # a common factor on all masses changes nothing (the potential follows the masses)
+    truth = {"mass": [0.3, 0.6, 0.45], "second_moments": None, "mu": [0.5] * K, "cor": [0.0] * K}
+    row = script.learned_physics(data, truth)
+    assert row["mean"] < 1e-12 and row["median"] < 1e-12
+    off = {**truth, "mass": [0.3, 0.6 * (1 + 1e-2), 0.45]}
+    assert script.learned_physics(data, off)["mean"] > 1e-6
+    per_contact = {**truth, "mu": [0.5] * (K - 1) + [0.4]}
+    assert script.learned_physics(data, per_contact) is None

@@ -104,7 +104,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "--schedule", choices=options.SCHEDULES, default=options.DEFAULT_SCHEDULE,
-        help=f"learning-rate schedule: cosine decay to 1%% over the epochs, or constant "
+        help=f"learning-rate schedule: cosine decay to zero over the epochs, or constant "
         f"(default {options.DEFAULT_SCHEDULE})",
     )  # fmt: skip
     p.add_argument(

@@ -387,7 +387,7 @@ def train(
         batch_size, lr, weight_decay: batching, and AdamW for the potential network.
         physics_lr: AdamW learning rate of the physical parameters (masses,
             second moments, mu, e_P, eps; no weight decay); ``None``: ``lr``.
-        schedule: ``"cosine"`` (both learning rates decay to 1% over ``epochs``)
+        schedule: ``"cosine"`` (both learning rates decay to zero over ``epochs``)
             or ``"constant"``.
         seed: seeds the model initialisation and the per-epoch shuffling.
         device: ``"cpu"`` or ``"cuda"``.
