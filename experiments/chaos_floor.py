@@ -65,9 +65,9 @@ def floor(data_dir: Path, rels: list[float], body: int) -> list[dict]:
 def learned_physics(data_dir: Path, learned: dict) -> dict | None:
     """The rollout error of the *true* system with the learned physical parameters.
 
-    The config's masses (whole scale included), second moments, ``mu`` and ``e_P``
-    are replaced by ``learned`` (``learned.json``'s ``learned`` dict); its potential
-    (gravity, springs) stays the true one and follows the learned masses, so only the
+    The config's masses (whole scale included), ``mu`` and ``e_P`` are replaced by
+    ``learned`` (``learned.json``'s ``learned`` dict); its potential (gravity, springs)
+    stays the true one and follows the learned masses, so only the
     learned potential network is left out. The gap between a model's error and this
     one is the potential network's share. ``None`` where the config's parameters
     cannot be replaced one for one: per-contact ``mu`` or ``e_P`` where the config holds

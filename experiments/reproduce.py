@@ -532,8 +532,8 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
             "the *true* system with the second body's mass off by 1e-5 / 1e-4 "
             "(`python experiments/chaos_floor.py DATA`): the error that mass-ratio accuracy "
             "alone allows on these chaotic test sets. True potential: the error of the true "
-            "system (its potential form included) with the run's learned masses, inertia, mu "
-            "and e_P (`learned_physics` in experiments/chaos_floor.py), i.e. the model's error "
+            "system (its potential form included) with the run's learned masses, mu and e_P "
+            "(`learned_physics` in experiments/chaos_floor.py), i.e. the model's error "
             "without the learned potential network's share."
         )
         add("")

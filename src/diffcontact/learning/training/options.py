@@ -47,7 +47,7 @@ SCHEDULES = ("cosine", "constant")
 DEFAULT_SCHEDULE = "cosine"
 # the cosine schedule ends at zero: Adam moves a parameter by about its learning rate per
 # step, so a floor of 1% left the mass ratios jittering by ~1e-4, which the chaotic
-# test rollouts amplify (docs/training.md, "Learning rates")
+# test rollouts amplify (docs/training.md, "Learning rates and schedule")
 COSINE_FLOOR = 0.0
 # chosen from the float32/float64 measurement in docs/training.md: float32 saves ~20% per
 # step but its gradients through CM's singular contact problems need a larger KKT
