@@ -25,6 +25,7 @@ import time
 import torch
 
 import diffcontact as dc
+from backends import count_dispatches
 from common import machine_header, sync
 from train import make_chunks
 
@@ -58,20 +59,9 @@ def cuda_counts(fn) -> dict:
 def count_ops(fn, device: str) -> tuple[int, int]:
     """Torch operations dispatched by ``fn()``, and its host reads of tensors on ``device``
     (:func:`diffcontact.testing.count_host_reads`; ``fn`` runs once for each count)."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
     from diffcontact.testing import count_host_reads
 
-    class Count(TorchDispatchMode):
-        ops = 0
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            Count.ops += 1
-            return func(*args, **(kwargs or {}))
-
-    with Count():
-        fn()
-    return Count.ops, count_host_reads(fn, device)
+    return count_dispatches(fn), count_host_reads(fn, device)
 
 
 def measure(fn, device: str, per: int, reads_fn=None) -> dict:
