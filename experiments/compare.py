@@ -183,8 +183,9 @@ MODELS_NOTES = (
     "CM's; with friction and rigid bodies (CP3, Gyro) they differ and no LCP parameters "
     "reproduce the data. The paper's LCP never trained (NaN gradients, appendix J).",
     "CP3 is chaotic: errors over 100 steps grow with any error of the learned potential, "
-    "the last part to converge; the paper's 2.34e-5 needs far longer training (the "
-    "rel-error table of reproduce.py has the same 4e-2 after 60 epochs).",
+    "the last part to converge under Adam; these 60-epoch runs are not refit. The "
+    "rel-error table of reproduce.py reaches the paper's 2.34e-5 with 1000 epochs and "
+    '`diffcontact refit` (docs/training.md, "Refit").',
     "In the run of 2026-11-24, CM-CD-CHNN on Gyro stalled in a local minimum (loss flat at "
     "0.14 from epoch 10; learned second moments 0.076, 0.121, 0.095 instead of 0.24, 0.24, "
     "0.04; 6 of its first 16 steps skipped as gradient spikes) while CMr-CD-CHNN from the "

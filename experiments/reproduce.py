@@ -16,7 +16,9 @@ Every run is ``diffcontact generate`` (800/100/100 trajectories, seed 0), then
 :data:`EPOCHS`; CM-CD-CLNN on the tasks of the paper's rollout errors
 :data:`EPOCHS_MAIN`, the paper's 1000) and ``--potential-dtype float32``
 (:data:`POTENTIAL_DTYPE`: the potential MLP in float32 inside float64 rollouts,
-about 1.5x faster steps; docs/training.md), then ``diffcontact evaluate``, all
+about 1.5x faster steps; docs/training.md), for those CM-CD-CLNN runs ``--refit``
+(:data:`REFIT` Gauss-Newton iterations; a finished run without ``refit.json`` is refit
+when reused), then ``diffcontact evaluate``, all
 through the Python API. Runs are independent jobs (``--jobs``, default 2
 processes with one torch thread each: a training step is dominated by
 per-operation overhead, so two single-threaded jobs finish about twice as fast
@@ -65,6 +67,8 @@ EPOCHS = {
 # CM-CD-CLNN on the tasks whose test rollout errors the paper reports (Table S.5) trains
 # the paper's 1000 epochs (4000 optimiser steps): the rollout error is the last to converge
 EPOCHS_MAIN = {"BP5-e": 1000, "CP3-e": 1000, "CP3": 1000, "Gyro": 1000}
+# Gauss-Newton iterations of the refit (diffcontact refit) after those runs' epochs
+REFIT = 2
 # the potential MLP runs in float32 inside the float64 rollouts (LearnedModel's
 # potential_dtype): loss and gradients as float64's to 1e-8..1e-3 (benchmarks/run.py train
 # --compare-dtypes), about 1.5x faster training steps
@@ -148,13 +152,14 @@ NOTES = (
     "(`skipped steps`; docs/training.md): near-grazing contacts produce such spikes, and one "
     "of them fed to Adam froze the gyroscope's inertia before this check existed.",
     "The chain pendulum is chaotic: rollout errors over 100 steps grow with any error of the "
-    "learned potential, which is the last part to converge; more epochs lower them (with "
-    "60 epochs this report gave CP3-e 3.98e-2 and CP3 4.07e-2 before: commit 66abf69 of "
-    "docs/results.md). The *true potential* column separates the potential network's "
-    "share: the same learned masses, mu and e_P with the true gravity potential roll out "
-    "two to three orders of magnitude more accurately on CP3-e and CP3, so the remaining error is "
-    "the network's (its fitted gradient is off by about 1e-3 of gravity's, where 4-state "
-    "chunks barely see it), not the contact model's or the masses'.",
+    "learned potential, which is the last part to converge under Adam (after the 1000 epochs "
+    "the *before refit* column: CP3-e 3.8e-3, CP3 5.7e-3, where the *true potential* column, "
+    "the same learned masses, mu and e_P with the true gravity potential, was two to three "
+    "orders of magnitude lower). The refit (`diffcontact refit`, docs/training.md) fits the "
+    "potential network's output layer and the physical parameters by Gauss-Newton on the "
+    "training chunks, with the hidden layers as Adam left them: that took the errors below "
+    "the paper's on all four tasks, and the learned masses, mu and e_P with them (the *true "
+    "potential* column after the refit).",
     "Billiards are chaotic too: the *floor* column is the error of the true system with "
     "one mass ratio off by 1e-5 / 1e-4; a handful of test trajectories in which a grazing "
     "collision goes the other way carry most of such an error (the *median* column is far "
@@ -191,19 +196,23 @@ def train_and_evaluate(
     """Train (or resume, or reuse) one run, evaluate it and return its summary."""
     _set_threads(threads)
     from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.learning.training.refit import refit_run
     from diffcontact.learning.training.run import train
 
     run = Path(run_dir)
     learned_file = run / "learned.json"
     trained = not _finished(learned_file, epochs)
+    refit = REFIT if model == MAIN and task in EPOCHS_MAIN else 0
     if trained:
         resume = (run / "checkpoints" / "last.ckpt").is_file()
         if not resume and run.exists():  # killed before its first epoch ended: nothing to keep
             shutil.rmtree(run)
         train(
             data_dir, run, model=model, epochs=epochs, resume=resume, progress=False,
-            keep_checkpoints=2, model_options={"potential_dtype": POTENTIAL_DTYPE},
+            keep_checkpoints=2, model_options={"potential_dtype": POTENTIAL_DTYPE}, refit=refit,
         )  # fmt: skip
+    elif refit and not (run / "refit.json").is_file():  # a run trained before the refit existed
+        refit_run(run, refit, log=None)
     metrics_file = run / "evaluation" / "metrics.json"
     t0 = time.perf_counter()
     fresh = metrics_file.is_file() and (
@@ -216,6 +225,11 @@ def train_and_evaluate(
     if model == MAIN and (task, model) in TABLES["rel-error"]:
         summary["floor"] = chaos_floor(data_dir)
         summary["true_potential"] = true_potential_error(data_dir, run)
+        summary["adam_only"] = adam_only_error(data_dir, run)
+        refit_file = run / "refit.json"
+        if refit_file.is_file():
+            its = json.loads(refit_file.read_text())["iterations"]
+            summary["refit_seconds"] = sum(it.get("seconds", 0.0) for it in its)
     return {**summary, "trained": trained, "evaluated": not fresh}
 
 
@@ -245,6 +259,26 @@ def true_potential_error(data_dir: str, run: Path) -> float | None:
     learned = json.loads((run / "learned.json").read_text())["learned"]
     row = learned_physics(Path(data_dir), learned)
     return None if row is None else row["mean"]
+
+
+def adam_only_error(data_dir: str, run: Path) -> float | None:
+    """The test rollout error of ``model_adam.pt``, the model before the refit, measured as
+    ``diffcontact evaluate`` measures it; ``None`` for a run without a refit."""
+    import torch
+
+    from diffcontact.learning.data.format import load_dataset
+    from diffcontact.learning.evaluation.metrics import mean_ci95, relative_error, rollout_steps
+    from diffcontact.learning.models.storage import load_model
+
+    if not (run / "model_adam.pt").is_file() or not (run / "refit.json").is_file():
+        return None
+    ds = load_dataset(data_dir)
+    z0 = ds.split("test", dtype=torch.float64).traj[:, 0]
+    steps = rollout_steps(ds.system)
+    with torch.no_grad():
+        true = ds.system.simulate(z0, steps).numpy()
+        pred = load_model(run / "model_adam.pt").double().simulate(z0, steps).numpy()
+    return mean_ci95(relative_error(pred, true)[:, 1:].mean(1))[0]
 
 
 def _finished(learned_file: Path, epochs: int) -> bool:
@@ -384,7 +418,9 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
         "of 5 states, about half with a contact), `diffcontact train` with the package "
         "defaults (AdamW, batch 200, potential-network lr 1e-3 with weight decay 1e-4, "
         "physical-parameter lr 3e-2, cosine decay to zero, float64) with the potential MLP "
-        "in float32 (`--potential-dtype float32`) for the epochs listed, "
+        "in float32 (`--potential-dtype float32`) for the epochs listed, then for "
+        "CM-CD-CLNN on the paper's rollout-error tasks (BP5-e, CP3-e, CP3, Gyro) "
+        f"`diffcontact refit` ({REFIT} Gauss-Newton iterations), "
         "`diffcontact evaluate` on the 100 test trajectories (rollouts of max(horizon, 100 dt))."
         " Training times are on this machine's CPU, one torch thread per run, two runs at a "
         "time; other work shared the CPU at times, so they are upper bounds."
@@ -534,14 +570,18 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
             "alone allows on these chaotic test sets. True potential: the error of the true "
             "system (its potential form included) with the run's learned masses, mu and e_P "
             "(`learned_physics` in experiments/chaos_floor.py), i.e. the model's error "
-            "without the learned potential network's share."
+            "without the learned potential network's share. Before refit: the error of the "
+            "model after its Adam epochs, before `diffcontact refit` (Gauss-Newton on the "
+            "potential's output layer and the physical parameters, docs/training.md, "
+            '"Refit"; the runs of the paper\'s rollout errors).'
         )
         add("")
         add(
-            "| task | relative error (95 % CI) | paper | median | floor 1e-5 / 1e-4 "
-            "| true potential | energy drift pred / true | epochs | train time | skipped steps |"
+            "| task | relative error (95 % CI) | paper | before refit | median "
+            "| floor 1e-5 / 1e-4 | true potential | energy drift pred / true | epochs "
+            "| train time | skipped steps |"
         )
-        add("|---|---|---|---|---|---|---|---|---|---|")
+        add("|---|---|---|---|---|---|---|---|---|---|---|")
         for task in err_tasks:
             r = by[(task, MAIN)]
             paper = PAPER_REL_ERR.get(task)
@@ -552,12 +592,15 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
             floor_s = " / ".join(_e(v) for v in floor.values()) if floor else "-"
             median = r.get("rel_err_median")
             true_pot = r.get("true_potential")
+            adam = r.get("adam_only")
+            refit_s = f" + {r['refit_seconds']:.0f} s refit" if "refit_seconds" in r else ""
             add(
                 f"| {task} | {_e(r['rel_err_mean'])} ({_e(r['rel_err_ci95'])}) | {paper_s} "
+                f"| {_e(adam) if adam is not None else '-'} "
                 f"| {_e(median) if median is not None else '-'} | {floor_s} "
                 f"| {_e(true_pot) if true_pot is not None else '-'} "
                 f"| {_e(drift['pred'])} / {_e(drift['true'])} | {r['epochs']} "
-                f"| {_minutes(r['train_seconds'])} | {skipped} |"
+                f"| {_minutes(r['train_seconds'])}{refit_s} | {skipped} |"
             )
         add("")
     add("## Notes")

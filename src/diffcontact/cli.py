@@ -140,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     learning_data.register_cli(sub)
     learning_convert.register_cli(sub)
     learning_train.register_cli(sub)
+    learning_train.register_refit_cli(sub)
     learning_evaluate.register_cli(sub)
 
     from diffcontact.control import cli as control

@@ -130,18 +130,30 @@ class PotentialMLP(nn.Module):
             nn.Linear(widths[i], widths[i + 1], bias=i < n - 1) for i in range(n)
         )
 
-    def forward(self, x: Tensor) -> Tensor:
+    def features(self, x: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+        """``phi(x)``: the last hidden layer's activations, ``(..., P, dim) -> (..., H)``.
+
+        ``V(x) = phi(x) @ w`` with ``w`` the output layer's weights (no bias), so ``V``
+        is linear in ``w`` (what :mod:`~diffcontact.learning.training.refit` uses).
+        ``dtype``: the dtype to compute in (``None``: ``compute_dtype``, else ``x``'s).
+        """
         h = x.flatten(-2)
-        if self.compute_dtype is not None:
-            h = h.to(self.compute_dtype)
-        for i, layer in enumerate(self.layers):
+        dtype = dtype or self.compute_dtype
+        if dtype is not None:
+            h = h.to(dtype)
+        for layer in self.layers[:-1]:
             w, b = layer.weight, layer.bias
             if w.dtype != h.dtype or w.device != h.device:
                 w, b = w.to(h), None if b is None else b.to(h)
-            h = F.linear(h, w, b)
-            if i < len(self.layers) - 1:
-                h = F.softplus(h)
-        return h.squeeze(-1).to(x.dtype)
+            h = F.softplus(F.linear(h, w, b))
+        return h
+
+    def forward(self, x: Tensor) -> Tensor:
+        h = self.features(x)
+        w = self.layers[-1].weight
+        if w.dtype != h.dtype or w.device != h.device:
+            w = w.to(h)
+        return F.linear(h, w).squeeze(-1).to(x.dtype)
 
 
 def _initial_second_moments(cfg: Any, shape: tuple[int, int]) -> Tensor:

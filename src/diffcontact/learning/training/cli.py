@@ -17,7 +17,7 @@ from diffcontact.learning.models.registry import model_names
 from diffcontact.learning.training import options
 from diffcontact.learning.training.options import TrainingInputError, TrainingInterrupted
 
-__all__ = ["register_cli", "run_train_cli"]
+__all__ = ["register_cli", "register_refit_cli", "run_train_cli"]
 
 
 def _cli_eps(text: str) -> float | str:
@@ -168,11 +168,55 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--num-nodes", type=positive_int, default=1, help="nodes (default 1)")
     p.add_argument("--strategy", default="auto", help="Lightning strategy, e.g. ddp (default auto)")
     p.add_argument(
+        "--refit", type=non_negative_int, default=0, metavar="N",
+        help="after the last epoch, N Gauss-Newton iterations on the potential network's "
+        "output layer and the physical parameters (physical models; 2 is plenty; "
+        "docs/training.md, 'Refit'); default 0: none",
+    )  # fmt: skip
+    p.add_argument(
         "--quiet", action="store_true",
         help="no progress bar: one line per epoch (losses, learned physical parameters)",
     )  # fmt: skip
     p.set_defaults(func=run_train_cli)
     return p
+
+
+def register_refit_cli(subparsers: Any) -> argparse.ArgumentParser:
+    """Add the ``refit`` subcommand; its handler returns 0, 2 (bad input) or 1 (failure)."""
+    p = subparsers.add_parser(
+        "refit",
+        help="Gauss-Newton refit of a trained run's potential output layer and parameters",
+        description=(
+            "Refit a finished run of a physical model (CM/CMr/LCP/Coulomb-CD-CLNN/CHNN) in "
+            "place: Gauss-Newton on the potential network's output layer (exact Jacobian) "
+            "and the free physical parameters (finite differences), on the mean squared "
+            "error of the rolled-out training chunks, each step kept only if it lowers the "
+            "validation error. Rewrites model.pt and learned.json, keeps the model before "
+            "as model_adam.pt, writes refit.json. See docs/training.md, 'Refit'."
+        ),
+    )
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a finished run (diffcontact train)")
+    p.add_argument(
+        "--iterations", type=non_negative_int, default=2, metavar="N",
+        help="the most Gauss-Newton iterations (default 2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--data", default=None, metavar="DATA_DIR",
+        help="the dataset (default: the run's, from run.json)",
+    )  # fmt: skip
+    p.set_defaults(func=_run_refit_cli)
+    return p
+
+
+def _run_refit_cli(args: argparse.Namespace) -> int:
+    def work() -> int:
+        from diffcontact.learning.training.refit import refit_run
+
+        refit_run(args.run_dir, args.iterations, data_dir=args.data)
+        print(f"wrote {Path(args.run_dir) / 'model.pt'} and {Path(args.run_dir) / 'refit.json'}")
+        return 0
+
+    return report_errors("diffcontact refit", work, bad_input=ValueError)
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
@@ -219,6 +263,7 @@ def _train(args: argparse.Namespace) -> int:
         keep_checkpoints=args.keep_checkpoints,
         steps_per_epoch=args.steps_per_epoch,
         threads=args.threads,
+        refit=args.refit,
     )
     if not args.quiet:
         print(f"wrote {Path(args.out) / 'model.pt'} and {Path(args.out) / 'learned.json'}")

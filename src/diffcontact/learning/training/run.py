@@ -9,6 +9,8 @@
     logs/tensorboard/   TensorBoard events, when tensorboard is installed
     learned.json        learned parameters as plain numbers (updated every epoch)
     model.pt            the final model (:func:`~diffcontact.learning.models.load_model`)
+    refit.json          with ``refit``: the Gauss-Newton refit's report; model_adam.pt is
+                        then the model before it
 
 The data come from :func:`~diffcontact.learning.data.load_dataset` (checksums
 verified) as a :class:`ChunkDataModule`, shuffled per epoch by
@@ -373,6 +375,7 @@ def train(
     callbacks: Sequence[pl.Callback] = (),
     steps_per_epoch: int | None = None,
     threads: int | str | None = "auto",
+    refit: int = 0,
 ) -> Any:
     """Train a learned model on a dataset folder and write a run directory.
 
@@ -432,6 +435,11 @@ def train(
             threads are faster on an idle CPU, far slower on a loaded one;
             docs/training.md, "CPU threads"); an integer fixes the count;
             ``None`` leaves torch's setting alone.
+        refit: after the last epoch, this many Gauss-Newton iterations on the potential
+            network's output layer and the free physical parameters
+            (:func:`~diffcontact.learning.training.refit.refit_run`: ``model_adam.pt``
+            keeps the model before, ``refit.json`` the report; docs/training.md,
+            "Refit"); physical models only. 0 (default): none.
 
     Returns:
         The trained model (on the CPU).
@@ -452,6 +460,12 @@ def train(
         weight_decay=weight_decay, schedule=schedule, seed=seed, device=device, dtype=dtype,
         max_time=max_time, keep_checkpoints=keep_checkpoints, steps_per_epoch=steps_per_epoch,
     )  # fmt: skip
+    if not isinstance(refit, int) or isinstance(refit, bool) or refit < 0:
+        raise TrainingInputError(f"refit must be a non-negative integer, got {refit!r}")
+    if refit and not is_physical_model(model):
+        raise TrainingInputError(
+            f"refit: {model} has no potential network to refit (physical models only)"
+        )
     try:
         threads = parse_threads(threads)
     except ValueError as err:
@@ -594,9 +608,16 @@ def train(
         ckpt_path = None if point is None or point.path is None else str(point.path)
         stop.install()
         try:
-            return _fit(trainer, module, datamodule, out, ckpt_path, stop, stop_after)
+            trained = _fit(trainer, module, datamodule, out, ckpt_path, stop, stop_after)
         finally:
             stop.restore()
+    if refit and trainer.is_global_zero:
+        from diffcontact.learning.models.storage import load_model
+        from diffcontact.learning.training.refit import refit_run
+
+        refit_run(out, refit, data_dir=data_path, log=print if progress else log.info)
+        trained = load_model(out)
+    return trained
 
 
 def _prepare(out: Path, info: dict[str, Any], point: Any) -> None:
@@ -664,6 +685,8 @@ def _fit(
             summary["stopped_early"] = _schedule_cut(trainer, stop_after)
         save_model(trained, out / "model.pt")
         write_learned(out, summary)
+        for stale in ("refit.json", "model_adam.pt"):  # of an earlier model.pt
+            (out / stale).unlink(missing_ok=True)
     return trained
 
 

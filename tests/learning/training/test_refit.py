@@ -1,0 +1,143 @@
+"""The Gauss-Newton refit: its normal equations against autograd, that it only keeps steps
+that lower the validation error, the run-directory files, and bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.models import LearnedModel
+from diffcontact.learning.models.storage import load_model
+from diffcontact.learning.training.options import TrainingInputError
+from diffcontact.learning.training.refit import (
+    _free_entries,
+    _normal_equations,
+    refit,
+    rollout_residual,
+)
+from diffcontact.learning.training.run import train
+
+from .support import SMALL, write_dataset
+
+
+@pytest.fixture(scope="module")
+def cp3_data(tmp_path_factory):
+    return write_dataset(tmp_path_factory.mktemp("cp3"), "CP3", n=(12, 6, 4), steps=30)
+
+
+def _model(seed: int = 0) -> LearnedModel:
+    torch.manual_seed(seed)
+    model = LearnedModel("CP3", hidden=(16, 16)).double()
+    with torch.no_grad():
+        model.log_mass_rel.copy_(torch.tensor([0.0, 0.6, 0.45], dtype=torch.float64))
+        model.raw_mu.fill_(0.45)
+        model.raw_cor.fill_(0.2)
+    return model
+
+
+def _chunks(folder, split):
+    return load_dataset(folder).split(split, dtype=torch.float64).chunks
+
+
+def test_normal_equations_match_autograd(cp3_data):
+    """J^T r is the gradient of 0.5 ||r||^2 (autograd through the normal rollout path, for
+    the output weights and the physical parameters the refit moves); J^T J is symmetric
+    positive semi-definite."""
+    model = _model()
+    chunks = _chunks(cp3_data, "train")
+    free = _free_entries(model)
+    assert [label for label, _, _ in free] == [
+        "log_mass_rel[1]", "log_mass_rel[2]", "raw_mu[0]", "raw_cor[0]",
+    ]  # fmt: skip
+    base = model.potential
+    w = base.layers[-1].weight.detach().clone().squeeze(0)
+
+    residual = rollout_residual(model)
+
+    JtJ, Jtr = _normal_equations(residual, chunks, w, free)
+    pred = model.simulate(chunks[:, 0], chunks.shape[1] - 1, check_overlap=False)
+    loss = 0.5 * (pred[:, 1:] - chunks[:, 1:]).pow(2).sum()
+    params = [base.layers[-1].weight, model.log_mass_rel, model.raw_mu, model.raw_cor]
+    g_w, g_mass, g_mu, g_cor = torch.autograd.grad(loss, params)
+    expected = torch.cat([g_w.flatten(), g_mass[1:], g_mu, g_cor])
+    torch.testing.assert_close(Jtr, expected, rtol=1e-6, atol=1e-9 * expected.abs().max())
+    torch.testing.assert_close(JtJ, JtJ.T)
+    assert torch.linalg.eigvalsh(JtJ).min() > -1e-9 * JtJ.diagonal().max()
+
+
+def test_refit_lowers_the_validation_error_and_keeps_only_improvements(cp3_data):
+    model = _model(1)
+    train_chunks, val_chunks = _chunks(cp3_data, "train"), _chunks(cp3_data, "val")
+    lines: list[str] = []
+    report = refit(model, train_chunks, val_chunks, 3, log=lines.append)
+    assert report.val_mse < 0.1 * report.val_mse_before
+    assert report.train_mse < 0.1 * report.train_mse_before
+    accepted = [it for it in report.iterations if it["accepted"]]
+    assert accepted and all(it["val_mse"] <= report.val_mse_before for it in accepted)
+    vals = [it["val_mse"] for it in accepted]
+    assert vals == sorted(vals, reverse=True)  # each kept step lowered it
+    assert len(lines) == 1 + len(report.iterations)
+    # the model now computes what the report says (the normal forward path, not the refit's)
+    pred = model.simulate(val_chunks[:, 0], val_chunks.shape[1] - 1, check_overlap=False)
+    mse = (pred[:, 1:] - val_chunks[:, 1:]).pow(2).mean().item()
+    assert mse == pytest.approx(report.val_mse, rel=1e-6)
+    # no step can lower the validation error of a refit model much further: with damping
+    # factors this large, the steps are tiny and rejected or accepted, never harmful
+    again = refit(model, train_chunks, val_chunks, 1, lambdas=(1e6,), log=None)
+    assert again.val_mse <= report.val_mse
+
+
+def test_refit_run_writes_the_files(cp3_data, tmp_path):
+    run = tmp_path / "run"
+    train(cp3_data, run, epochs=2, refit=1, threads=1, **SMALL)
+    report = json.loads((run / "refit.json").read_text())
+    assert report["val_mse"] < report["val_mse_before"]
+    assert report["iterations"][0]["accepted"]
+    learned = json.loads((run / "learned.json").read_text())
+    assert learned["refit"]["val_mse"] == report["val_mse"]
+    before, after = load_model(run / "model_adam.pt"), load_model(run)
+    w0, w1 = before.potential.layers[-1].weight, after.potential.layers[-1].weight
+    assert not torch.equal(w0, w1)
+    torch.testing.assert_close(before.potential.layers[0].weight, after.potential.layers[0].weight)
+    # refitting again keeps model_adam.pt (the model before the first refit)
+    adam_bytes = (run / "model_adam.pt").read_bytes()
+    out = subprocess.run(
+        [sys.executable, "-m", "diffcontact", "refit", str(run), "--iterations", "1"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "refit.json" in out.stdout
+    assert (run / "model_adam.pt").read_bytes() == adam_bytes
+    # training the run further makes model.pt Adam's again: the refit's files go
+    train(cp3_data, run, epochs=3, resume=True, threads=1, **SMALL)
+    assert not (run / "refit.json").exists() and not (run / "model_adam.pt").exists()
+
+
+def test_bad_input(cp3_data, tmp_path):
+    with pytest.raises(TrainingInputError, match="refit must be a non-negative integer"):
+        train(cp3_data, tmp_path / "a", epochs=1, refit=-1, **SMALL)
+    with pytest.raises(TrainingInputError, match="no potential network to refit"):
+        train(cp3_data, tmp_path / "b", epochs=1, refit=1, model="IN-SP-CP", progress=False)
+    chunks = _chunks(cp3_data, "train")
+    with pytest.raises(ValueError, match="needs a physical model with a potential network"):
+        refit(torch.nn.Linear(2, 2), chunks, chunks)
+    with pytest.raises(ValueError, match=r"shape \(N, L, 2, P, dim\)"):
+        refit(_model(), chunks[:, :1], chunks)
+    with pytest.raises(ValueError, match="no chunk without NaN"):
+        refit(_model(), chunks, torch.full_like(chunks, float("nan")))
+    with pytest.raises(ValueError, match="iterations must be a non-negative integer"):
+        refit(_model(), chunks, chunks, -1)
+    with pytest.raises(ValueError, match="float64"):
+        refit(LearnedModel("CP3", hidden=(4,)).float(), chunks, chunks)
+    out = subprocess.run(
+        [sys.executable, "-m", "diffcontact", "refit", str(tmp_path / "missing")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert "diffcontact refit: error:" in out.stderr and "no model.pt" in out.stderr
+    assert "Traceback" not in out.stderr
