@@ -1,14 +1,13 @@
 """Gauss-Newton refit of a trained model's potential output layer and physical parameters.
 
 Adam brings the potential network close, but not to the precision a chaotic
-system's rollout needs: on CP3 after 1000 epochs the learned generalised forces
-are off by about 3e-4 of gravity's, and that alone makes the test rollout
-error 5.7e-3 where the true potential with the learned masses gives 1.4e-5
-(docs/training.md, "Refit"). The network's last hidden layer can represent the
-truth far better than that: ``V(x) = w . phi(x)`` is *linear* in the output
-weights ``w`` (256 numbers), so once the hidden features ``phi`` are trained,
-fitting ``w`` is a small least-squares problem that Gauss-Newton solves in one
-or two iterations.
+system's rollout needs: on CP3 after 1000 epochs the test rollout error was
+5.7e-3 where the true potential with the learned masses gives 1.4e-5
+(docs/training.md, "Refit"; results.md's "before refit" column). The network's
+last hidden layer can represent the truth far better than that:
+``V(x) = w . phi(x)`` is *linear* in the output weights ``w`` (256 numbers), so
+once the hidden features ``phi`` are trained, fitting ``w`` is a small
+least-squares problem that Gauss-Newton solves in one or two iterations.
 
 :func:`refit` minimises the mean squared error of the rolled-out training
 chunks (the training loss is the MAE; its minimiser is the same for exact
