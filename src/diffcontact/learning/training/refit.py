@@ -35,7 +35,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +45,7 @@ import torch
 from torch import Tensor, nn
 
 from diffcontact.contact import ConeQPError
+from diffcontact.learning.training.module import _is_nonfinite_error
 
 __all__ = ["FD_STEP", "LAMBDAS", "RefitReport", "refit", "refit_run", "rollout_residual"]
 
@@ -89,7 +89,7 @@ class _PerChunkOutput(nn.Module):
         self.W = W  # (N, H)
 
     def forward(self, x: Tensor) -> Tensor:
-        phi = self.base.features(x.to(self.W.dtype), self.W.dtype)  # (N, H)
+        phi = self.base.features(x, self.W.dtype)  # (N, H)
         if phi.shape[:-1] != self.W.shape[:-1]:
             raise RuntimeError(
                 f"refit: the simulator evaluated the potential on a batch of shape "
@@ -194,6 +194,10 @@ def refit(
                     float(residual(c, w)[0].pow(2).sum()) for c in chunks.split(CHUNKS_PER_PASS)
                 )
         except ConeQPError:
+            return math.inf
+        except ValueError as err:  # a trial step whose rollout blew up
+            if not _is_nonfinite_error(err):
+                raise
             return math.inf
         value = total / chunks[:, 1:].numel()
         return value if math.isfinite(value) else math.inf
@@ -317,9 +321,9 @@ def refit_run(
 ) -> RefitReport:
     """:func:`refit` a finished run in place: ``model.pt`` and ``learned.json`` are rewritten.
 
-    The model before the refit is kept as ``model_adam.pt`` (by the first refit after
-    training, i.e. while there is no ``refit.json``; a second refit starts from the refitted
-    model and keeps that file); ``refit.json`` records the report. Files are written
+    The model before the refit is kept as ``model_adam.pt`` (written by the first refit
+    after training: ``train`` removes it whenever it writes a new ``model.pt``, so a second
+    refit keeps it); ``refit.json`` records the report. Files are written
     atomically. The data are the run's dataset (``run.json``'s ``data_dir``) unless
     ``data_dir`` is given. A refit that lowers nothing leaves every file as it was.
 
@@ -327,7 +331,7 @@ def refit_run(
         ValueError: no finished run in ``run_dir`` (no ``model.pt``), a model without a
             potential network, an unreadable dataset, or a bad ``iterations``.
     """
-    from diffcontact.io import atomic_write_json
+    from diffcontact.io import atomic_write_bytes, atomic_write_json
     from diffcontact.learning.data.format import load_dataset
     from diffcontact.learning.models.storage import load_model, save_model
 
@@ -346,9 +350,8 @@ def refit_run(
     report = refit(model.double(), train_chunks, val_chunks, iterations, log=log)
     if not any(it.get("accepted") for it in report.iterations):
         return report  # nothing changed: model.pt is still what it was
-    if not (run / "refit.json").is_file():  # model.pt is Adam's: keep it
-        shutil.copyfile(run / "model.pt", run / "model_adam.pt.tmp")
-        os.replace(run / "model_adam.pt.tmp", run / "model_adam.pt")
+    if not (run / "model_adam.pt").is_file():  # model.pt is Adam's (train removes a stale copy)
+        atomic_write_bytes(run / "model_adam.pt", (run / "model.pt").read_bytes())
     save_model(model, run / "model.pt")
     learned = _read_json(run / "learned.json")
     learned["learned"] = model.learned_parameters()

@@ -615,7 +615,7 @@ def train(
         from diffcontact.learning.models.storage import load_model
         from diffcontact.learning.training.refit import refit_run
 
-        refit_run(out, refit, data_dir=data_path, log=print if progress else log.info)
+        refit_run(out, refit, data_dir=data_path)  # prints a line per iteration
         trained = load_model(out)
     return trained
 
