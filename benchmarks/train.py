@@ -5,12 +5,16 @@
     python benchmarks/run.py train --compare-dtypes   # float32 vs float64 loss and gradient
     python benchmarks/run.py train --against none     # without the previous release
     python benchmarks/run.py train --mixed            # also with the potential MLP in float32
+    python benchmarks/run.py train --potential-dtype float32 --against REF  # A/B at one dtype
+    python benchmarks/run.py train --network          # also the potential network's share
 
 By default every task is also timed, side by side in the same run, with the previous
 release: the package and this benchmark at git ref ``--against`` (default
 :data:`PREVIOUS_RELEASE`, the last commit before issue 11's speed work), extracted with
 ``git archive`` into a temporary folder and run in a subprocess on the same chunks, the
-same dtype and the same number of threads. The ratio column is previous / now.
+same dtype and the same number of threads (and the same ``--potential-dtype`` when one is
+given: then the release must have that option, as every commit since 2026-11-24 has).
+The ratio column is previous / now.
 
 One training step is what ``diffcontact train`` does per batch: roll the learned model
 (contact model + true collision detection + CLNN/CHNN with the MLP potential) out over a
@@ -88,6 +92,41 @@ def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
     }
 
 
+def time_network(task: str, args: argparse.Namespace, dtype: torch.dtype) -> float:
+    """Seconds of the potential network's share of a step: ``grad V`` at the ``4 (CHUNK - 1)``
+    RK4 stages of a chunk's rollout, on the whole batch, each stage's positions depending
+    on the last (as in the rollout), and the backward pass to the input and the weights.
+    The arithmetic a step cannot avoid while the network has this size (the median of
+    ``args.reps`` runs after a warm-up)."""
+    from diffcontact.learning.models.physical import LearnedModel
+
+    chunks = make_chunks(task, args.batch_size).to(args.device, dtype)
+    net = (
+        LearnedModel(
+            dc.load_system(task).config, model=args.model, potential_dtype=args.potential_dtype
+        )
+        .to(args.device, dtype)
+        .potential
+    )
+    if not callable(getattr(net, "gradient", None)):  # a model without the MLP potential
+        return float("nan")
+    x0 = chunks[:, 0, 0]
+
+    def run() -> float:
+        sync(args.device)
+        t0 = time.perf_counter()
+        x = x0.clone().requires_grad_(True)
+        h = x
+        for _ in range(4 * (CHUNK - 1)):
+            h = h + 1e-4 * net.gradient(h)
+        h.sum().backward()
+        sync(args.device)
+        return time.perf_counter() - t0
+
+    run()
+    return statistics.median(run() for _ in range(args.reps))
+
+
 def extract_release(ref: str, into: Path) -> Path:
     """``src/`` and ``benchmarks/`` of git ref ``ref`` under ``into`` (raises RuntimeError)."""
     archive = subprocess.run(
@@ -109,8 +148,13 @@ def time_release(root: Path, task: str, args: argparse.Namespace) -> float:
         "--reps", str(args.reps), "--batch-size", str(args.batch_size), "--dtype", args.dtype,
         "--model", args.model, "--device", args.device, "--against", "none",
     ]  # fmt: skip
-    if "--against" not in (root / "benchmarks" / "train.py").read_text():
+    source = (root / "benchmarks" / "train.py").read_text()
+    if "--against" not in source:
         cmd = cmd[:-2]
+    if args.potential_dtype is not None:  # the same network dtype, where the release has it
+        if "--potential-dtype" not in source:
+            raise RuntimeError(f"the release at {root} has no --potential-dtype option")
+        cmd += ["--potential-dtype", args.potential_dtype]
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     match = re.search(rf"^\s*{re.escape(task)} \|\s+([0-9.]+)", out.stdout, re.MULTILINE)
     if out.returncode != 0 or match is None:
@@ -168,6 +212,11 @@ def main(argv: list[str] | None = None) -> int:
         help="also time each task with the potential MLP in float32 (a column, same run)",
     )  # fmt: skip
     ap.add_argument(
+        "--network", action="store_true",
+        help="also time the potential network alone (its gradient at every RK4 stage and "
+        "the backward pass) and print its share of the step",
+    )  # fmt: skip
+    ap.add_argument(
         "--threads", type=int, default=None,
         help="torch threads for both versions (default: torch's default)",
     )  # fmt: skip
@@ -220,6 +269,8 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
     if previous is not None:
         print(f"previous release: git {args.against}, timed in a subprocess right after each row")
     head = f"{'task':>8} | {'s/step':>8} {'chunks/s':>9} | {'chunks with a contact':>21}"
+    if args.network:
+        head += f" | {'network s':>9} {'share':>5}"
     if args.mixed:
         head += f" | {'MLP f32 s/step':>14} {'now/f32':>7}"
     if previous is not None:
@@ -233,6 +284,9 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
             f"{task:>8} | {r['s_per_step']:>8.3f} {args.batch_size / r['s_per_step']:>9.0f} | "
             f"{r['chunks_with_contact']:>20.0%}"
         )
+        if args.network:
+            net = time_network(task, args, dtype)
+            line += f" | {net:>9.3f} {net / r['s_per_step']:>5.0%}"
         mixed = None
         if args.mixed:
             mixed = time_task(

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from diffcontact.geometry import jacobian_matvec, jacobian_rmatvec, rope_limits
+from diffcontact.geometry.base import assemble_jacobian, take_rows
 
 DT = torch.float64
 L0 = 0.05
@@ -112,3 +113,34 @@ def test_large_rope_padded_subset_and_sparse_products():
     f = torch.randn(N, Ka, 1, generator=gen, dtype=DT)
     torch.testing.assert_close(jacobian_matvec(jac, v), torch.einsum("nkdpc,npc->nkd", J, v))
     torch.testing.assert_close(jacobian_rmatvec(jac, f, P), torch.einsum("nkdpc,nkd->npc", J, f))
+
+
+@pytest.mark.parametrize("P", [2, 10, 200])
+def test_rows_of_every_candidate_match_the_indexed_rows(P):
+    """``jacobian_sparse_all`` (the projection's per-iteration rows) equals
+    ``jacobian_sparse`` on ``arange(K)``, per part and for the whole rope, entry by entry
+    once assembled, on both sides of every limit and over batch dimensions."""
+    gen = torch.Generator().manual_seed(P)
+    geo = rope_limits(P, anchor=(0.3, -0.1), first_point=0)
+    angles = -math.pi / 2 + (0.6 * torch.rand(3, 2, P, generator=gen, dtype=DT) - 0.3).cumsum(-1)
+    x = chain(angles, L0 * (0.6 + 0.8 * torch.rand(3, 2, P, generator=gen, dtype=DT)))
+    x = x + torch.tensor([0.3, -0.1], dtype=DT)
+    K = geo.n_candidates
+    every = torch.arange(K).expand(3, 2, K)
+    for part in (*geo.parts, geo):
+        k = part.n_candidates
+        full = part.jacobian_sparse_all(x)
+        assert full.points.shape[-2] == k and full.values.shape[:-3] == (3, 2, k)
+        want = part.jacobian(x, torch.arange(k).expand(3, 2, k))
+        got = assemble_jacobian(full, P)
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    # rows gathered from the full set are the indexed rows, repeated indices included
+    idx = torch.randint(0, K, (3, 2, 7), generator=gen)
+    rows = take_rows(geo.jacobian_sparse_all(x), idx)
+    torch.testing.assert_close(assemble_jacobian(rows, P), geo.jacobian(x, idx), rtol=0, atol=0)
+    torch.testing.assert_close(
+        assemble_jacobian(rows, P),
+        geo.jacobian(x, every).gather(-4, idx[..., None, None, None].expand(3, 2, 7, 1, P, 2)),
+        rtol=0,
+        atol=0,
+    )

@@ -34,6 +34,7 @@ __all__ = [
     "gather_points",
     "jacobian_matvec",
     "jacobian_rmatvec",
+    "take_rows",
 ]
 
 
@@ -108,6 +109,16 @@ def assemble_jacobian(jac: SparseJacobian, n_points: int) -> Tensor:
     return out.scatter_add(-2, index, values)
 
 
+def take_rows(jac: SparseJacobian, idx: Tensor) -> SparseJacobian:
+    """Rows ``idx: (*B, Ka)`` (long) of ``jac`` (leading dims ``B``, ``K`` rows)."""
+    m = jac.points.shape[-1]
+    d, dim = jac.values.shape[-3], jac.values.shape[-1]
+    points = jac.points.expand(*idx.shape[:-1], *jac.points.shape[-2:])
+    points = points.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, m))
+    index = idx[..., None, None, None].expand(*idx.shape, d, m, dim)
+    return SparseJacobian(points, jac.values.gather(-4, index))
+
+
 def jacobian_matvec(jac: SparseJacobian, v: Tensor) -> Tensor:
     """Contact-space velocity ``J_C v``.
 
@@ -173,6 +184,17 @@ class GeometryBase:
         are those of that candidate (the caller masks them).
         """
         return assemble_jacobian(self.jacobian_sparse(x, idx), x.shape[-2])
+
+    def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
+        """Rows of every candidate, ``(..., K, m)`` entries (``x: (..., P, dim)``).
+
+        What a caller that needs many rows of one state computes once and then
+        gathers from (:func:`take_rows`); a geometry may override it with a cheaper
+        evaluation than :meth:`jacobian_sparse` on ``arange(K)`` (the rope's).
+        """
+        K = self.n_candidates
+        idx = torch.arange(K, device=x.device).expand(*x.shape[:-2], K)
+        return self.jacobian_sparse(x, idx)
 
     def to(self, device: torch.device | str):
         """A copy with every tensor field on ``device`` (dtypes kept)."""
@@ -264,6 +286,23 @@ class ContactGeometry(GeometryBase):
                 values = torch.where(inside[..., None, None, None], p_val, values)
         assert points is not None and values is not None
         return SparseJacobian(points, values)
+
+    def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
+        """Every part's rows (:meth:`GeometryBase.jacobian_sparse_all`), part after part,
+        entries padded to the largest ``m``."""
+        jacs = [p.jacobian_sparse_all(x) for p in self.parts]
+        m = max(j.points.shape[-1] for j in jacs)
+        batch = broadcast_shapes(*(j.points.shape[:-2] for j in jacs))
+        points = [
+            torch.nn.functional.pad(j.points, (0, m - j.points.shape[-1])).expand(
+                *batch, j.points.shape[-2], m
+            )
+            for j in jacs
+        ]
+        values = [
+            torch.nn.functional.pad(j.values, (0, 0, 0, m - j.points.shape[-1])) for j in jacs
+        ]
+        return SparseJacobian(torch.cat(points, -2), torch.cat(values, -4))
 
     def to(self, device: torch.device | str) -> ContactGeometry:
         """A copy with every part's tensors on ``device``."""

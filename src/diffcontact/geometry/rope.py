@@ -17,6 +17,7 @@ as the positive side; a stretch tie counts as the lower limit).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -50,6 +51,31 @@ def _point_before(x: Tensor, k: Tensor, first: int, anchor: Tensor) -> Tensor:
     """Position of point ``k - 1`` (the anchor for ``k = 0``): ``(..., Ka, 2)``."""
     before = gather_points(x, first + (k - 1).clamp_min(0))
     return torch.where((k > 0).unsqueeze(-1), before, anchor.to(before))
+
+
+@functools.lru_cache(maxsize=64)
+def _inner_mask_on(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    mask = torch.ones(n, 1, dtype=dtype, device=device)
+    mask[0] = 0.0
+    return mask
+
+
+def _inner_mask(n: int, x: Tensor) -> Tensor:
+    """``(n, 1)``: 0 for row 0 (whose point before is the fixed anchor), else 1 (cached:
+    the projection asks for it in every iteration)."""
+    return _inner_mask_on(n, x.dtype, x.device)
+
+
+@functools.lru_cache(maxsize=64)
+def _row_points_on(n: int, m: int, first: int, device: torch.device) -> Tensor:
+    k = torch.arange(n, device=device)
+    return torch.stack([(k - 1).clamp_min(0), *(k + j for j in range(m - 1))], -1) + first
+
+
+def _row_points(n: int, m: int, first: int, x: Tensor) -> Tensor:
+    """``(..., n, m)`` points ``k - 1, k[, k + 1]`` of rows ``k = 0 .. n-1`` (the anchor's
+    entry, row 0's first, points at ``first``; its value is zero). Cached per device."""
+    return _row_points_on(n, m, first, x.device).expand(*x.shape[:-2], n, m)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -119,6 +145,22 @@ class RopeBending(GeometryBase):
         points = torch.stack(((f + idx - 1).clamp_min(f), f + idx, f + idx + 1), dim=-1)
         return SparseJacobian(points, values.unsqueeze(-3))
 
+    def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
+        """Rows of every joint: those of :meth:`jacobian_sparse` on ``arange(P - 1)``,
+        from the segment vectors without index gathers (the position projection's
+        inner loop)."""
+        _, seg = _rope_points(x, self.first_point, self.n_points, self.anchor)
+        a, b = seg[..., :-1, :], seg[..., 1:, :]
+        theta = torch.atan2(_cross(a, b), dot_last(a, b))
+        g_a = -_perp(a) / dot_last(a, a).unsqueeze(-1)
+        g_b = _perp(b) / dot_last(b, b).unsqueeze(-1)
+        sign = torch.where(theta >= 0, -1.0, 1.0).to(x).unsqueeze(-1)
+        inner = _inner_mask(self.n_candidates, x)  # joint 0's point before is the anchor
+        values = sign.unsqueeze(-2) * torch.stack((-g_a * inner, g_a - g_b, g_b), dim=-2)
+        return SparseJacobian(
+            _row_points(self.n_candidates, 3, self.first_point, x), values.unsqueeze(-3)
+        )
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class RopeStretch(GeometryBase):
@@ -182,6 +224,18 @@ class RopeStretch(GeometryBase):
         values = torch.stack((g_prev, g), dim=-2).unsqueeze(-3)
         points = torch.stack(((f + idx - 1).clamp_min(f), f + idx), dim=-1)
         return SparseJacobian(points, values)
+
+    def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
+        """Rows of every segment: those of :meth:`jacobian_sparse` on ``arange(P)``,
+        without index gathers."""
+        _, seg = _rope_points(x, self.first_point, self.n_candidates, self.anchor)
+        u, length = safe_normalize(seg)
+        lo, hi = self.lower.to(length), self.upper.to(length)
+        g = torch.where(length - lo <= hi - length, 1.0, -1.0).to(x).unsqueeze(-1) * u
+        values = torch.stack((-g * _inner_mask(self.n_candidates, x), g), dim=-2)
+        return SparseJacobian(
+            _row_points(self.n_candidates, 2, self.first_point, x), values.unsqueeze(-3)
+        )
 
 
 def rope_limits(

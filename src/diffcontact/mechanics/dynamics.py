@@ -216,6 +216,11 @@ def potential_gradient(
 ) -> Tensor:
     """``grad_x V(x)`` by autograd, also inside ``torch.no_grad``.
 
+    A potential with a ``gradient(x)`` method (its exact gradient written out, e.g.
+    :meth:`diffcontact.learning.models.physical.PotentialMLP.gradient`) is
+    differentiated by that method instead: the same value, and a graph that a
+    training step differentiates once rather than through autograd's double backward.
+
     Args:
         V: potential, ``(..., P, dim) -> (...)``.
         x: ``(..., P, dim)`` positions. If ``x`` already requires grad the
@@ -228,6 +233,12 @@ def potential_gradient(
     Returns:
         ``(..., P, dim)``; zeros where V does not depend on x.
     """
+    gradient = getattr(V, "gradient", None)
+    if callable(gradient):  # the potential's own exact gradient (PotentialMLP.gradient)
+        if create_graph:
+            return gradient(x)
+        with torch.no_grad():
+            return gradient(x)
     with torch.enable_grad():
         xg = x if x.requires_grad else x.detach().requires_grad_(True)
         energy = V(xg)

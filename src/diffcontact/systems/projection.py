@@ -60,6 +60,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
+from diffcontact.geometry.base import SparseJacobian, assemble_jacobian, take_rows
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
 __all__ = ["project_positions"]
@@ -83,6 +84,18 @@ def _gather_rows(mask_rows: Tensor, R: int | None = None) -> tuple[Tensor, Tenso
     return idx, mask_rows.gather(-1, idx)
 
 
+def _rows_all(geometry: Any, x: Tensor) -> SparseJacobian:
+    """Every candidate's sparse rows at ``x: (n, P, dim)``, points expanded to ``(n, K, m)``."""
+    if hasattr(geometry, "jacobian_sparse_all"):
+        jac = geometry.jacobian_sparse_all(x)
+    else:  # a user geometry with the Geometry protocol only
+        K = geometry.n_candidates
+        jac = geometry.jacobian_sparse(x, torch.arange(K, device=x.device).expand(x.shape[0], K))
+    return SparseJacobian(
+        jac.points.expand(*jac.values.shape[:-4], *jac.points.shape[-2:]), jac.values
+    )
+
+
 def _metric_norms(geometry: Any, x: Tensor, M_inv: Tensor) -> Tensor:
     """``(n, K)``: ``||J_k||_{M^-1}`` of every candidate's normal row at ``x: (n, P, dim)``.
 
@@ -91,11 +104,8 @@ def _metric_norms(geometry: Any, x: Tensor, M_inv: Tensor) -> Tensor:
     I_dim)``; repeated points add up correctly). A dense ``(n, K, P * dim)`` Jacobian of
     all candidates would take 245 MB for 128 ropes of 200 points.
     """
-    parts = getattr(geometry, "parts", None)
-    if parts is not None:  # a ContactGeometry: each part on its own candidates only
-        return torch.cat([_metric_norms(part, x, M_inv) for part in parts], dim=-1)
-    n, K = x.shape[0], geometry.n_candidates
-    jac = geometry.jacobian_sparse(x, torch.arange(K, device=x.device).expand(n, K))
+    n = x.shape[0]
+    jac = _rows_all(geometry, x)
     v = jac.values[..., 0, :, :]  # (n, K, m, dim)
     gram = (v.unsqueeze(-2) * v.unsqueeze(-3)).sum(-1)  # (n, K, m, m)
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
@@ -189,8 +199,9 @@ def project_positions(
 
     x_i = x_pred
     for it in range(iterations):
+        gaps_i = row_gaps(geometry.gaps(x_i))  # (n, R_all), with the graph
         with torch.no_grad():
-            dist = row_gaps(geometry.gaps(x_i.detach())) / scale_rows  # (n, R_all)
+            dist = gaps_i.detach() / scale_rows
             # the violated rows, and those a step of about the largest violation can reach
             worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
             rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
@@ -208,8 +219,9 @@ def project_positions(
         idx, mask = _gather_rows(mask_rows, int(R))
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
-        gap = row_gaps(geometry.gaps(x_i)).gather(-1, idx)  # (n, R)
-        J = geometry.jacobian(x_i, cand)[:, :, 0].reshape(n, R, D)
+        gap = gaps_i.gather(-1, idx)  # (n, R)
+        J = assemble_jacobian(take_rows(_rows_all(geometry, x_i), cand), P)
+        J = J[:, :, 0].reshape(n, R, D)
         sign = torch.where(idx < K, 1.0, -1.0).to(J)
         J = torch.where(mask.unsqueeze(-1), sign.unsqueeze(-1) * J, torch.zeros_like(J))
         gap = torch.where(mask, gap, torch.zeros_like(gap))

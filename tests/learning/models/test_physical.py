@@ -313,3 +313,33 @@ def test_float32_potential_inside_a_float64_rollout(task, tmp_path):
     assert m.potential.compute_dtype == torch.float32
     with pytest.raises(ValueError, match="potential_dtype"):
         LearnedModel(task, potential_dtype="half")
+
+
+@pytest.mark.parametrize("compute_dtype", [None, torch.float32])
+def test_potential_gradient_written_out_equals_autograd(compute_dtype):
+    """PotentialMLP.gradient (what the dynamics use) is autograd's gradient of V, and so
+    are its own derivatives (wrt x and the weights: what a training step differentiates),
+    to float64 rounding (float32's when the network runs in float32)."""
+    from diffcontact.learning.models.physical import PotentialMLP
+    from diffcontact.mechanics import potential_gradient
+
+    torch.manual_seed(0)
+    net = PotentialMLP(12, hidden=(32, 24, 16), compute_dtype=compute_dtype).double()
+    x = (3.0 * torch.randn(5, 6, 2, dtype=torch.float64)).requires_grad_(True)
+    auto = torch.autograd.grad(net(x).sum(), x, create_graph=True)[0]
+    mine = net.gradient(x)
+    assert mine.shape == x.shape and mine.dtype == torch.float64
+    tol = 1e-12 if compute_dtype is None else 1e-5
+    scale = float(auto.detach().abs().max())
+    assert float((mine - auto).detach().abs().max()) <= tol * scale
+    w = torch.randn_like(x)
+    inputs = [x, *net.parameters()]
+    d_auto = torch.autograd.grad((auto * w).sum(), inputs)
+    d_mine = torch.autograd.grad((mine * w).sum(), inputs)
+    for a, b in zip(d_auto, d_mine, strict=True):
+        assert float((a - b).abs().max()) <= 10 * tol * float(a.abs().max())
+    # potential_gradient uses it, with a graph only when asked
+    torch.testing.assert_close(potential_gradient(net, x, create_graph=True), mine)
+    plain = potential_gradient(net, x)
+    assert not plain.requires_grad
+    torch.testing.assert_close(plain, mine.detach())

@@ -155,6 +155,38 @@ class PotentialMLP(nn.Module):
             w = w.to(h)
         return F.linear(h, w).squeeze(-1).to(x.dtype)
 
+    def gradient(self, x: Tensor) -> Tensor:
+        """``grad_x V(x)``, ``(..., P, dim) -> (..., P, dim)``, by the chain rule written out.
+
+        ``a_l = W_l h_(l-1) + b_l``, ``h_l = softplus(a_l)``, ``V = w . h_L``, so
+        ``grad_x V = W_1^T (s_1 * W_2^T (s_2 * ... W_L^T (s_L * w)))`` with ``s_l =
+        sigmoid(a_l)`` (softplus' derivative). The same value as autograd's gradient of
+        :meth:`forward` (up to torch's softplus switching to the identity above 20, where
+        the sigmoid differs from 1 by less than 2e-9), built from plain tensor operations
+        that a training step differentiates once: autograd's ``create_graph`` gradient
+        would be differentiated through softplus' backward (double backward), about
+        twice the operations. :func:`~diffcontact.mechanics.potential_gradient` uses
+        this method when a potential has it.
+        """
+        h = x.flatten(-2)
+        if self.compute_dtype is not None:
+            h = h.to(self.compute_dtype)
+        weights, slopes = [], []
+        for layer in self.layers[:-1]:
+            w, b = layer.weight, layer.bias
+            if w.dtype != h.dtype or w.device != h.device:
+                w, b = w.to(h), None if b is None else b.to(h)
+            a = F.linear(h, w, b)
+            h = F.softplus(a)
+            weights.append(w)
+            slopes.append(torch.sigmoid(a))
+        w = self.layers[-1].weight
+        g = slopes[-1] * w.to(h).squeeze(0)
+        for w_l, s_l in zip(weights[:0:-1], slopes[-2::-1], strict=True):
+            g = (g @ w_l) * s_l
+        g = g @ weights[0]
+        return g.to(x.dtype).unflatten(-1, x.shape[-2:])
+
 
 def _initial_second_moments(cfg: Any, shape: tuple[int, int]) -> Tensor:
     """``(B, k)`` initial second moments: each body's known size squared.
