@@ -152,14 +152,12 @@ NOTES = (
     "(`skipped steps`; docs/training.md): near-grazing contacts produce such spikes, and one "
     "of them fed to Adam froze the gyroscope's inertia before this check existed.",
     "The chain pendulum is chaotic: rollout errors over 100 steps grow with any error of the "
-    "learned potential, which is the last part to converge under Adam (after the 1000 epochs "
-    "the *before refit* column: CP3-e 3.8e-3, CP3 5.7e-3, where the *true potential* column, "
-    "the same learned masses, mu and e_P with the true gravity potential, was two to three "
-    "orders of magnitude lower). The refit (`diffcontact refit`, docs/training.md) fits the "
-    "potential network's output layer and the physical parameters by Gauss-Newton on the "
+    "learned potential, which is the last part to converge under Adam (the *before refit* "
+    "column, after the 1000 epochs). The refit (`diffcontact refit`, docs/training.md) fits "
+    "the potential network's output layer and the physical parameters by Gauss-Newton on the "
     "training chunks, with the hidden layers as Adam left them: that took the errors below "
-    "the paper's on all four tasks, and the learned masses, mu and e_P with them (the *true "
-    "potential* column after the refit).",
+    "the paper's on all four tasks. The *true potential* column (the refitted masses, mu and "
+    "e_P with the true gravity potential) is what the physical parameters alone allow.",
     "Billiards are chaotic too: the *floor* column is the error of the true system with "
     "one mass ratio off by 1e-5 / 1e-4; a handful of test trajectories in which a grazing "
     "collision goes the other way carry most of such an error (the *median* column is far "
