@@ -104,6 +104,15 @@ def test_refit_run_writes_the_files(cp3_data, tmp_path):
     w0, w1 = before.potential.layers[-1].weight, after.potential.layers[-1].weight
     assert not torch.equal(w0, w1)
     torch.testing.assert_close(before.potential.layers[0].weight, after.potential.layers[0].weight)
+    # a refit that changes nothing says so and leaves every file as it was
+    files = {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()}
+    out = subprocess.run(
+        [sys.executable, "-m", "diffcontact", "refit", str(run), "--iterations", "0"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "is unchanged" in out.stdout and "wrote" not in out.stdout
+    assert {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()} == files
     # refitting again keeps model_adam.pt (the model before the first refit)
     adam_bytes = (run / "model_adam.pt").read_bytes()
     out = subprocess.run(

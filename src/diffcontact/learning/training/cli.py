@@ -212,8 +212,12 @@ def _run_refit_cli(args: argparse.Namespace) -> int:
     def work() -> int:
         from diffcontact.learning.training.refit import refit_run
 
-        refit_run(args.run_dir, args.iterations, data_dir=args.data)
-        print(f"wrote {Path(args.run_dir) / 'model.pt'} and {Path(args.run_dir) / 'refit.json'}")
+        report = refit_run(args.run_dir, args.iterations, data_dir=args.data)
+        if not any(it.get("accepted") for it in report.iterations):
+            print(f"no step lowered the validation MSE: {args.run_dir} is unchanged")
+        else:
+            run = Path(args.run_dir)
+            print(f"wrote {run / 'model.pt'} and {run / 'refit.json'}")
         return 0
 
     return report_errors("diffcontact refit", work, bad_input=ValueError)
