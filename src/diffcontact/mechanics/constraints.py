@@ -181,11 +181,15 @@ class EqualityConstraints:
         one_hot = F.one_hot(self.dot_index, self.num_points + self.num_anchors).to(_FLOAT)
         return one_hot[:, 0] - one_hot[:, 1], one_hot[:, 2] - one_hot[:, 3]
 
-    def _selectors(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _selectors(
+        self, x: Tensor, offsets: bool = True
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
         """Difference selectors over the state points and constant anchor offsets.
 
         Returns ``G_ab, G_ce: (E_dot, P_x)`` with ``u = G_ab x + u0``,
-        ``w = G_ce x + w0`` and ``u0, w0: (E_dot, dim)``.
+        ``w = G_ce x + w0`` and ``u0, w0: (E_dot, dim)``, or ``None`` for both when
+        there are no anchors or ``offsets`` is false (the callers that need only
+        differences of points: no product, no addition).
         """
         P, P_x = self.num_points, x.shape[-2]
         key = (x.dtype, x.device, P_x)
@@ -198,6 +202,8 @@ class EqualityConstraints:
                 G_ab, G_ce = F.pad(G_ab, (0, P_x - P)), F.pad(G_ce, (0, P_x - P))
             tables = self._selector_tables[key] = (G_ab, G_ce, A_ab, A_ce)
         G_ab, G_ce, A_ab, A_ce = tables
+        if not offsets or self.num_anchors == 0:
+            return G_ab, G_ce, None, None
         anchors = self.anchors.to(dtype=x.dtype, device=x.device)  # (may carry a gradient)
         return G_ab, G_ce, A_ab @ anchors, A_ce @ anchors
 
@@ -222,8 +228,8 @@ class EqualityConstraints:
         """
         self._check(x)
         G_ab, G_ce, u0, w0 = self._selectors(x)
-        u = G_ab @ x + u0
-        w = G_ce @ x + w0
+        u = _plus(G_ab @ x, u0)
+        w = _plus(G_ce @ x, w0)
         target = self.dot_target.to(dtype=x.dtype, device=x.device)
         phi_dot = (u * w).sum(-1) - target
         anchor = self.lin_anchor.to(dtype=x.dtype, device=x.device)
@@ -243,10 +249,12 @@ class EqualityConstraints:
         self._check(x)
         P_x, dim = x.shape[-2], self.dim
         G_ab, G_ce, u0, w0 = self._selectors(x)
-        u = left_matmul(G_ab, x) + u0  # (..., E_dot, dim)
-        w = left_matmul(G_ce, x) + w0
+        u = _plus(left_matmul(G_ab, x), u0)  # (..., E_dot, dim)
+        w = _plus(left_matmul(G_ce, x), w0)
         J_dot = G_ab[:, :, None] * w[..., :, None, :] + G_ce[:, :, None] * u[..., :, None, :]
         J_dot = J_dot.flatten(-2)  # (..., E_dot, P_x*dim)
+        if self.num_linear == 0:  # (a step's dynamics call this at every RK4 stage)
+            return J_dot
         W = self._lin_weight(x)
         eye = torch.eye(dim, dtype=x.dtype, device=x.device)
         J_lin = (W[:, None, :, None] * eye[None, :, None, :]).reshape(
@@ -268,8 +276,8 @@ class EqualityConstraints:
         self._check(x)
         self._check(v, "v")
         G_ab, G_ce, u0, w0 = self._selectors(x)
-        u = G_ab @ x + u0
-        w = G_ce @ x + w0
+        u = _plus(G_ab @ x, u0)
+        w = _plus(G_ce @ x, w0)
         du = G_ab @ v
         dw = G_ce @ v
         rate_dot = (w * du).sum(-1) + (u * dw).sum(-1)
@@ -290,13 +298,15 @@ class EqualityConstraints:
         """
         self._check(x)
         self._check(v, "v")
-        G_ab, G_ce, _, _ = self._selectors(x)
+        G_ab, G_ce, _, _ = self._selectors(x, offsets=False)
         du = left_matmul(G_ab, v)
         dw = left_matmul(G_ce, v)
         K_dot = G_ce[:, :, None] * du[..., :, None, :] + G_ab[:, :, None] * dw[..., :, None, :]
         K_dot = K_dot.flatten(-2)
         batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
         K_dot = K_dot.expand(*batch, *K_dot.shape[-2:])
+        if self.num_linear == 0:
+            return K_dot
         K_lin = K_dot.new_zeros(*batch, self.num_linear * self.dim, K_dot.shape[-1])
         return torch.cat([K_dot, K_lin], dim=-2)
 
@@ -313,11 +323,17 @@ class EqualityConstraints:
         """
         self._check(x)
         self._check(v, "v")
-        G_ab, G_ce, _, _ = self._selectors(x)
+        G_ab, G_ce, _, _ = self._selectors(x, offsets=False)
         term = 2.0 * dot_last(left_matmul(G_ab, v), left_matmul(G_ce, v))
         batch = broadcast_shapes(x.shape[:-2], v.shape[:-2])
         term = term.expand(*batch, term.shape[-1])
+        if self.num_linear == 0:
+            return term
         return torch.cat([term, term.new_zeros(*batch, self.num_linear * self.dim)], dim=-1)
+
+
+def _plus(t: Tensor, offset: Tensor | None) -> Tensor:
+    return t if offset is None else t + offset
 
 
 def _common_batch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
