@@ -27,6 +27,7 @@ right before a contact (as in the training sets, about half the chunks contain o
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import re
 import statistics
@@ -49,6 +50,7 @@ TASKS = ("BP5-e", "BP5", "BD5", "CP3-e", "CP3", "Gyro-e", "Gyro", "Rope")
 CHUNK = 5
 
 
+@functools.lru_cache(maxsize=4)
 def make_chunks(task: str, n: int, seed: int = 0) -> torch.Tensor:
     """(n, 5, 2, P, d) ground-truth chunks chosen as the datasets choose them (about half
     contain a contact; diffcontact.learning.data.select_chunks)."""

@@ -60,7 +60,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-from diffcontact.geometry.base import SparseJacobian, assemble_jacobian, take_rows
+from diffcontact.geometry.base import GeometryBase, SparseJacobian, assemble_jacobian, take_rows
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
 __all__ = ["project_positions"]
@@ -88,9 +88,8 @@ def _rows_all(geometry: Any, x: Tensor) -> SparseJacobian:
     """Every candidate's sparse rows at ``x: (n, P, dim)``, points expanded to ``(n, K, m)``."""
     if hasattr(geometry, "jacobian_sparse_all"):
         jac = geometry.jacobian_sparse_all(x)
-    else:  # a user geometry with the Geometry protocol only
-        K = geometry.n_candidates
-        jac = geometry.jacobian_sparse(x, torch.arange(K, device=x.device).expand(x.shape[0], K))
+    else:  # a user geometry with the Geometry protocol only: jacobian_sparse on arange(K)
+        jac = GeometryBase.jacobian_sparse_all(geometry, x)
     return SparseJacobian(
         jac.points.expand(*jac.values.shape[:-4], *jac.points.shape[-2:]), jac.values
     )

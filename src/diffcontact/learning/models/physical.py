@@ -130,6 +130,25 @@ class PotentialMLP(nn.Module):
             nn.Linear(widths[i], widths[i + 1], bias=i < n - 1) for i in range(n)
         )
 
+    def _hidden(
+        self, x: Tensor, dtype: torch.dtype | None = None
+    ) -> tuple[Tensor, list[tuple[Tensor, Tensor]]]:
+        """The last hidden activations ``(..., H)`` and, per hidden layer, its weight (in
+        the compute dtype) and pre-activation ``a_l``; ``dtype`` as in :meth:`features`."""
+        h = x.flatten(-2)
+        dtype = dtype or self.compute_dtype
+        if dtype is not None:
+            h = h.to(dtype)
+        trace = []
+        for layer in self.layers[:-1]:
+            w, b = layer.weight, layer.bias
+            if w.dtype != h.dtype or w.device != h.device:
+                w, b = w.to(h), None if b is None else b.to(h)
+            a = F.linear(h, w, b)
+            h = F.softplus(a)
+            trace.append((w, a))
+        return h, trace
+
     def features(self, x: Tensor, dtype: torch.dtype | None = None) -> Tensor:
         """``phi(x)``: the last hidden layer's activations, ``(..., P, dim) -> (..., H)``.
 
@@ -137,16 +156,7 @@ class PotentialMLP(nn.Module):
         is linear in ``w`` (what :mod:`~diffcontact.learning.training.refit` uses).
         ``dtype``: the dtype to compute in (``None``: ``compute_dtype``, else ``x``'s).
         """
-        h = x.flatten(-2)
-        dtype = dtype or self.compute_dtype
-        if dtype is not None:
-            h = h.to(dtype)
-        for layer in self.layers[:-1]:
-            w, b = layer.weight, layer.bias
-            if w.dtype != h.dtype or w.device != h.device:
-                w, b = w.to(h), None if b is None else b.to(h)
-            h = F.softplus(F.linear(h, w, b))
-        return h
+        return self._hidden(x, dtype)[0]
 
     def forward(self, x: Tensor) -> Tensor:
         h = self.features(x)
@@ -164,24 +174,15 @@ class PotentialMLP(nn.Module):
         :meth:`forward` (up to torch's softplus switching to the identity above 20, where
         the sigmoid differs from 1 by less than 2e-9), built from plain tensor operations
         that a training step differentiates once: autograd's ``create_graph`` gradient
-        would be differentiated through softplus' backward (double backward), about
-        twice the operations. :func:`~diffcontact.mechanics.potential_gradient` uses
-        this method when a potential has it.
+        would be differentiated through softplus' backward (double backward), with more
+        operations (``python benchmarks/run.py launches`` counts a step's).
+        :func:`~diffcontact.mechanics.potential_gradient` uses this method when a
+        potential has it.
         """
-        h = x.flatten(-2)
-        if self.compute_dtype is not None:
-            h = h.to(self.compute_dtype)
-        weights, slopes = [], []
-        for layer in self.layers[:-1]:
-            w, b = layer.weight, layer.bias
-            if w.dtype != h.dtype or w.device != h.device:
-                w, b = w.to(h), None if b is None else b.to(h)
-            a = F.linear(h, w, b)
-            h = F.softplus(a)
-            weights.append(w)
-            slopes.append(torch.sigmoid(a))
-        w = self.layers[-1].weight
-        g = slopes[-1] * w.to(h).squeeze(0)
+        h, trace = self._hidden(x)
+        weights = [w for w, _ in trace]
+        slopes = [torch.sigmoid(a) for _, a in trace]
+        g = slopes[-1] * self.layers[-1].weight.to(h).squeeze(0)
         for w_l, s_l in zip(weights[:0:-1], slopes[-2::-1], strict=True):
             g = (g @ w_l) * s_l
         g = g @ weights[0]
