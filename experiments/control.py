@@ -5,13 +5,13 @@
 For each task (billiards on BP5-e, throwing on BD1-ground):
 
 1. ``diffcontact generate TASK`` (800/100/100 trajectories, seed 0) and
-   ``diffcontact train`` of CM-CD-CLNN with the package defaults for
-   ``--epochs`` epochs (reused when finished; resumed when interrupted);
+   ``diffcontact train`` of each learned model (CM-CD-CLNN and the baseline
+   MLP-CD-CLNN, whose contact network replaces the cone QP) with the package
+   defaults for ``--epochs`` epochs (reused when finished; resumed when
+   interrupted);
 2. ``--targets`` random targets (seed 0; billiards: points on the table where
    the target ball fits, throw: x in [0.3, 2.0] m), planned in ONE batched
-   ``optimize`` call per planner: (a) the true system, (b) the trained
-   CM-CD-CLNN model; (c) the MLP-CD-CLNN baseline is not in diffcontact yet
-   (issue 12), so its row says so;
+   ``optimize`` call per planner: the true system and each trained model;
 3. every plan is judged by the ground-truth simulator: a success is a final
    distance to the target of at most ``--radius`` (default 0.05 m; the balls of
    BP5-e have radius 0.1).
@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 TASKS = {"billiards": "BP5-e", "throw": "BD1-ground"}
-MODEL = "CM-CD-CLNN"
+MODELS = ("CM-CD-CLNN", "MLP-CD-CLNN")
 BEGIN = "<!-- control results (experiments/control.py): begin -->"
 END = "<!-- control results: end -->"
 
@@ -46,15 +46,16 @@ def _write(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def train_model(task: str, out: Path, epochs: int) -> tuple[Path, float]:
-    """Generate the task's data and train CM-CD-CLNN (reused/resumed); ``(run dir, seconds)``."""
+def train_model(task: str, out: Path, epochs: int, model: str) -> tuple[Path, float]:
+    """Generate the task's data and train ``model`` on it (reused/resumed);
+    ``(run dir, seconds)``."""
     import shutil
 
     from diffcontact.learning.data.generate import generate_dataset
     from diffcontact.learning.training.run import train
 
     data = out / "data" / task
-    run = out / "runs" / task / MODEL
+    run = out / "runs" / task / model
     learned = run / "learned.json"
     if not (data / "metadata.json").is_file():
         generate_dataset(task, data, n_train=800, n_val=100, n_test=100, progress=False)
@@ -63,7 +64,7 @@ def train_model(task: str, out: Path, epochs: int) -> tuple[Path, float]:
         resume = (run / "checkpoints" / "last.ckpt").is_file()
         if not resume and run.exists():
             shutil.rmtree(run)
-        train(data, run, model=MODEL, epochs=epochs, resume=resume, progress=False,
+        train(data, run, model=model, epochs=epochs, resume=resume, progress=False,
               keep_checkpoints=2)  # fmt: skip
     return run, _training_seconds(run)
 
@@ -110,11 +111,11 @@ def plan_row(task: str, planner_spec: str, targets: int, radius: float, iters: i
 
 
 def learned_contact_parameters(out: Path, task: str) -> dict[str, tuple[list, list]] | None:
-    """``{"mu": (learned, true), "e_P": (learned, true)}`` of the task's trained model
-    (``learned.json``) and its config, or None when the model is not trained yet."""
+    """``{"mu": (learned, true), "e_P": (learned, true)}`` of the task's trained
+    CM-CD-CLNN (``learned.json``) and its config, or None when it is not trained yet."""
     from diffcontact import load_system
 
-    learned_file = out / "runs" / TASKS[task] / MODEL / "learned.json"
+    learned_file = out / "runs" / TASKS[task] / MODELS[0] / "learned.json"
     if not learned_file.is_file():
         return None
     learned = json.loads(learned_file.read_text())["learned"]
@@ -144,15 +145,16 @@ def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = Non
         "Billiards: BP5-e (5 identical balls of radius 0.1 in the unit box), a random layout "
         "per target, cue ball 0, target ball 2, 1 s. Throwing: BD1-ground (a disk of radius "
         "0.1 thrown from rest at (0, 0.5) onto a ground), the disk's centre at x = target "
-        "after 1 s. The learned planners are CM-CD-CLNN models trained by "
-        f"`diffcontact train` for {meta['epochs']} epochs on 800 generated trajectories.",
+        "after 1 s. The learned planners are CM-CD-CLNN and the baseline MLP-CD-CLNN (a "
+        "contact network in place of the cone QP), each trained by `diffcontact train` for "
+        f"{meta['epochs']} epochs on 800 generated trajectories.",
         "",
         "| task | planner | success | median distance (truth) | median distance "
         "(planner's own model) | iterations | planning time | training time |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for task, task_name in TASKS.items():
-        for key in ("true", MODEL):
+        for key in ("true", *MODELS):
             row = results.get(f"{task}/{key}")
             if row is None:
                 lines.append(
@@ -160,18 +162,14 @@ def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = Non
                     "(it resumes) | | | | | |"
                 )
                 continue
-            train_s = results.get(f"{task}/train_seconds")
+            train_s = results.get(f"{task}/{key}/train_seconds")
             lines.append(
                 f"| {task} ({task_name}) | {row['planner']} | {row['success']}/{row['targets']} "
                 f"({100 * row['rate']:.0f} %) | {row['median_distance_true']:.4f} | "
                 f"{row['median_distance_model']:.4f} | {row['iterations']} | "
                 f"{row['seconds'] / 60:.1f} min | "
-                + (f"{train_s / 60:.1f} min |" if key == MODEL and train_s else "- |")
+                + (f"{train_s / 60:.1f} min |" if train_s else "- |")
             )
-        lines.append(
-            f"| {task} ({task_name}) | MLP-CD-CLNN | not run: the baselines (issue 12) are "
-            "not in diffcontact yet | | | | | |"
-        )
     learned_rows = []
     for task, task_name in TASKS.items():
         pairs = learned_contact_parameters(out, task) if out is not None else None
@@ -184,8 +182,10 @@ def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = Non
     if learned_rows:
         lines += [
             "",
-            "The contact parameters the learned planners plan with (a planner is only as good "
-            "as what its training data determined; issue 15 adds per-parameter uncertainty):",
+            "The contact parameters the learned CM-CD-CLNN planners plan with (a planner is "
+            "only as good as what its training data determined; docs/evaluation.md, "
+            '"Parameter uncertainty"; MLP-CD-CLNN has none, its contact network learns the '
+            "impulse):",
             "",
             "| task | parameter | learned | truth | largest error |",
             "|---|---|---|---|---|",
@@ -219,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/control", help="output folder")
     parser.add_argument("--doc", default=None, help="Markdown file to put the table into")
     parser.add_argument("--targets", type=int, default=50, help="random targets per task")
-    parser.add_argument("--epochs", type=int, default=60, help="training epochs of CM-CD-CLNN")
+    parser.add_argument("--epochs", type=int, default=60, help="training epochs of each model")
     parser.add_argument("--iterations", type=int, default=60, help="optimiser iterations")
     parser.add_argument("--radius", type=float, default=0.05, help="success radius, m")
     parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
@@ -246,10 +246,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     for task in args.tasks:
         name = TASKS[task]
-        run, seconds = train_model(name, out, args.epochs)
-        results[f"{task}/train_seconds"] = seconds
-        save()
-        for key, spec in (("true", name), (MODEL, str(run))):
+        specs = [("true", name)]
+        for model in MODELS:
+            run, seconds = train_model(name, out, args.epochs, model)
+            results[f"{task}/{model}/train_seconds"] = seconds
+            save()
+            specs.append((model, str(run)))
+        for key, spec in specs:
             if f"{task}/{key}" in results:
                 continue
             print(f"{task}: planning {args.targets} targets with {key}", flush=True)
