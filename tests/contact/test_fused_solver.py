@@ -17,6 +17,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -695,3 +696,51 @@ def test_split_follows_the_faster_mode(monkeypatch):
     for _ in range(8):
         fused._run_parts(run, parts, ("test",))
     assert modes[4:7] == ["split"] * 3
+
+
+def _cholesky_kernel():
+    """A test kernel: thread t factorises M[t] and solves with it for vec[t, 1]."""
+    wp, wk = fused._load()
+
+    @wp.kernel(module="unique")
+    def factor_and_solve(M: wp.array3d(dtype=Any), vec: wp.array3d(dtype=Any), n: int,
+                         ok: wp.array(dtype=wp.int32)):  # fmt: skip
+        t = wp.tid()
+        if wk._cholesky(M, t, n):
+            ok[t] = 1
+            wk._cholesky_solve(M, t, n, vec, 1)
+
+    return factor_and_solve
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("layout", ["contiguous", "thread fastest"])
+def test_cholesky_routines_on_both_layouts(dtype, layout):
+    """The C++ Cholesky factorisation and solve (warp_kernels._CHOLESKY_CPP) against
+    torch.linalg, on contiguous scratch (the CPU's) and with the thread index fastest (the
+    CUDA layout, strides that are not 1 along a row); a matrix that is not positive
+    definite is reported, not factorised into NaNs."""
+    wp, _ = fused._load()
+    gen = torch.Generator().manual_seed(0)
+    B, n = 6, 13
+    X = torch.randn(B, n, n, generator=gen, dtype=F64)
+    A = X @ X.mT + n * torch.eye(n, dtype=F64)
+    A[-1] = -A[-1]  # not positive definite
+    rhs = torch.randn(B, n, generator=gen, dtype=F64)
+    vec = torch.zeros(B, 3, n, dtype=F64)
+    vec[:, 1] = rhs
+    M = A.clone()
+    if layout == "thread fastest":
+        M = M.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+        vec = vec.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+        assert M.stride(-1) != 1 and vec.stride(-1) != 1
+    M, vec = M.to(dtype), vec.to(dtype)
+    ok = torch.zeros(B, dtype=torch.int32)
+    wp.launch(_cholesky_kernel(), dim=B, device="cpu",
+              inputs=[wp.from_torch(M), wp.from_torch(vec), n, wp.from_torch(ok)])  # fmt: skip
+    assert ok.tolist() == [1] * (B - 1) + [0]
+    L_ref = torch.linalg.cholesky(A[:-1])
+    x_ref = torch.cholesky_solve(rhs[:-1, :, None], L_ref)[..., 0]
+    tol = 1e-12 if dtype == F64 else 1e-4
+    torch.testing.assert_close(M[:-1].double().tril(), L_ref, rtol=tol, atol=tol)
+    torch.testing.assert_close(vec[:-1, 1].double(), x_ref, rtol=tol, atol=tol)
