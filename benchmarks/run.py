@@ -33,6 +33,7 @@ SUITES = (
     "threads",
     "fastops",
     "launches",
+    "kernels",
 )
 
 
