@@ -26,7 +26,7 @@ a pivoted Cholesky factorisation with Gram-Schmidt in place of the reference's
 eigendecomposition, twenty to fifty times cheaper per thread) runs in per-thread scratch
 arrays. The Cholesky factorisation and its triangular solves are written in C++
 (``wp.func_native``, one overload per float type) over raw pointers: Warp's own indexing
-checks every index for a negative value, which made them 3-5x slower. Every array is
+checks every index for a negative value, which made them up to 5x slower. Every array is
 generic in its float type (float32 or float64); scalars of that type are passed typed.
 Contact blocks are handled as 3-vectors padded with zeros (exact for ``d = 2``: the padded
 components stay zero), so one kernel serves ``d = 1, 2, 3``.
@@ -238,12 +238,13 @@ def _soc_max_step(x: Any, dx: Any, inf: Any):
 # --- dense linear algebra on one thread's matrix ---------------------------------------
 
 
-# The Cholesky factorisation is the solver's largest cost (n^3 / 6 multiply-adds; n = 60 at
-# 30 contacts). Warp's array indexing handles negative indices with a branch per index, which
-# keeps LLVM from turning the inner loop into pointer steps: it ran at about 5 cycles per
-# multiply-add. The same loops in C++ over raw pointers run 3-5x faster (bitwise the same
-# result). ``M.strides`` are in bytes; the row stride is the last index's (1 on the CPU,
-# where the scratch arrays are contiguous; on CUDA the thread index is the fastest one).
+# The Cholesky factorisation is the one cubic cost of a Newton step (n^3 / 6 multiply-adds;
+# n = 60 for 30 sticking contacts). Warp's array indexing handles negative indices with a
+# branch per index, which keeps LLVM from turning the inner loop into pointer steps: about
+# 2 ns per multiply-add. The same loops in C++ over raw pointers are up to 5x faster at
+# n = 60, with bitwise the same result (``python benchmarks/run.py kernels``). ``strides``
+# are in bytes; along a row the step is 1 element on the CPU, where the scratch arrays are
+# contiguous, and larger on CUDA, where the thread index is the fastest-varying one.
 _CHOLESKY_CPP = r"""
 auto* a = (decltype(M.data))((char*)M.data + (long long)t * M.strides[0]);
 const long long s1 = M.strides[1] / (long long)sizeof(*a);
