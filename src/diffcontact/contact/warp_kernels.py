@@ -90,6 +90,7 @@ QU0 = wp.constant(17)  # per contact: the bases Q of the reduced Newton system (
 QU1 = wp.constant(18)  # (u1, K)
 DK = wp.constant(19)  # per contact: how many leading columns of Q are in the system (K)
 PF0 = wp.constant(21)  # dPi/dz of the reduced factorisation in M, 3 rows
+AF = wp.constant(24)  # A f of the natural map's point (the interior point's DIR_A row)
 N_SLOTS = 34
 
 # constants that are not exact in float32, typed float64 (Warp before 1.10 emits float
@@ -954,46 +955,137 @@ def _project(z: Any, mu: Any, lower: Any, d: int):
     return c * e0 + (c * mu) * u, P, dc * e0 + (dc * mu + c) * u, zv
 
 
+# The natural map's product A f and the reduced Newton system's rows are the other
+# quadratic loops of a Newton step (about n^2 and m n d entries of A), in C++ over raw
+# pointers for the same reason as the Cholesky routines. Each product is a separate
+# statement from its sum, as in Warp's generated code, so that no multiply-add is fused
+# and the results are bitwise those of the Warp loops they replace.
+_MATVEC_CPP = r"""
+auto* a = (decltype(A.data))((char*)A.data + (long long)r * A.strides[0]);
+const long long a1 = A.strides[1] / (long long)sizeof(*a);
+const long long a2 = A.strides[2] / (long long)sizeof(*a);
+auto* v = (decltype(vec.data))((char*)vec.data + (long long)t * vec.strides[0]);
+const long long v1 = vec.strides[1] / (long long)sizeof(*v);
+const long long v2 = vec.strides[2] / (long long)sizeof(*v);
+const auto* x = v + (long long)src * v1;
+auto* y = v + (long long)dst * v1;
+auto zero = x[0];
+zero = 0;
+const int n = K * d;
+// four rows at a time: four independent running sums, each over the columns in order
+int i = 0;
+for (; i + 4 <= n; i += 4) {
+    const auto* r0 = a + i * a1;
+    auto s0 = zero, s1 = zero, s2 = zero, s3 = zero;
+    for (int k = 0; k < K; ++k) {
+        bool nonzero = false;
+        for (int q = 0; q < d; ++q) nonzero = nonzero || x[(k * d + q) * v2] != zero;
+        if (!nonzero) continue;
+        for (int q = 0; q < d; ++q) {
+            const int j = k * d + q;
+            const auto xj = x[j * v2];
+            const long long o = j * a2;
+            const auto p0 = r0[o] * xj;
+            const auto p1 = r0[a1 + o] * xj;
+            const auto p2 = r0[2 * a1 + o] * xj;
+            const auto p3 = r0[3 * a1 + o] * xj;
+            s0 = s0 + p0;
+            s1 = s1 + p1;
+            s2 = s2 + p2;
+            s3 = s3 + p3;
+        }
+    }
+    y[i * v2] = s0;
+    y[(i + 1) * v2] = s1;
+    y[(i + 2) * v2] = s2;
+    y[(i + 3) * v2] = s3;
+}
+for (; i < n; ++i) {
+    const auto* ai = a + i * a1;
+    auto s = zero;
+    for (int k = 0; k < K; ++k) {
+        bool nonzero = false;
+        for (int q = 0; q < d; ++q) nonzero = nonzero || x[(k * d + q) * v2] != zero;
+        if (!nonzero) continue;
+        for (int q = 0; q < d; ++q) {
+            const int j = k * d + q;
+            const auto p = ai[j * a2] * x[j * v2];
+            s = s + p;
+        }
+    }
+    y[i * v2] = s;
+}
+"""
+
+
+@wp.func_native(_MATVEC_CPP)
+def _matvec_cpp(
+    A: wp.array3d(dtype=wp.float64),
+    r: int,
+    vec: wp.array3d(dtype=wp.float64),
+    t: int,
+    src: int,
+    dst: int,
+    K: int,
+    d: int,
+): ...
+
+
+@wp.func_native(_MATVEC_CPP)
+def _matvec_cpp(
+    A: wp.array3d(dtype=wp.float32),
+    r: int,
+    vec: wp.array3d(dtype=wp.float32),
+    t: int,
+    src: int,
+    dst: int,
+    K: int,
+    d: int,
+): ...
+
+
+@wp.func
+def _matvec(
+    A: wp.array3d(dtype=Any),
+    r: int,
+    vec: wp.array3d(dtype=Any),
+    t: int,
+    src: int,
+    dst: int,
+    K: int,
+    d: int,
+):
+    """vec[t, dst] = A[r] vec[t, src] (:data:`_MATVEC_CPP`). Each row's sum runs over the
+    columns in order, as :func:`_dot`; blocks of the vector that are zero (the separating
+    and padded contacts) are skipped, which leaves every sum bitwise the same (a sum that
+    starts at +0 never becomes -0)."""
+    _matvec_cpp(A, r, vec, t, src, dst, K, d)
+
+
 @wp.func
 def _z_block(
-    A: wp.array3d(dtype=Any),
     b: wp.array2d(dtype=Any),
     r: int,
     t: int,
     d: int,
-    K: int,
     k: int,
     rho: Any,
     vec: wp.array3d(dtype=Any),
     f: int,
 ):
-    """Block k of z = f - rho (A f + b), f in row ``f``, as a padded 3-vector. Each row's
-    sum runs over the columns in order, as :func:`_dot`; blocks of f that are zero (the
-    separating and padded contacts) are skipped, which leaves every sum bitwise the same
-    (a sum that starts at +0 never becomes -0), and f is read once for the d rows."""
+    """Block k of z = f - rho (A f + b), f in row ``f`` and A f in row AF (:func:`_matvec`),
+    as a padded 3-vector."""
     zero = type(rho)(0.0)
     i = k * d
-    s0 = zero
-    s1 = zero
-    s2 = zero
-    for k2 in range(K):
-        x = _load(vec, t, f, k2, d)
-        if x[0] != zero or x[1] != zero or x[2] != zero:
-            for q in range(d):
-                j = k2 * d + q
-                s0 = s0 + A[r, i, j] * x[q]
-                if d > 1:
-                    s1 = s1 + A[r, i + 1, j] * x[q]
-                if d > 2:
-                    s2 = s2 + A[r, i + 2, j] * x[q]
+    s = _load(vec, t, AF, k, d)
     fk = _load(vec, t, f, k, d)
-    z0 = fk[0] - rho * (s0 + b[r, i])
+    z0 = fk[0] - rho * (s[0] + b[r, i])
     z1 = zero
     z2 = zero
     if d > 1:
-        z1 = fk[1] - rho * (s1 + b[r, i + 1])
+        z1 = fk[1] - rho * (s[1] + b[r, i + 1])
     if d > 2:
-        z2 = fk[2] - rho * (s2 + b[r, i + 2])
+        z2 = fk[2] - rho * (s[2] + b[r, i + 2])
     return wp.vector(z0, z1, z2)
 
 
@@ -1021,8 +1113,9 @@ def _natural_map(
     zero = type(rho)(0.0)
     fmax = zero
     Fmax = zero
+    _matvec(A, r, vec, t, f, AF, K, d)
     for k in range(K):
-        zk = _z_block(A, b, r, t, d, K, k, rho, vec, f)
+        zk = _z_block(b, r, t, d, k, rho, vec, f)
         proj, Pk, dmuk, dlk = _project(zk, mu[r, k], lower[r, k], d)
         fk = _load(vec, t, f, k, d)
         Fk = fk - proj
@@ -1114,20 +1207,133 @@ def _basis_column(u0: Any, u1: Any, j: int):
     return wp.vector(zero, zero, type(u0)(1.0))
 
 
-@wp.func
-def _column(Q: Any, j: int):
-    return wp.vector(Q[0, j], Q[1, j], Q[2, j])
+_REDUCED_ROWS_CPP = r"""
+auto* a = (decltype(A.data))((char*)A.data + (long long)r * A.strides[0]);
+const long long a1 = A.strides[1] / (long long)sizeof(*a);
+const long long a2 = A.strides[2] / (long long)sizeof(*a);
+auto* v = (decltype(vec.data))((char*)vec.data + (long long)t * vec.strides[0]);
+const long long v1 = vec.strides[1] / (long long)sizeof(*v);
+const long long v2 = vec.strides[2] / (long long)sizeof(*v);
+auto* h = (decltype(M.data))((char*)M.data + (long long)t * M.strides[0]);
+const long long h1 = M.strides[1] / (long long)sizeof(*h);
+const long long h2 = M.strides[2] / (long long)sizeof(*h);
+const auto* qu0 = v + (long long)qu0_row * v1;
+const auto* qu1 = v + (long long)qu1_row * v1;
+const auto* dks = v + (long long)dk_row * v1;
+auto* y = v + (long long)y_row * v1;
+const int n = K * d;
+auto zero = rho;
+zero = 0;
+const auto one = zero + 1;
+int row = 0;
+for (int k = 0; k < K; ++k) {
+    const int dk = (int)dks[k * v2];
+    if (dk <= 0) continue;
+    // the padded 3x3 block P_k of dPi/dz (rows p_row.., columns k d ..)
+    decltype(zero) P[3][3];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            P[i][j] = (i < d && j < d) ? v[(long long)(p_row + i) * v1 + (k * d + j) * v2] : zero;
+    const auto uk0 = qu0[k * v2];
+    const auto uk1 = qu1[k * v2];
+    for (int i = 0; i < dk; ++i) {
+        // column i of Q_k, and w = P_k^T u
+        decltype(zero) u[3];
+        u[0] = i == 0 ? uk0 : (i == 1 ? -uk1 : zero);
+        u[1] = i == 0 ? uk1 : (i == 1 ? uk0 : zero);
+        u[2] = i == 2 ? one : zero;
+        decltype(zero) w[3];
+        for (int j = 0; j < 3; ++j) w[j] = u[0] * P[0][j] + u[1] * P[1][j] + u[2] * P[2][j];
+        // y = sum_p w_p A[k d + p, :] over the nonzero w_p, in order (row y_row)
+        for (int j = 0; j < n; ++j) y[j * v2] = zero;
+        for (int p = 0; p < d; ++p) {
+            if (w[p] == zero) continue;
+            const auto wp_ = w[p];
+            const auto* ap = a + (k * d + p) * a1;
+            for (int j = 0; j < n; ++j) {
+                const auto prod = wp_ * ap[j * a2];
+                y[j * v2] = y[j * v2] + prod;
+            }
+        }
+        int cu = 0;
+        int cv = m;
+        auto* hrow = h + (long long)row * h1;
+        for (int l = 0; l < K; ++l) {
+            const int dl = (int)dks[l * v2];
+            // block l of the row rho w^T (A + reg I) (+ (u - w)^T on block k)
+            decltype(zero) x[3];
+            for (int c = 0; c < 3; ++c) x[c] = rho * (c < d ? y[(l * d + c) * v2] : zero);
+            if (l == k) {
+                for (int c = 0; c < 3; ++c) {
+                    const auto rw = reg * w[c];
+                    const auto rrw = rho * rw;
+                    x[c] = x[c] + rrw;
+                }
+                for (int c = 0; c < 3; ++c) {
+                    const auto uw = u[c] - w[c];
+                    x[c] = x[c] + uw;
+                }
+            }
+            const auto ul0 = qu0[l * v2];
+            const auto ul1 = qu1[l * v2];
+            for (int j = 0; j < d; ++j) {
+                const auto b0 = j == 0 ? ul0 : (j == 1 ? -ul1 : zero);
+                const auto b1 = j == 0 ? ul1 : (j == 1 ? ul0 : zero);
+                const auto b2 = j == 2 ? one : zero;
+                const auto value = x[0] * b0 + x[1] * b1 + x[2] * b2;
+                if (j < dl) {
+                    hrow[cu * h2] = value;
+                    cu += 1;
+                } else {
+                    hrow[cv * h2] = value;
+                    cv += 1;
+                }
+            }
+        }
+        row += 1;
+    }
+}
+"""
 
 
-@wp.func
-def _row_entry(A: wp.array3d(dtype=Any), r: int, i0: int, col: int, w: Any, d: int):
-    """sum_p w_p A[r, i0 + p, col] over the nonzero w_p (a zero term would leave the sum
-    bitwise the same)."""
-    s = type(w[0])(0.0)
-    for p in range(d):
-        if w[p] != type(w[0])(0.0):
-            s = s + w[p] * A[r, i0 + p, col]
-    return s
+@wp.func_native(_REDUCED_ROWS_CPP)
+def _reduced_rows_cpp(
+    A: wp.array3d(dtype=wp.float64),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    m: int,
+    rho: wp.float64,
+    reg: wp.float64,
+    vec: wp.array3d(dtype=wp.float64),
+    qu0_row: int,
+    qu1_row: int,
+    dk_row: int,
+    p_row: int,
+    y_row: int,
+    M: wp.array3d(dtype=wp.float64),
+): ...
+
+
+@wp.func_native(_REDUCED_ROWS_CPP)
+def _reduced_rows_cpp(
+    A: wp.array3d(dtype=wp.float32),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    m: int,
+    rho: wp.float32,
+    reg: wp.float32,
+    vec: wp.array3d(dtype=wp.float32),
+    qu0_row: int,
+    qu1_row: int,
+    dk_row: int,
+    p_row: int,
+    y_row: int,
+    M: wp.array3d(dtype=wp.float32),
+): ...
 
 
 @wp.func
@@ -1143,9 +1349,13 @@ def _reduced_build(
     M: wp.array3d(dtype=Any),
 ):
     """The blocks H (M[t, :m, :m]) and G (M[t, :m, m:n]) of :func:`_reduced_factor`, the
-    bases (rows QU0, QU1, DK) and the copy of P it depends on (rows PF0..); returns m."""
+    bases (rows QU0, QU1, DK) and the copy of P it depends on (rows PF0..); returns m.
+
+    Row a of [H G] (range column i of contact k, u its basis column, w = P_k^T u) is
+    ``rho w^T (A + reg I) + (u - w)^T`` on block k, times each contact's Q
+    (:data:`_REDUCED_ROWS_CPP`: ``w_p A`` over the nonzero ``w_p`` in order, each
+    column of Q applied as ``wp.dot``)."""
     n = K * d
-    zero = type(rho)(0.0)
     m = int(0)
     for k in range(K):
         u0, u1, dk = _block_basis(_load_block(vec, t, P0, k, d), d)
@@ -1153,45 +1363,7 @@ def _reduced_build(
         vec[t, QU1, k] = u1
         vec[t, DK, k] = type(rho)(dk)
         m += dk
-    a = int(0)
-    for k in range(K):
-        dk = int(vec[t, DK, k])
-        if dk > 0:
-            Pk = _load_block(vec, t, P0, k, d)
-            uk0 = vec[t, QU0, k]
-            uk1 = vec[t, QU1, k]
-            for i in range(dk):
-                u = _basis_column(uk0, uk1, i)
-                w = wp.vector(
-                    wp.dot(u, _column(Pk, 0)), wp.dot(u, _column(Pk, 1)), wp.dot(u, _column(Pk, 2))
-                )  # P^T u
-                cu = int(0)
-                cv = m
-                for l in range(K):
-                    dl = int(vec[t, DK, l])
-                    # block l of the row rho w^T (A + reg I) (+ (u - w)^T on block k)
-                    x0 = _row_entry(A, r, k * d, l * d, w, d)
-                    x1 = zero
-                    x2 = zero
-                    if d > 1:
-                        x1 = _row_entry(A, r, k * d, l * d + 1, w, d)
-                    if d > 2:
-                        x2 = _row_entry(A, r, k * d, l * d + 2, w, d)
-                    x = rho * wp.vector(x0, x1, x2)
-                    if l == k:
-                        x = x + rho * (reg * w)
-                        x = x + (u - w)
-                    ul0 = vec[t, QU0, l]
-                    ul1 = vec[t, QU1, l]
-                    for j in range(d):
-                        value = wp.dot(x, _basis_column(ul0, ul1, j))
-                        if j < dl:
-                            M[t, a, cu] = value
-                            cu += 1
-                        else:
-                            M[t, a, cv] = value
-                            cv += 1
-                a += 1
+    _reduced_rows_cpp(A, r, t, d, K, m, rho, reg, vec, QU0, QU1, DK, P0, AF + 1, M)
     for a2 in range(d):  # what the factorisation depends on besides A (_same_P)
         for i in range(n):
             vec[t, PF0 + a2, i] = vec[t, P0 + a2, i]
@@ -1778,6 +1950,93 @@ def _prepare(
             bipm[r, i] = _pick(free_i, zero, bi) / b_s
 
 
+_MASKED_MATRIX_CPP = r"""
+auto* a = (decltype(A_in.data))((char*)A_in.data + (long long)t * A_in.strides[0]);
+const long long a1 = A_in.strides[1] / (long long)sizeof(*a);
+const long long a2 = A_in.strides[2] / (long long)sizeof(*a);
+const auto* s = (decltype(sv.data))((char*)sv.data + (long long)t * sv.strides[0]
+                                     + (long long)s_row * sv.strides[1]);
+const long long s2 = sv.strides[2] / (long long)sizeof(*s);
+const char* on = (const char*)act.data + (long long)r * act.strides[0];
+const long long o1 = act.strides[1];
+auto* am = (decltype(Am.data))((char*)Am.data + (long long)r * Am.strides[0]);
+const long long m1 = Am.strides[1] / (long long)sizeof(*am);
+const long long m2 = Am.strides[2] / (long long)sizeof(*am);
+auto zero = a_s;
+zero = 0;
+const auto half = zero + 0.5f;
+bool nonfinite = false;
+bool asym = false;
+const int n = K * d;
+for (int i = 0; i < n; ++i) {
+    const bool on_k = *(const bool*)(on + (long long)(i / d) * o1);
+    const auto si = s[i * s2];
+    const auto* ai = a + i * a1;
+    for (int j = i; j < n; ++j) {
+        const auto x = ai[j * a2];
+        const auto x_t = a[j * a1 + i * a2];
+        if (!(wp::isfinite(x) && wp::isfinite(x_t))) nonfinite = true;
+        if (check != 0) {
+            const auto diff = x - x_t;
+            if (wp::abs(diff) > asym_tol) asym = true;
+        }
+        auto v = zero;
+        if (on_k && *(const bool*)(on + (long long)(j / d) * o1)) {
+            const auto sj = s[j * s2];
+            const auto p1 = si * sj;
+            const auto q1 = x * p1;
+            const auto p2 = sj * si;
+            const auto q2 = x_t * p2;
+            const auto sum = q1 + q2;
+            v = half * sum;
+        } else if (!on_k && i == j) {
+            v = a_s;
+        }
+        am[i * m1 + j * m2] = v;
+        am[j * m1 + i * m2] = v;
+    }
+}
+if (nonfinite) *(int*)((char*)flags.data) = 1;
+if (asym) *(int*)((char*)flags.data + 8 * flags.strides[0]) = 1;
+"""
+
+
+@wp.func_native(_MASKED_MATRIX_CPP)
+def _masked_matrix_cpp(
+    A_in: wp.array3d(dtype=wp.float64),
+    sv: wp.array3d(dtype=wp.float64),
+    s_row: int,
+    act: wp.array2d(dtype=wp.bool),
+    t: int,
+    r: int,
+    d: int,
+    K: int,
+    a_s: wp.float64,
+    check: int,
+    asym_tol: wp.float64,
+    flags: wp.array(dtype=wp.int32),
+    Am: wp.array3d(dtype=wp.float64),
+): ...
+
+
+@wp.func_native(_MASKED_MATRIX_CPP)
+def _masked_matrix_cpp(
+    A_in: wp.array3d(dtype=wp.float32),
+    sv: wp.array3d(dtype=wp.float32),
+    s_row: int,
+    act: wp.array2d(dtype=wp.bool),
+    t: int,
+    r: int,
+    d: int,
+    K: int,
+    a_s: wp.float32,
+    check: int,
+    asym_tol: wp.float32,
+    flags: wp.array(dtype=wp.int32),
+    Am: wp.array3d(dtype=wp.float32),
+): ...
+
+
 @wp.func
 def _masked_matrix(
     A_in: wp.array3d(dtype=Any),
@@ -1803,7 +2062,6 @@ def _masked_matrix(
     (finiteness, and where ``check`` symmetry to ``asym_tol``)."""
     a_s = sc[r, SC_AS]
     zero = type(a_s)(0.0)
-    half = type(a_s)(0.5)
     n = K * d
     if tikhonov:
         a_t = sc[t, SC_AS]
@@ -1817,26 +2075,7 @@ def _masked_matrix(
                     v = a_s
                 Am[r, i, j] = v
         return
-    for i in range(n):
-        k = i // d
-        on_k = act[r, k]
-        si = sv[t, SV_S, i]
-        for j in range(i, n):
-            a = A_in[t, i, j]
-            a_t = A_in[t, j, i]
-            if not (wp.isfinite(a) and wp.isfinite(a_t)):
-                flags[0] = 1
-            if check != 0 and wp.abs(a - a_t) > asym_tol:
-                flags[8] = 1
-            v = zero
-            if on_k and act[r, j // d]:
-                sj = sv[t, SV_S, j]
-                # (the same value for (j, i): the products and the sum commute)
-                v = half * (a * (si * sj) + a_t * (sj * si))
-            elif (not on_k) and i == j:
-                v = a_s
-            Am[r, i, j] = v
-            Am[r, j, i] = v
+    _masked_matrix_cpp(A_in, sv, SV_S, act, t, r, d, K, a_s, check, asym_tol, flags, Am)
 
 
 @wp.func
