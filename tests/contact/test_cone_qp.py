@@ -8,6 +8,7 @@ optimality conditions and closed-form cases, which need no other solver.
 from __future__ import annotations
 
 import gc
+import math
 
 import pytest
 import torch
@@ -480,6 +481,70 @@ def test_separating_problems_skip_the_interior_point(d):
     assert_gradients_close(
         lambda b_: solve_cone_qp(A.detach()[:6], b_, mu.detach()[:6], d), (b.detach()[:6],)
     )
+
+
+def _wedged_light_body() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A point mass of 1e-6 pressed into a wall by one of 1e3: ``A, b, mu, v_C``.
+
+    Contact 0 is the pair (normal ``n`` from the light body to the heavy one), contact 1
+    the wall (normal ``w``); d = 2, both on the light body. ``A = J M^-1 J^T`` has
+    eigenvalues 2e6 (the light body) and about 1e-3 (the heavy body, through the pair):
+    bounded, with a minimiser ~1e9 natural scales out, the problem BP5 with masses
+    1e-6..1e6 met at its 14th step (reported unbounded until 2026-11-26).
+    """
+    m_light, m_heavy = 1e-6, 1e3
+    n = torch.tensor([math.cos(0.1), math.sin(0.1)], dtype=F64)
+    w = torch.tensor([1.0, 0.0], dtype=F64)
+    perp = lambda a: torch.stack([-a[1], a[0]])  # noqa: E731
+    zero = torch.zeros(2, dtype=F64)
+    # rows: velocity of contact space from (v_light, v_heavy), each (4,)
+    J = torch.stack(
+        [
+            torch.cat([-n, n]),  # pair normal: separation speed of heavy from light
+            torch.cat([-perp(n), perp(n)]),
+            torch.cat([w, zero]),  # wall normal: speed of the light body off the wall
+            torch.cat([perp(w), zero]),
+        ]
+    )
+    M_inv = torch.diag(torch.tensor([1 / m_light] * 2 + [1 / m_heavy] * 2, dtype=F64))
+    A = J @ M_inv @ J.T
+    v = torch.cat([torch.tensor([-1.0, 0.5], dtype=F64), -2.0 * n])  # both pressing
+    b = J @ v
+    mu = torch.tensor([0.6, 0.1], dtype=F64)
+    return A[None], b[None], mu[None], J
+
+
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+def test_a_light_body_wedged_by_a_heavy_one_is_bounded(backend):
+    """A nearly singular but positive definite A (condition 2e9) is solved, not called
+    unbounded: the certificate also asks that the objective still fall along its direction
+    at the solver's point, which it does not at a minimiser however far out."""
+    if backend == "warp":
+        pytest.importorskip("warp")
+    A, b, mu, _ = _wedged_light_body()
+    evals = torch.linalg.eigvalsh(A[0])
+    assert evals.min() > 0 and evals.max() / evals.min() > 1e9  # bounded, badly conditioned
+    f, status = solve_cone_qp(
+        A, b, mu, 2, return_status=True, settings=SolverSettings(backend=backend)
+    )
+    assert bool(status.converged.all()) and not bool(status.unbounded.any())
+    scale = f.abs().max().clamp_min(1)
+    assert natural_residual(A, b, mu, torch.zeros_like(mu), f, 2).max() / scale < 1e-9
+    # the impulse stops the heavy body: no contact approaches after it (to rounding)
+    v_after = b + (A @ f.unsqueeze(-1)).squeeze(-1)
+    assert (v_after[0, ::2] >= -1e-9 * float((A.abs() @ f.abs().unsqueeze(-1)).max())).all()
+    fk = f.reshape(2, 2)
+    assert (fk[:, 1].abs() <= mu[0] * fk[:, 0] * (1 + 1e-9)).all()  # friction cones
+    # the heavy body's momentum into the wall (2e3 along n) is what the impulses absorb
+    assert 1e3 < float(fk[0, 0]) < 1e5
+
+
+def test_wedged_light_body_agrees_across_backends():
+    pytest.importorskip("warp")
+    A, b, mu, _ = _wedged_light_body()
+    f_t = solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend="torch"))
+    f_w = solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend="warp"))
+    torch.testing.assert_close(f_w, f_t, rtol=1e-6, atol=0)
 
 
 @pytest.mark.parametrize("backend", ["torch", "warp"])

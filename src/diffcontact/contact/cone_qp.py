@@ -35,6 +35,8 @@ problems or contacts):
 4. Unboundedness (``SolverStatus.unbounded``) is decided by a certificate checked
    on the data, a direction ``u`` in the friction cones with ``A u = 0`` and
    ``b^T u < 0`` (to relative accuracy ``sqrt(eps)``; :func:`_certifies_unbounded`),
+   along which the objective still falls at the solver's point (so that a bounded
+   problem whose far-out minimiser the solver reached is not called unbounded),
    found from the solver's runaway iterate or, failing that, from one re-solve with a
    small Tikhonov term. It is never inferred from the residual, which is relative to
    ``|f|`` and which a runaway iterate passes: such a problem is reported unbounded
@@ -179,8 +181,8 @@ class SolverStatus:
         unbounded: bool, the objective is unbounded below (no minimiser): a
             certificate, a descent direction of zero curvature inside the friction
             cones, was found (to relative accuracy ``sqrt(eps)``: a minimiser farther
-            than ``1 / sqrt(eps)`` natural impulse scales counts as none). An
-            unbounded problem is never ``converged``.
+            than ``1 / sqrt(eps)`` natural impulse scales that the solver did not
+            reach counts as none). An unbounded problem is never ``converged``.
         iterations: int64, interior-point iterations used.
         residual: scaled natural-map residual ``||F||_inf / max(1, ||f||_inf)``.
     """
@@ -447,7 +449,9 @@ def _contact_scales(A: Tensor, active: Tensor, d: int) -> Tensor:
         return s.repeat_interleave(d, dim=-1)
 
 
-def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor):
+def _certifies_unbounded(
+    A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: int, g: Tensor, f: Tensor
+) -> Tensor:
     """Whether the direction of ``g`` is a certificate of unboundedness, (B,) bool.
 
     The objective is unbounded below exactly when a recession direction of the feasible
@@ -457,13 +461,23 @@ def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: in
     ``g`` projected onto the cones (exactly, so it is a recession direction) and
     normalised to ``||u||_inf = 1``; it is accepted when
 
-        b^T u <= -1e3 eps C     and     u^T A u <= sqrt(eps) (b^T u)^2
+        b^T u <= -1e3 eps C,     u^T A u <= sqrt(eps) (b^T u)^2,
+        and     (A f + b)^T u <= (b^T u) / 2
 
     (``eps`` of the dtype, data scaled so that diag(A) ~ 1 and ``|b|_inf <= 1``): along
     ``u`` the objective then falls by at least ``(b^T u)^2 / (2 u^T A u) >=
     1 / (2 sqrt(eps))`` natural units, so a minimiser, if any, lies beyond
-    ``1 / sqrt(eps)`` (1.5e8 in float64) natural impulse scales, farther than the answer
-    can be resolved (a bounded problem that badly scaled is reported unbounded too).
+    ``1 / sqrt(eps)`` (1.5e8 in float64) natural impulse scales; and it still falls along
+    ``u`` at the solver's point ``f`` (where that slope's rounding error, about ``eps C
+    max|A| |f|_inf``, is below a quarter of ``|b^T u|``; beyond, as at a runaway iterate
+    of 1e15 scales, this test is not applied). Along a direction of zero curvature the
+    slope is the same everywhere (``A u = 0``), so the last condition costs a true
+    certificate nothing; it keeps a bounded problem whose minimiser lies that far out, and which the
+    solver found (the slope there is zero to rounding), from being called unbounded. BP5
+    with a body of mass 1e-6 wedged between a wall and one of mass 1e3 is such a problem
+    (its minimiser lies 6e8 scales out, with slope -5e-8 where ``b^T u = -0.64``). A
+    bounded problem that badly scaled whose minimiser the solver did not reach is still
+    reported unbounded.
 
     Args:
         A: (B, C, C) scaled ``A`` with inactive contacts decoupled.
@@ -472,6 +486,7 @@ def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: in
         active: (B, K) bool.
         d: contact dimension.
         g: (B, C) candidate direction, any length.
+        f: (B, C) the solver's (scaled) point.
     """
     B, C = g.shape
     eps = torch.finfo(g.dtype).eps
@@ -482,7 +497,12 @@ def _certifies_unbounded(A: Tensor, b: Tensor, mu: Tensor, active: Tensor, d: in
     u = u / torch.where(scale > 0, scale, 1)
     slope = (b * u).sum(-1)
     curv = (u * torch.einsum("bij,bj->bi", A, u)).sum(-1)
-    return (slope <= -1e3 * eps * C) & (curv <= eps**0.5 * slope * slope)
+    slope_f = ((torch.einsum("bij,bj->bi", A, f) + b) * u).sum(-1)  # the slope at f
+    # its rounding error, about eps C max|A| |f|_inf: beyond a quarter of the slope (a
+    # runaway iterate of 1e15 scales) the test says nothing and is not applied
+    noise = eps * C * A.abs().amax((-1, -2)) * f.abs().amax(-1)
+    still_falls = (slope_f <= slope / 2) | (4 * noise >= -slope)
+    return (slope <= -1e3 * eps * C) & (curv <= eps**0.5 * slope * slope) & still_falls
 
 
 def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
@@ -512,7 +532,7 @@ def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
         return found
     rows = todo.nonzero().squeeze(-1)
     A, b, mu, active, g = A[rows], b[rows], mu[rows], active[rows], g[rows]
-    cert = _certifies_unbounded(A, b, mu, active, d, g)
+    cert = _certifies_unbounded(A, b, mu, active, d, g, g)
     again = ~cert & (unconverged[rows] | (size[rows] > 1e-2 / settings.tol))
     if bool(again.any()):
         sub = again.nonzero().squeeze(-1)
@@ -522,7 +542,8 @@ def _unbounded(A, b, mu, active, d, g, res, settings: SolverSettings) -> Tensor:
         g_s, _, _ = _forward(
             A_s + delta * eye, b_s, mu_s, torch.zeros_like(mu_s), act_s, d, settings, certify=False
         )
-        cert = cert.index_put((sub,), _certifies_unbounded(A_s, b_s, mu_s, act_s, d, g_s))
+        cert_s = _certifies_unbounded(A_s, b_s, mu_s, act_s, d, g_s, g[sub])
+        cert = cert.index_put((sub,), cert_s)
     return found.index_put((rows,), cert)
 
 
@@ -866,7 +887,8 @@ def _finish(
         if n_unb:
             parts.append(
                 f"{n_unb} of {n} problems are unbounded below (A is singular and b has a "
-                "descending direction inside the friction cones)"
+                "descending direction inside the friction cones), or so nearly so that a "
+                "minimiser would lie beyond 1/sqrt(eps) impulse scales"
             )
         if n_bad:
             worst = float(status.residual[~status.converged & ~status.unbounded].max())

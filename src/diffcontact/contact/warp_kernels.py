@@ -2321,14 +2321,20 @@ def _certifies(
     gr: int,
     gs: int,
     g_scale: Any,
+    f: wp.array3d(dtype=Any),
+    fr: int,
+    fs: int,
+    f_scale: Any,
     slope_max: Any,
     sqrt_eps: Any,
+    eps: Any,
     u: wp.array3d(dtype=Any),
     ur: int,
     us: int,
 ):
     """``_certifies_unbounded`` of problem t (scaled data A_m / a_s, b_m / b_s) for the
-    direction g[gr, gs] / g_scale; u[ur, us] is scratch."""
+    direction g[gr, gs] / g_scale at the solver's point f[fr, fs] / f_scale; u[ur, us] is
+    scratch."""
     n = K * d
     zero = type(slope_max)(0.0)
     a_s = sc[t, SC_AS]
@@ -2346,15 +2352,29 @@ def _certifies(
         scale = type(slope_max)(1.0)
     slope = zero
     curv = zero
+    slope_f = zero  # (A f + b)^T u: the slope along u at the solver's point
+    a_max = zero
+    f_max = zero
     for i in range(n):
         u[ur, us, i] = u[ur, us, i] / scale
     for i in range(n):
-        slope = slope + (bm[t, i] / b_s) * u[ur, us, i]
+        bi = bm[t, i] / b_s
+        slope = slope + bi * u[ur, us, i]
         Au = zero
+        Af = zero
         for j in range(n):
-            Au = Au + (Am[t, i, j] / a_s) * u[ur, us, j]
+            a = Am[t, i, j] / a_s
+            fj = f[fr, fs, j] / f_scale
+            Au = Au + a * u[ur, us, j]
+            Af = Af + a * fj
+            a_max = wp.max(a_max, wp.abs(a))
+            f_max = wp.max(f_max, wp.abs(fj))
         curv = curv + u[ur, us, i] * Au
-    return slope <= slope_max and curv <= sqrt_eps * slope * slope
+        slope_f = slope_f + (Af + bi) * u[ur, us, i]
+    # the test of the slope at f, where its rounding error is below a quarter of the slope
+    noise = eps * type(slope)(n) * a_max * f_max
+    still_falls = slope_f <= type(slope)(0.5) * slope or type(slope)(4.0) * noise >= -slope
+    return slope <= slope_max and curv <= sqrt_eps * slope * slope and still_falls
 
 
 @wp.func
@@ -2569,15 +2589,16 @@ def fused_forward(
             unconverged = res > tol
             if any_on and (unconverged or size > size_check):
                 cert = _certifies(
-                    Am, bm, mum, act, sc, t, d, K, sv, t, SV_F, c, slope_max, sqrt_eps, vec, t,
-                    FN,
+                    Am, bm, mum, act, sc, t, d, K, sv, t, SV_F, c, sv, t, SV_F, c, slope_max,
+                    sqrt_eps, eps, vec, t, FN,
                 )  # fmt: skip
                 again = (not cert) and (unconverged or size > size_again)
         else:
             one = type(tol)(1.0)
             cert = _certifies(
-                Am, bm, mum, act, sc, t, d, K, vec, r, F_, one, slope_max, sqrt_eps, vec, t, FN
-            )
+                Am, bm, mum, act, sc, t, d, K, vec, r, F_, one, sv, t, SV_F, sc[t, SC_C],
+                slope_max, sqrt_eps, eps, vec, t, FN,
+            )  # fmt: skip
     unb_out[t] = cert
     converged = res0 <= tol and not cert
     conv_out[t] = converged
