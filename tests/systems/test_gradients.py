@@ -66,6 +66,27 @@ def test_gradients_bouncing_masses_with_friction():
     check_rollout(system, ["mu", "cor", "mass"], z0, steps=12)
 
 
+def test_gradients_bouncing_masses_under_gravity():
+    """Point masses under gravity: the acceleration is the same at every state and is
+    computed once per rollout (System._vector_field); gradients to the masses and the
+    gravity still flow through every step."""
+    system = dc.load_system(
+        {
+            "type": "bouncing_masses",
+            "masses": [0.1, 0.3],
+            "radii": [0.1, 0.15],
+            "walls": [[0, 1, 0]],
+            "mu": [0.4, 0.3, 0.2],
+            "cor": [0.7, 0.5, 0.6],
+            "gravity": 9.81,
+            "dt": 0.01,
+            "horizon": 1.0,
+        }
+    )
+    z0 = torch.tensor([[[[0.3, 0.165], [0.55, 0.42]], [[2.0, -1.5], [-2.0, -0.5]]]], dtype=F64)
+    check_rollout(system, ["mu", "cor", "mass", "gravity"], z0, steps=12)
+
+
 def test_gradients_bouncing_disks_second_moments():
     system = dc.load_system(
         {

@@ -299,3 +299,19 @@ def test_a_step_reads_the_device_three_times():
     system.simulate(z0, steps=2)
     reads = [count_host_reads(lambda k=k: system.simulate(z0, steps=k)) for k in (10, 20)]
     assert (reads[1] - reads[0]) / 10 <= 3
+
+
+@pytest.mark.parametrize("gravity", [0.0, 9.81])
+def test_constant_force_is_computed_once_with_the_same_trajectories(gravity, monkeypatch):
+    """Unconstrained point masses without springs or a learned potential: the acceleration
+    is computed at the first RK4 stage of a rollout and reused; the trajectories are
+    bitwise those of the general vector field, which evaluates it at every stage."""
+    from diffcontact.systems import system as system_module
+
+    system = dc.load_system("BP5", gravity=gravity)
+    z0 = system.sample_initial_conditions(16, seed=4)
+    fast = system.simulate(z0, 40)
+    monkeypatch.setattr(system_module._Context, "force_is_constant", property(lambda self: False))
+    general = system.simulate(z0, 40)
+    assert torch.equal(fast, general)
+    assert not torch.equal(fast[:, -1], z0)  # it moved (and, with gravity, fell)

@@ -8,6 +8,13 @@ from plain config numbers) and offers
   the candidates ``idx`` as ``m`` (point, coefficient) entries per row;
 - ``jacobian(x, idx) -> (..., Ka, d, P, dim)``: the same rows, dense.
 
+A geometry whose every row is a frame row times fixed point weights (point masses:
+``J_C`` block of candidate ``k`` is ``frame_k(x) (x) weights_k``, the same weights for
+its ``d`` rows) may also offer ``frames_all(x) -> (..., K, d, dim)`` and
+``point_weights(P, device, dtype) -> (K, P)``; :class:`ContactGeometry` then builds the
+dense rows from those in a few operations instead of from the sparse entries
+(:meth:`ContactGeometry.jacobian`; bitwise the same values).
+
 The contact-space velocity of candidate ``idx[..., k]`` is
 ``v_C[..., k, :] = sum_{p,c} J_C[..., k, :, p, c] v[..., p, c]`` with components
 ``(normal, tangent...)``; the normal row is ``D_x gap``.
@@ -217,6 +224,7 @@ class ContactGeometry(GeometryBase):
     """
 
     parts: tuple[Geometry, ...]
+    _tables: dict = dataclasses.field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.parts:
@@ -286,6 +294,39 @@ class ContactGeometry(GeometryBase):
                 values = torch.where(inside[..., None, None, None], p_val, values)
         assert points is not None and values is not None
         return SparseJacobian(points, values)
+
+    @property
+    def separable(self) -> bool:
+        """Whether every part's rows are frame rows times fixed point weights (module
+        docstring): then :meth:`jacobian` takes the few-operation path."""
+        return all(
+            hasattr(p, "frames_all") and hasattr(p, "point_weights") and p.separable
+            for p in self.parts
+        )
+
+    def jacobian(self, x: Tensor, idx: Tensor) -> Tensor:
+        """Dense rows ``J_C: (..., Ka, d, P, dim)`` of candidates ``idx: (..., Ka)``.
+
+        For separable parts (point masses) ``frames_all(x)[idx] (x) point_weights[idx]``:
+        a simulation step's Jacobian in about 15 operations instead of the sparse entries
+        of every part and their scatter (about 100 on BP5); else as
+        :meth:`GeometryBase.jacobian`.
+        """
+        if not self.separable:
+            return super().jacobian(x, idx)
+        x, idx = broadcast_batch(x, idx)
+        P, dim, d = x.shape[-2], x.shape[-1], self.d
+        key = (P, x.device, x.dtype)
+        weights = self._tables.get(key)
+        if weights is None:  # (K, P), static
+            weights = self._tables[key] = torch.cat(
+                [p.point_weights(P, x.device, x.dtype) for p in self.parts]
+            )
+        frames = [p.frames_all(x) for p in self.parts]  # each (..., K_part, d, dim)
+        batch = broadcast_shapes(*(f.shape[:-3] for f in frames), x.shape[:-2])
+        frames = torch.cat([f.expand(*batch, *f.shape[-3:]) for f in frames], dim=-3)
+        rows = frames.gather(-3, idx[..., None, None].expand(*idx.shape, d, dim))
+        return rows.unsqueeze(-2) * weights[idx][..., None, :, None]
 
     def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
         """Every part's rows (:meth:`GeometryBase.jacobian_sparse_all`), part after part,

@@ -170,6 +170,26 @@ class CirclePairs(GeometryBase):
 
         return _cached_tables(self._tables, device, dtype, make)
 
+    @property
+    def separable(self) -> bool:
+        """Point masses only: each row is its frame row on the two centres (base.py)."""
+        return self.body_points.shape[-1] == 1
+
+    def frames_all(self, x: Tensor) -> Tensor:
+        """``(..., K, 2, 2)``: rows ``(n, t)`` of every pair (point masses; base.py)."""
+        ci_idx, cj_idx, _, _ = self._gap_tables(x.device, x.dtype)
+        n, _ = safe_normalize(x.index_select(-2, cj_idx) - x.index_select(-2, ci_idx))
+        return torch.stack((n, tangent_basis(n)[..., 0, :]), dim=-2)
+
+    def point_weights(self, P: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+        """``(K, P)``: -1 on body i's centre, +1 on body j's (point masses; base.py)."""
+        centres = self.body_points[:, 0]
+        k = torch.arange(self.n_candidates)
+        w = torch.zeros(self.n_candidates, P, dtype=dtype)
+        w[k, centres[self.pair_i]] = -1.0
+        w[k, centres[self.pair_j]] = 1.0
+        return w.to(device)
+
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of pairs ``idx``.
 
@@ -278,6 +298,31 @@ class CircleWalls(GeometryBase):
         centres, normals, offsets, r = _cached_tables(self._tables, x.device, x.dtype, make)
         c = x.index_select(-2, centres)  # (..., B, 2)
         return (c @ normals + offsets - r).flatten(-2)  # (..., B, W)
+
+    @property
+    def separable(self) -> bool:
+        """Point masses only: each row is its frame row on the body's centre (base.py)."""
+        return self.body_points.shape[-1] == 1
+
+    def frames_all(self, x: Tensor) -> Tensor:
+        """``(K, 2, 2)``: rows ``(n, t)`` of every candidate, the wall's (base.py)."""
+
+        def make() -> tuple[Tensor, ...]:
+            n = self.walls[:, :2].to(x.dtype)
+            frames = torch.stack((n, tangent_basis(n)[..., 0, :]), dim=-2)  # (W, 2, 2)
+            return (frames.repeat(int(self.radii.shape[0]), 1, 1),)  # body-major
+
+        key = ("frames", x.device, x.dtype)
+        if key not in self._tables:
+            self._tables[key] = make()[0].to(x.device)
+        return self._tables[key]
+
+    def point_weights(self, P: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+        """``(K, P)``: +1 on the body's centre (point masses; base.py)."""
+        centres = self.body_points[:, 0].repeat_interleave(self.n_walls)
+        w = torch.zeros(self.n_candidates, P, dtype=dtype)
+        w[torch.arange(self.n_candidates), centres] = 1.0
+        return w.to(device)
 
     def jacobian_sparse(self, x: Tensor, idx: Tensor) -> SparseJacobian:
         """Rows of body-wall candidates ``idx``.

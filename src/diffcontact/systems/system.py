@@ -34,6 +34,7 @@ import math
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -226,6 +227,16 @@ class _Context:
     rest_length: Tensor | None  # () or (N,)
     anchor: Tensor | None
     potential: Callable[[Tensor], Tensor] | None
+    # the state-independent acceleration of an unconstrained system without springs or a
+    # learned potential, by state shape, computed at its first RK4 stage of the call
+    constant_acceleration: dict = dataclass_field(default_factory=dict)
+
+    @property
+    def force_is_constant(self) -> bool:
+        """Whether ``-M^-1 grad V`` is the same at every state (gravity alone, no springs,
+        no learned potential) and the dynamics have no constraints to project on."""
+        unconstrained = self.constraints is None or self.constraints.num_equations == 0
+        return self.stiffness is None and self.potential is None and unconstrained
 
     @staticmethod
     def per_state(t: Tensor, x: Tensor, base: int, extra: int) -> Tensor:
@@ -756,7 +767,19 @@ class System:
     def _vector_field(self, ctx: _Context, dynamics: str):
         constraints = ctx.constraints
 
-        if dynamics == "lagrangian":
+        if dynamics == "lagrangian" and ctx.force_is_constant:
+            # the same acceleration at every stage and step: computed once per call (the
+            # same operations on the same values, so bitwise the same trajectories)
+            cache = ctx.constant_acceleration
+
+            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+                acc = cache.get(x.shape)
+                if acc is None:
+                    grad_V = self._grad_potential(x, ctx)
+                    acc = cache[x.shape] = lagrangian_vector_field(x, v, ctx.M_inv, grad_V)
+                return v, acc
+
+        elif dynamics == "lagrangian":
 
             def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
                 grad_V = self._grad_potential(x, ctx)
