@@ -18,6 +18,8 @@ import diffcontact as dc
 from diffcontact.mechanics import chain_points_2d, disk_points_2d
 from diffcontact.testing import assert_gradients_close
 
+from .test_params import TWO_BALLS, Z_TWO_BALLS
+
 F64 = torch.float64
 
 
@@ -49,20 +51,8 @@ def check_rollout(system, names, z0, steps, **kwargs):
 
 
 def test_gradients_bouncing_masses_with_friction():
-    system = dc.load_system(
-        {
-            "type": "bouncing_masses",
-            "masses": [0.1, 0.3],
-            "radii": [0.1, 0.15],
-            "walls": [[0, 1, 0]],
-            "mu": [0.4, 0.3, 0.2],
-            "cor": [0.7, 0.5, 0.6],
-            "dt": 0.01,
-            "horizon": 1.0,
-        }
-    )
-    # ball 0 hits the ground (step 5), then ball 1 off-centre (step 9)
-    z0 = torch.tensor([[[[0.3, 0.165], [0.55, 0.42]], [[2.0, -1.5], [-2.0, -0.5]]]], dtype=F64)
+    system = dc.load_system(TWO_BALLS)
+    z0 = Z_TWO_BALLS
     check_rollout(system, ["mu", "cor", "mass"], z0, steps=12)
 
 
@@ -70,36 +60,13 @@ def test_gradients_bouncing_masses_under_gravity():
     """Point masses under gravity: the acceleration is the same at every state and is
     computed once per rollout (System._vector_field); gradients to the masses and the
     gravity still flow through every step."""
-    system = dc.load_system(
-        {
-            "type": "bouncing_masses",
-            "masses": [0.1, 0.3],
-            "radii": [0.1, 0.15],
-            "walls": [[0, 1, 0]],
-            "mu": [0.4, 0.3, 0.2],
-            "cor": [0.7, 0.5, 0.6],
-            "gravity": 9.81,
-            "dt": 0.01,
-            "horizon": 1.0,
-        }
-    )
-    z0 = torch.tensor([[[[0.3, 0.165], [0.55, 0.42]], [[2.0, -1.5], [-2.0, -0.5]]]], dtype=F64)
+    system = dc.load_system({**TWO_BALLS, "gravity": 9.81})
+    z0 = Z_TWO_BALLS
     check_rollout(system, ["mu", "cor", "mass", "gravity"], z0, steps=12)
 
 
 def test_gradients_bouncing_disks_second_moments():
-    system = dc.load_system(
-        {
-            "type": "bouncing_disks",
-            "masses": [0.1, 0.3],
-            "radii": [0.1, 0.15],
-            "walls": [[0, 1, 0]],
-            "mu": [0.4, 0.3, 0.2],
-            "cor": [0.7, 0.5, 0.6],
-            "dt": 0.01,
-            "horizon": 1.0,
-        }
-    )
+    system = dc.load_system({**TWO_BALLS, "type": "bouncing_disks"})
     # disk 0 hits the ground (step 5), then disk 1 (step 10)
     centre = torch.tensor([[0.3, 0.165], [0.55, 0.42]], dtype=F64)
     vel = torch.tensor([[2.0, -1.5], [-2.0, -0.5]], dtype=F64)
