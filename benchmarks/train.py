@@ -7,6 +7,8 @@
     python benchmarks/run.py train --mixed            # also with the potential MLP in float32
     python benchmarks/run.py train --potential-dtype float32 --against REF  # A/B at one dtype
     python benchmarks/run.py train --network          # also the potential network's share
+    python benchmarks/run.py train --position-projection 0 --tasks Rope  # without the rope's
+                                                      # projection onto its limits
 
 By default every task is also timed, side by side in the same run, with the previous
 release: the package and this benchmark at git ref ``--against`` (default
@@ -69,8 +71,13 @@ def time_task(task: str, args: argparse.Namespace, dtype: torch.dtype) -> dict:
     from diffcontact.learning.training.module import rollout_loss
 
     chunks = make_chunks(task, args.batch_size).to(args.device, dtype)
+    overrides = {}
+    if args.position_projection is not None:  # the learned model's, not the data's
+        overrides["position_projection"] = args.position_projection
     model = LearnedModel(
-        dc.load_system(task).config, model=args.model, potential_dtype=args.potential_dtype
+        dc.load_system(task, **overrides).config,
+        model=args.model,
+        potential_dtype=args.potential_dtype,
     ).to(args.device, dtype)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
 
@@ -223,6 +230,12 @@ def main(argv: list[str] | None = None) -> int:
         help="torch threads for both versions (default: torch's default)",
     )  # fmt: skip
     ap.add_argument(
+        "--position-projection", type=int, default=None, metavar="N",
+        help="the learned model's position_projection iterations (default: the task's; "
+        "0: without the projection onto the limits, the work the rope's step adds); this "
+        "version only, the data keep the task's",
+    )  # fmt: skip
+    ap.add_argument(
         "--compare-dtypes",
         action="store_true",
         help="instead of timing: relative difference of the loss and the gradient of one "
@@ -265,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path | None) -> None:
     mlp = "" if args.potential_dtype is None else f", potential MLP in {args.potential_dtype}"
+    if args.position_projection is not None:
+        mlp += f", position_projection {args.position_projection} (this version)"
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states{mlp}")
     for line in machine_header(args.device, dtype):
         print(line)
