@@ -95,8 +95,12 @@ def _rows_all(geometry: Any, x: Tensor) -> SparseJacobian:
     )
 
 
-def _metric_norms(geometry: Any, x: Tensor, M_inv: Tensor) -> Tensor:
-    """``(n, K)``: ``||J_k||_{M^-1}`` of every candidate's normal row at ``x: (n, P, dim)``.
+def _metric_norms(
+    geometry: Any, x: Tensor, M_inv: Tensor, rows: SparseJacobian | None = None
+) -> Tensor:
+    """``(n, K)``: ``||J_k||_{M^-1}`` of every candidate's normal row at ``x: (n, P, dim)``
+    (``rows``: :func:`_rows_all` at ``x`` if the caller has them; their values are
+    detached here).
 
     From the sparse rows (``m`` entries of point ``p_a`` and value ``v_a``):
     ``J_k M^-1 J_k^T = sum_a sum_b M^-1[p_a, p_b] (v_a . v_b)`` (``M^-1 = kron(M_inv,
@@ -104,8 +108,8 @@ def _metric_norms(geometry: Any, x: Tensor, M_inv: Tensor) -> Tensor:
     all candidates would take 245 MB for 128 ropes of 200 points.
     """
     n = x.shape[0]
-    jac = _rows_all(geometry, x)
-    v = jac.values[..., 0, :, :]  # (n, K, m, dim)
+    jac = _rows_all(geometry, x) if rows is None else rows
+    v = jac.values[..., 0, :, :].detach()  # (n, K, m, dim)
     gram = (v.unsqueeze(-2) * v.unsqueeze(-3)).sum(-1)  # (n, K, m, m)
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
     if M_inv.dim() == 2:
@@ -185,10 +189,12 @@ def project_positions(
     phi0 = None if constraints is None else constraints.phi(x_pred)
     K = violated.shape[-1]
     width = widths.to(dtype=x.dtype, device=x.device) if two_sided else None  # (K,)
+    # every candidate's rows at x_pred: the metric below and the first iteration's rows
+    rows_pred = _rows_all(geometry, x_pred)
     with torch.no_grad():
         # distances are compared in the mass metric: gap_k / ||J_k||_{M^-1} is the distance
         # (in sqrt(mass) * length) from the linearised limit, whatever the gap's unit
-        scale = _metric_norms(geometry, x_pred.detach(), Minv_b).clamp_min(1e-300)
+        scale = _metric_norms(geometry, x_pred, Minv_b, rows_pred).clamp_min(1e-300)
         scale_rows = torch.cat([scale, scale], -1) if two_sided else scale
         steps = torch.tensor(STEPS, dtype=x.dtype, device=x.device)
         mask_rows = torch.zeros_like(scale_rows, dtype=torch.bool)
@@ -219,7 +225,8 @@ def project_positions(
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
         gap = gaps_i.gather(-1, idx)  # (n, R)
-        J = assemble_jacobian(take_rows(_rows_all(geometry, x_i), cand), P)
+        rows_i = rows_pred if it == 0 else _rows_all(geometry, x_i)
+        J = assemble_jacobian(take_rows(rows_i, cand), P)
         J = J[:, :, 0].reshape(n, R, D)
         sign = torch.where(idx < K, 1.0, -1.0).to(J)
         J = torch.where(mask.unsqueeze(-1), sign.unsqueeze(-1) * J, torch.zeros_like(J))
