@@ -10,8 +10,9 @@ from plain config numbers) and offers
 
 A geometry whose every row is a frame row times fixed point weights (point masses:
 ``J_C`` block of candidate ``k`` is ``frame_k(x) (x) weights_k``, the same weights for
-its ``d`` rows) may also offer ``frames_all(x) -> (..., K, d, dim)`` and
-``point_weights(P, device, dtype) -> (K, P)``; :class:`ContactGeometry` then builds the
+its ``d`` rows) may say so with ``separable = True`` and offer ``frames_all(x) ->
+(..., K, d, dim)`` and ``point_weights(P, device, dtype) -> (K, P)``;
+:class:`ContactGeometry` then builds the
 dense rows from those in a few operations instead of from the sparse entries
 (:meth:`ContactGeometry.jacobian`; bitwise the same values).
 
@@ -300,7 +301,9 @@ class ContactGeometry(GeometryBase):
         """Whether every part's rows are frame rows times fixed point weights (module
         docstring): then :meth:`jacobian` takes the few-operation path."""
         return all(
-            hasattr(p, "frames_all") and hasattr(p, "point_weights") and p.separable
+            getattr(p, "separable", False)
+            and hasattr(p, "frames_all")
+            and hasattr(p, "point_weights")
             for p in self.parts
         )
 
