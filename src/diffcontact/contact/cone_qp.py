@@ -474,10 +474,10 @@ def _certifies_unbounded(
     slope is the same everywhere (``A u = 0``), so the last condition costs a true
     certificate nothing; it keeps a bounded problem whose minimiser lies that far out,
     and which the solver found (the slope there is zero to rounding), from being called
-    unbounded. BP5 with a body of mass 1e-6 wedged between a wall and one of mass 1e3 is
-    such a problem (its minimiser lies 6e8 scales out, with slope -5e-8 where
-    ``b^T u = -0.64``). A bounded problem that badly scaled whose minimiser the solver did
-    not reach is still reported unbounded.
+    unbounded. A body of mass 1e-6 wedged between a wall and one of mass 1e3 is such a
+    problem (condition 4e9, its minimiser about 2e9 scales out:
+    ``tests/contact/test_cone_qp.py``, ``_wedged_light_body``). A bounded problem that
+    badly scaled whose minimiser the solver did not reach is still reported unbounded.
 
     Args:
         A: (B, C, C) scaled ``A`` with inactive contacts decoupled.

@@ -307,14 +307,11 @@ class CircleWalls(GeometryBase):
     def frames_all(self, x: Tensor) -> Tensor:
         """``(K, 2, 2)``: rows ``(n, t)`` of every candidate, the wall's (base.py)."""
 
-        def make() -> tuple[Tensor, ...]:
+        key = ("frames", x.device, x.dtype)  # (the gap tables are keyed (device, dtype))
+        if key not in self._tables:
             n = self.walls[:, :2].to(x.dtype)
             frames = torch.stack((n, tangent_basis(n)[..., 0, :]), dim=-2)  # (W, 2, 2)
-            return (frames.repeat(int(self.radii.shape[0]), 1, 1),)  # body-major
-
-        key = ("frames", x.device, x.dtype)
-        if key not in self._tables:
-            self._tables[key] = make()[0].to(x.device)
+            self._tables[key] = frames.repeat(int(self.radii.shape[0]), 1, 1).to(x.device)
         return self._tables[key]
 
     def point_weights(self, P: int, device: torch.device, dtype: torch.dtype) -> Tensor:
