@@ -1,6 +1,7 @@
 """Benchmark: ground-truth simulation, wall time of System.simulate.
 
     python benchmarks/run.py simulate [--quick] [--device cpu|cuda] [--dtype float64|float32]
+        [--cuda-graph auto|on|off|both]
     python benchmarks/run.py simulate --compare mujoco [--quick] [--threads N]
 
 Simulates N trajectories of each task from its own initial-condition distribution and
@@ -23,6 +24,7 @@ import argparse
 import statistics
 import sys
 import time
+import warnings
 
 import numpy as np
 import torch
@@ -35,16 +37,22 @@ QUICK_CASES = [("BP5", 256, 20), ("Rope-D400", 128, 5)]
 EXTRA_CASES = [("BD5", 1024, 100), ("CP3", 1024, 100), ("Gyro", 1024, 100), ("Rope", 1024, 19)]
 
 
-def time_case(task: str, n: int, steps: int, device: str, dtype: torch.dtype) -> dict:
+def time_case(
+    task: str, n: int, steps: int, device: str, dtype: torch.dtype, cuda_graph="auto"
+) -> dict:
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(n, seed=0).to(device=device, dtype=dtype)
     system.simulate(z0[: min(n, 8)], steps=2)  # warm-up (device caches, allocator)
     sync(device)
-    t0 = time.perf_counter()
-    traj = system.simulate(z0, steps=steps)
-    sync(device)
-    wall = time.perf_counter() - t0
-    contacts = (system.gaps(traj[:, 1:, 0].reshape(-1, *traj.shape[-2:])) < 0).any(-1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        traj = system.simulate(z0, steps=steps, cuda_graph=cuda_graph)
+        sync(device)
+        wall = time.perf_counter() - t0
+    graphed = graph_used(system, z0, steps, cuda_graph, caught)
+    active = system.gaps(traj[:, 1:, 0].reshape(-1, *traj.shape[-2:])) < 0
+    contacts = active.any(-1)
     return {
         "task": task,
         "n": n,
@@ -53,7 +61,24 @@ def time_case(task: str, n: int, steps: int, device: str, dtype: torch.dtype) ->
         "ms_per_step": 1e3 * wall / steps,
         "state_steps_per_s": n * steps / wall,
         "contact_share": float(contacts.double().mean()),
+        "max_contacts": int(active.sum(-1).max()) if active.numel() else 0,
+        "graph": graphed,
     }
+
+
+def graph_used(system, z0: torch.Tensor, steps: int, cuda_graph, caught) -> bool:
+    """Whether simulate replayed a CUDA graph (its own rule, and no warning that it fell
+    back; a warning is printed)."""
+    for w in caught:
+        print(f"  ({w.category.__name__}: {w.message})", file=sys.stderr)
+    if cuda_graph is False or z0.device.type != "cuda":
+        return False
+    from diffcontact.systems.system import _Rollout
+
+    model, dynamics, fraction, _ = system._options("CM", None, None)
+    rollout = _Rollout(model, dynamics, fraction, system._projection_iterations(None), None)
+    fell_back = any("no CUDA graph" in str(w.message) for w in caught)
+    return system._graph_wanted(cuda_graph, z0, rollout, steps) and not fell_back
 
 
 COMPARE_TASK = "BP5"
@@ -224,6 +249,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="scenes per row instead of each row's default (e.g. 4096 on a GPU)",
     )
+    ap.add_argument("--tasks", nargs="+", default=None, help="only the rows of these tasks")
+    ap.add_argument(
+        "--cuda-graph",
+        choices=("auto", "on", "off", "both"),
+        default="auto",
+        help="System.simulate's cuda_graph (both: a row with and one without; CUDA only)",
+    )
     ap.add_argument(
         "--compare",
         choices=("mujoco",),
@@ -248,24 +280,41 @@ def main(argv: list[str] | None = None) -> int:
     cases = QUICK_CASES if args.quick else DEFAULT_CASES + (EXTRA_CASES if args.all_tasks else [])
     if args.scenes is not None:
         cases = [(task, args.scenes, steps) for task, _, steps in cases]
+    if args.tasks is not None:
+        unknown = set(args.tasks) - {task for task, _, _ in cases}
+        if unknown:
+            ap.error(f"--tasks: no row for {sorted(unknown)} (--all-tasks adds more rows)")
+        cases = [case for case in cases if case[0] in args.tasks]
 
     print("ground-truth simulation: System.simulate (RK4 + detection + two-phase impulse)")
     for line in machine_header(args.device, dtype):
         print(line)
     head = (
-        f"{'task':>10} {'N':>6} {'steps':>6} | {'wall s':>8} {'ms/step':>9} "
-        f"{'state-steps/s':>14} | {'states in contact':>17}"
+        f"{'task':>10} {'N':>6} {'steps':>6} {'graph':>5} | {'wall s':>8} {'ms/step':>9} "
+        f"{'state-steps/s':>14} | {'states in contact':>17} {'max contacts':>12}"
     )
     print(head)
     print("-" * len(head))
+    modes = {"auto": ["auto"], "on": [True], "off": [False], "both": [False, True]}
     for task, n, steps in cases:
-        r = time_case(task, n, steps, args.device, dtype)
-        print(
-            f"{r['task']:>10} {r['n']:>6} {r['steps']:>6} | {r['wall_s']:>8.2f} "
-            f"{r['ms_per_step']:>9.1f} {r['state_steps_per_s']:>14.0f} | "
-            f"{r['contact_share']:>16.1%}",
-            flush=True,
-        )
+        for mode in modes[args.cuda_graph]:
+            try:
+                r = time_case(task, n, steps, args.device, dtype, mode)
+            except ValueError as err:  # cuda_graph=True where it cannot be used
+                print(f"{task:>10} {n:>6} {steps:>6} {'on':>5} | {err}", flush=True)
+                continue
+            print(
+                f"{r['task']:>10} {r['n']:>6} {r['steps']:>6} "
+                f"{'yes' if r['graph'] else 'no':>5} | {r['wall_s']:>8.2f} "
+                f"{r['ms_per_step']:>9.1f} {r['state_steps_per_s']:>14.0f} | "
+                f"{r['contact_share']:>16.1%} {r['max_contacts']:>12}",
+                flush=True,
+            )
+    print(
+        "graph: the rollout replayed one step captured in a CUDA graph "
+        "(System.simulate's cuda_graph; --cuda-graph). max contacts: the most active "
+        "contacts of one state at one step"
+    )
     return 0
 
 

@@ -79,3 +79,43 @@ def test_shared_returns_the_broadcast_matrix_only():
     assert shared(B) is B and shared(M) is M
     J = torch.randn(7, 6, 4, dtype=torch.float64)
     torch.testing.assert_close(J @ shared(M.expand(7, 4, 4)), J @ M.expand(7, 4, 4))
+
+
+def _spd_batch(n: int, size: int, k: int, device: str = "cpu"):
+    g = torch.Generator().manual_seed(n + size)
+    R = torch.randn(n, size, size, generator=g, dtype=torch.float64)
+    A = R @ R.mT + 0.1 * torch.eye(size, dtype=torch.float64)
+    B = torch.randn(n, size, k, generator=g, dtype=torch.float64)
+    return A.to(device), B.to(device)
+
+
+def test_spd_solve_solves_and_marks_indefinite_matrices_nan():
+    from diffcontact.fastops import spd_solve
+
+    A, B = _spd_batch(16, 5, 3)
+    torch.testing.assert_close(spd_solve(A, B), torch.linalg.solve(A, B), rtol=1e-10, atol=1e-12)
+    A[3] = -A[3]  # not positive definite: NaN there, no error, the others unchanged
+    X = spd_solve(A, B)
+    assert X[3].isnan().all() and torch.isfinite(X[torch.arange(16) != 3]).all()
+    # broadcasting one matrix over a batch of right-hand sides
+    torch.testing.assert_close(spd_solve(A[0], B), torch.linalg.solve(A[0], B))
+
+
+def test_spd_solve_gradients_match_finite_differences():
+    from diffcontact.fastops import spd_solve
+
+    A, B = _spd_batch(3, 4, 2)
+    A.requires_grad_(True)
+    B.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: spd_solve(0.5 * (a + a.mT), b), (A, B))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cholesky_solve_on_cuda_equals_lapack():
+    from diffcontact.fastops import cholesky_solve
+
+    A, B = _spd_batch(64, 6, 2)
+    L = torch.linalg.cholesky(A)
+    X = cholesky_solve(B.cuda(), L.cuda())  # two triangular solves there
+    torch.testing.assert_close(X.cpu(), torch.cholesky_solve(B, L), rtol=1e-10, atol=1e-12)

@@ -235,10 +235,10 @@ def test_a_step_too_large_is_a_clear_error_naming_the_states():
     z0 = system.sample_initial_conditions(8, seed=0)
     with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 8 .*state \d at step"):
         system.simulate(z0, 20)
-    from diffcontact.mechanics.dynamics import _solve_spd
+    from diffcontact.fastops import spd_solve
 
     A = torch.stack([torch.eye(2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)])
-    X = _solve_spd(A, torch.ones(2, 2, 1, dtype=torch.float64))
+    X = spd_solve(A, torch.ones(2, 2, 1, dtype=torch.float64))
     assert torch.equal(X[0], torch.ones(2, 1, dtype=torch.float64)) and X[1].isnan().all()
 
 

@@ -72,7 +72,10 @@ Gradients at degenerate points follow the one-sided choices documented in
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import torch
@@ -694,6 +697,40 @@ def _all_active(K: int, device: torch.device) -> Tensor:
     return torch.ones((), dtype=torch.bool, device=device).expand(K)
 
 
+_DEFERRED = threading.local()
+
+
+@contextlib.contextmanager
+def deferred_checks(flags: Tensor) -> Iterator[Tensor]:
+    """Fused (Warp) solves inside do not read their status from the device.
+
+    Each Warp-backend call of :func:`solve_cone_qp` in this thread ORs its error flags
+    into ``flags`` (``(len(fused.FLAGS),)`` int32 on the solve's device, in place) and
+    returns its impulses without raising, instead of reading the flags (a host
+    synchronisation; none of them can happen inside a captured CUDA graph). The caller
+    reads ``flags`` once afterwards (:func:`deferred_error`) and must treat the results
+    as garbage where it is not None. Calls on the torch backend check as usual (they
+    synchronise anyway)."""
+    if flags.dtype != torch.int32 or flags.shape != (len(fused.FLAGS),):
+        raise ValueError(f"deferred_checks: flags must be ({len(fused.FLAGS)},) int32")
+    outer = getattr(_DEFERRED, "flags", None)
+    _DEFERRED.flags = flags
+    try:
+        yield flags
+    finally:
+        _DEFERRED.flags = outer
+
+
+def deferred_error(flags: Tensor) -> str | None:
+    """What the solves of a :func:`deferred_checks` block reported: None where every
+    problem converged with valid inputs, else the message (one host read)."""
+    values = flags.tolist()
+    error = fused.input_error(values)
+    if error is None and values[5]:
+        error = "solve_cone_qp: some problems were unbounded or did not converge"
+    return error
+
+
 def _check(name: str, x: Tensor, finite: bool = True) -> None:
     """Type check, and unless ``finite`` is False (the Warp backend checks finiteness in its
     kernel, without a host synchronisation per tensor), a finiteness check."""
@@ -836,6 +873,13 @@ def solve_cone_qp(
         f, converged, unbounded, iterations, residual, flags = fused.FusedConeQP.apply(
             *flat, warm_start, d, resolved
         )
+        deferred = getattr(_DEFERRED, "flags", None)
+        if deferred is not None and deferred.device == flags.device:
+            deferred.bitwise_or_(flags)
+            return _finish(
+                f, converged, unbounded, iterations, residual, batch, C, n, resolved,
+                return_status, all_converged=True,
+            )  # fmt: skip
         flags = flags.tolist()
         error = fused.input_error(flags)
         if error is not None:

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-from diffcontact.fastops import shared
+from diffcontact.fastops import cholesky_solve, shared, spd_solve
 
 
 @dataclass
@@ -87,7 +87,7 @@ def penetration_target(
         v_star = _pinv_apply(J_C, v_d)
         if J_E is not None and J_E.shape[-2] > 0:
             JJt = J_E @ J_E.transpose(-1, -2)
-            corr = torch.linalg.solve(JJt, (J_E @ v_star.unsqueeze(-1)))
+            corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
             v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
         return (J_C @ v_star.unsqueeze(-1)).squeeze(-1)
 
@@ -108,7 +108,7 @@ def _pinv_apply(J: Tensor, v: Tensor) -> Tensor:
     )
     L_damped, _ = torch.linalg.cholesky_ex(damped)  # positive definite (NaN in: NaN out)
     L = torch.where(dependent[..., None, None], L_damped, L)
-    y = torch.cholesky_solve(v.unsqueeze(-1), L)
+    y = cholesky_solve(v.unsqueeze(-1), L)
     return (J.transpose(-1, -2) @ y).squeeze(-1)
 
 

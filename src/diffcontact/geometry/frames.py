@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffcontact.fastops import dot_last
+from diffcontact.fastops import dot_last, spd_solve
 
 __all__ = [
     "contact_frame",
@@ -129,5 +129,5 @@ def material_point_weights(body_points: Tensor, p: Tensor) -> Tensor:
         return torch.ones_like(body_points[..., 0])
     gram = axes @ axes.transpose(-1, -2)  # (..., k, k)
     rhs = axes @ (p - x0).unsqueeze(-1)  # (..., k, 1)
-    r = torch.linalg.solve(gram, rhs).squeeze(-1)  # (..., k)
+    r = spd_solve(gram, rhs).squeeze(-1)  # (..., k); NaN for a degenerate body
     return torch.cat((1.0 - r.sum(-1, keepdim=True), r), dim=-1)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diffcontact.fastops import left_matmul
+from diffcontact.fastops import left_matmul, spd_solve
 from diffcontact.mechanics.bodies import kron_identity
 from diffcontact.mechanics.constraints import EqualityConstraints
 from diffcontact.shapes import broadcast_shapes
@@ -27,18 +27,6 @@ __all__ = [
     "lagrangian_vector_field",
     "potential_gradient",
 ]
-
-
-def _solve_spd(A: Tensor, B: Tensor) -> Tensor:
-    """Solve ``A X = B`` for symmetric positive definite ``A: (..., n, n)``, ``B: (..., n, k)``.
-
-    A batch element whose ``A`` is not positive definite (a constraint system that
-    became singular: the state left its constraint manifold) gets NaN, without a host
-    synchronisation; ``System.simulate`` reports such states by index at the end."""
-    batch = broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    L, info = torch.linalg.cholesky_ex(A.expand(*batch, *A.shape[-2:]))
-    X = torch.cholesky_solve(B.expand(*batch, *B.shape[-2:]), L)
-    return torch.where((info > 0)[..., None, None], torch.nan, X)
 
 
 def Mhat_inv(M_inv: Tensor, J_E: Tensor) -> Tensor:
@@ -65,7 +53,7 @@ def Mhat_inv(M_inv: Tensor, J_E: Tensor) -> Tensor:
         return Minv_full.expand(*batch, D, D)
     B = Minv_full @ J_E.transpose(-1, -2)  # (..., D, E) = M^-1 J^T
     A = J_E @ B  # (..., E, E)
-    C = _solve_spd(A, B.transpose(-1, -2))  # (..., E, D) = A^-1 J M^-1
+    C = spd_solve(A, B.transpose(-1, -2))  # (..., E, D) = A^-1 J M^-1
     correction = B @ C
     correction = 0.5 * (correction + correction.transpose(-1, -2))
     return Minv_full - correction
@@ -106,7 +94,7 @@ def lagrangian_vector_field(
     MJf = MJ.flatten(-2)
     A = J @ MJf.transpose(-1, -2)  # (..., E, E)
     rhs = (J @ f.flatten(-2).unsqueeze(-1)).squeeze(-1) - constraints.jacobian_dot_v(x, v)
-    lam = _solve_spd(A, rhs.unsqueeze(-1))  # (..., E, 1)
+    lam = spd_solve(A, rhs.unsqueeze(-1))  # (..., E, 1)
     return (lam.transpose(-1, -2) @ MJf).squeeze(-2).unflatten(-1, (P, dim)) - f
 
 

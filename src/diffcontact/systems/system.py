@@ -36,12 +36,18 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from dataclasses import field as dataclass_field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from diffcontact.contact.cone_qp import ConeQPError, SolverSettings
+from diffcontact.contact.cone_qp import (
+    ConeQPError,
+    SolverSettings,
+    deferred_checks,
+    deferred_error,
+)
+from diffcontact.contact.fused import FLAGS as SOLVER_FLAGS
 from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
@@ -86,6 +92,28 @@ TUNNELLING_FRACTION = 1.0
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
 0.75 for BP5's smallest body, 0.46 for BD5)."""
 ON_TUNNELLING = ("warn", "raise", "ignore")
+
+#: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
+#: of at least this many steps (the capture costs about two eager steps)
+GRAPH_MIN_STEPS = 16
+#: the contacts per state that a captured step pads to (BP5 and BD5 rollouts of 1024 x 100
+#: states had at most 5 active at once); a rollout where a state has more is run again
+#: padded to all candidates
+GRAPH_CONTACTS = 8
+
+
+class _Rollout(NamedTuple):
+    """The options of a rollout that every step uses."""
+
+    model: ContactModel
+    dynamics: str
+    fraction: float
+    iterations: int
+    solver_settings: SolverSettings | None
+
+
+class _NeedsGradient(Exception):
+    """A captured step's result requires grad (raised before the capture goes on)."""
 
 
 def list_tasks() -> list[str]:
@@ -806,7 +834,14 @@ class System:
         model: ContactModel,
         fraction: float,
         settings: SolverSettings | None = None,
+        static_contacts: int | None = None,
     ) -> ContactResult:
+        """The contact resolution of a step: the states with an active contact, padded to
+        the largest active count (one read of the device). With ``static_contacts``:
+        every state, its active candidates first, padded to that many candidates (those
+        without an active contact as all-padded problems, which get zero impulses; active
+        contacts beyond it are dropped, which the caller must detect), so that the shapes
+        do not depend on the data and the device is never read (:meth:`_rollout_graphed`)."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         P, dim, d = self.n_points, self.dim, self.d
         D = P * dim
@@ -814,13 +849,18 @@ class System:
             gaps = ctx.geometry.gaps(x.detach())
             active = gaps < 0
             counts = active.sum(-1)  # (N,) contacts per state
-            # one read of the device for both sizes (each read is a synchronisation on
-            # CUDA); the states with a contact, in order, by a stable sort instead of a
-            # second read through nonzero
-            n, Ka = 0, 0
-            if counts.numel():
-                n, Ka = torch.stack([(counts > 0).sum(), counts.max()]).tolist()
-            b = torch.argsort((counts == 0).to(torch.uint8), stable=True)[:n]  # (n,)
+            static = static_contacts is not None and gaps.shape[-1] > 0
+            if static:
+                n, Ka = gaps.shape[0], min(gaps.shape[-1], static_contacts)
+                b = torch.arange(n, device=z.device)
+            else:
+                # one read of the device for both sizes (each read is a synchronisation on
+                # CUDA); the states with a contact, in order, by a stable sort instead of a
+                # second read through nonzero
+                n, Ka = 0, 0
+                if counts.numel():
+                    n, Ka = torch.stack([(counts > 0).sum(), counts.max()]).tolist()
+                b = torch.argsort((counts == 0).to(torch.uint8), stable=True)[:n]  # (n,)
         if n == 0:
             empty = torch.zeros(0, dtype=torch.long, device=z.device)
             zf = z.new_zeros(0, 0, d)
@@ -873,7 +913,10 @@ class System:
             if status is not None and status.converged.shape == (n,):
                 err.states = b[~status.converged].tolist()
             raise
-        v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
+        if static:
+            v_new = res.v_plus.reshape(n, P, dim)
+        else:
+            v_new = v.index_put((b,), res.v_plus.reshape(n, P, dim))
         return ContactResult(
             z=torch.stack([x, v_new], dim=-3),
             gaps=gaps,
@@ -1082,6 +1125,7 @@ class System:
         on_tunnelling: str = "warn",
         position_projection: int | None = None,
         threads: int | str | None = "auto",
+        cuda_graph: bool | str = "auto",
     ) -> Tensor:
         """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
@@ -1124,6 +1168,18 @@ class System:
                 :func:`diffcontact.threads.thread_scope`); an integer fixes the
                 count; ``None`` leaves torch's setting alone. Results do not depend
                 on it beyond the last bits of torch's parallel reductions.
+            cuda_graph: on a CUDA device, capture one step in a CUDA graph and replay
+                it (the step's hundreds of small kernels launched at once; the step
+                then runs every state through the contact solve, padded, so that its
+                shapes do not depend on the data, and reads the device once per call,
+                not per step). ``"auto"`` (default): where the states are on CUDA, the
+                cone-QP backend is Warp, the position projection is off, the rollout
+                has at least :data:`GRAPH_MIN_STEPS` steps and nothing in it requires
+                a gradient (else, or if the capture fails, with a warning, step by
+                step); ``True``: insist (``ValueError`` where it cannot);
+                ``False``: never. Results equal the step-by-step ones to rounding. A
+                failed solve or a non-finite state reruns the rollout step by step,
+                which raises the usual error naming the states.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
@@ -1154,17 +1210,41 @@ class System:
         ctx = self._context(z0, params, z0.shape[0])
         if check_overlap:
             self._check_no_overlap(z0, "z0")
-        states = [z0]
         # the gaps of each state, for the tunnelling check: the contact resolution's own
         # (a step's positions are final there unless the position projection moves them)
         keep_gaps = not iterations and on_tunnelling != "ignore"
+        rollout = _Rollout(model, dynamics, fraction, iterations, solver_settings)
+        result = None
+        if self._graph_wanted(cuda_graph, z0, rollout, steps):
+            result = self._rollout_graphed(
+                z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
+            )
+        if result is None:
+            result = self._rollout_eager(z0, steps, ctx, rollout, keep_gaps, progress, threads)
+        traj, gaps = result
+        if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
+            raise ValueError(self._nonfinite_message(list(traj.unbind(1)), steps))
+        if on_tunnelling != "ignore":
+            self._check_tunnelling(traj, on_tunnelling == "raise", gaps)
+        return traj
+
+    def _rollout_eager(
+        self,
+        z0: Tensor,
+        steps: int,
+        ctx: _Context,
+        rollout: _Rollout,
+        keep_gaps: bool,
+        progress: bool,
+        threads: int | str | None,
+    ) -> tuple[Tensor, Tensor | None]:
+        """The rollout step by step: ``(N, steps + 1, 2, P, dim)`` states and, with
+        ``keep_gaps``, ``(N, steps + 1, K)`` their gaps."""
+        model, dynamics, fraction, iterations, solver_settings = rollout
+        states = [z0]
         gaps: list[Tensor] | None = [self.gaps(z0.detach()[:, 0])] if keep_gaps else None
         z = z0
-        iterator: Any = range(steps)
-        if progress:
-            from tqdm.auto import tqdm
-
-            iterator = tqdm(iterator, desc=f"simulate {self.name}", unit="step")
+        iterator = self._progress(steps, progress)
         with thread_scope(threads, z0.device, steps) as scope:
             for step in iterator:
                 with scope.step():
@@ -1190,14 +1270,159 @@ class System:
                         failure.states = err.states  # trajectory indices, for callers that go on
                         raise failure from err
                     states.append(z)
-        traj = torch.stack(states, dim=1)
-        if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
-            raise ValueError(self._nonfinite_message(states, steps))
-        if on_tunnelling != "ignore":
-            self._check_tunnelling(
-                traj, on_tunnelling == "raise", None if gaps is None else torch.stack(gaps, 1)
-            )
-        return traj
+        return torch.stack(states, dim=1), None if gaps is None else torch.stack(gaps, 1)
+
+    def _progress(self, steps: int, progress: bool) -> Any:
+        if not progress:
+            return range(steps)
+        from tqdm.auto import tqdm
+
+        return tqdm(range(steps), desc=f"simulate {self.name}", unit="step")
+
+    def _graph_wanted(self, cuda_graph: bool | str, z0: Tensor, rollout: _Rollout, steps: int):
+        """Whether :meth:`simulate` tries :meth:`_rollout_graphed` (see its ``cuda_graph``)."""
+        if cuda_graph not in (True, False, "auto"):
+            raise ValueError(f"cuda_graph must be True, False or 'auto', got {cuda_graph!r}")
+        if cuda_graph is False:
+            return False
+        settings = (rollout.solver_settings or SolverSettings()).resolved(z0.dtype, z0.device)
+        reasons = []
+        if z0.device.type != "cuda":
+            reasons.append(f"the states are on {z0.device}, not a CUDA device")
+        if rollout.iterations:
+            reasons.append("the position projection is on (position_projection > 0)")
+        if rollout.dynamics == "hamiltonian" and self.constraints is not None:
+            reasons.append("constrained Hamiltonian dynamics solve with torch.linalg.solve")
+        if settings.backend != "warp":
+            reasons.append(f"the cone-QP backend is {settings.backend!r}, not 'warp'")
+        if cuda_graph is True and reasons:
+            raise ValueError("simulate: cuda_graph=True, but " + "; ".join(reasons))
+        return not reasons and (cuda_graph is True or steps >= GRAPH_MIN_STEPS)
+
+    def _rollout_graphed(
+        self,
+        z0: Tensor,
+        steps: int,
+        ctx: _Context,
+        rollout: _Rollout,
+        keep_gaps: bool,
+        progress: bool,
+        strict: bool = False,
+        capture: bool = True,
+    ) -> tuple[Tensor, Tensor | None] | None:
+        """The rollout as replays of one step captured in a CUDA graph.
+
+        The step is the eager one with static shapes and no read of the device: every
+        state goes to the contact model with its active candidates padded to
+        :data:`GRAPH_CONTACTS` (:meth:`_resolve`'s ``static_contacts``; a state with more
+        active contacts sets a flag, and the rollout is run again padded to all
+        candidates), and the fused solver's error flags are gathered on the device
+        (:func:`~diffcontact.contact.cone_qp.deferred_checks`); both are read once after
+        the last step. A replay launches the step's hundreds of kernels at once, where
+        the eager step pays the host's time for each. Returns None where the graph cannot
+        be used (the step needs gradients, or the capture failed; a ``RuntimeWarning``
+        says why unless ``strict``, which raises) or where a solve failed or a state is
+        not finite: the caller then runs the eager rollout, which names the states and
+        the cause. ``capture=False`` runs the same static, read-free steps without a
+        graph (on any device; for tests)."""
+        needs_gradient = "the rollout needs gradients, which a graph replay does not record"
+
+        def give_up(why: str) -> None:
+            """Raise (strict) or warn, except that a rollout that needs gradients (a
+            normal case) quietly goes step by step."""
+            message = f"simulate {self.name}: no CUDA graph ({why}); running step by step"
+            if strict:
+                raise ValueError(message.replace("no CUDA graph", "cuda_graph=True failed"))
+            if why != needs_gradient:
+                warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+        tensors = [z0] + [t for t in vars(ctx).values() if isinstance(t, Tensor)]
+        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            give_up(needs_gradient)
+            return None
+        K = len(self.contact_names)
+        for contacts in sorted({min(K, GRAPH_CONTACTS), K}):
+            try:
+                out = self._graphed_attempt(z0, steps, ctx, rollout, keep_gaps, progress,
+                                            contacts, capture)  # fmt: skip
+            except _NeedsGradient:
+                give_up(needs_gradient)
+                return None
+            except Exception as err:  # the capture (CUDA's errors vary with the call)
+                if not capture or isinstance(err, ValueError):
+                    raise
+                give_up(f"the capture failed: {type(err).__name__}: {err}")
+                return None
+            if out != "overflow":
+                return out
+        return None  # (not reached: padded to all candidates, no state overflows)
+
+    def _graphed_attempt(
+        self,
+        z0: Tensor,
+        steps: int,
+        ctx: _Context,
+        rollout: _Rollout,
+        keep_gaps: bool,
+        progress: bool,
+        contacts: int,
+        capture: bool,
+    ) -> tuple[Tensor, Tensor | None] | str | None:
+        """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``:
+        the trajectory and gaps, ``"overflow"`` (a state had more active contacts), or
+        None (a solve failed or a state is not finite)."""
+        model, dynamics, fraction, _, solver_settings = rollout
+        device = z0.device
+        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
+        overflow = torch.zeros((), dtype=torch.bool, device=device)
+        z_in = z0.detach().clone()
+
+        def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
+            with deferred_checks(flags):
+                z1 = self._integrate(z_in, ctx, dynamics)
+                res = self._resolve(z1, ctx, model, fraction, solver_settings, contacts)
+            if res.z.requires_grad:
+                raise _NeedsGradient
+            overflow.logical_or_((res.gaps < 0).sum(-1).amax() > contacts)
+            z_in.copy_(res.z)
+            return res.gaps
+
+        if capture:
+            side = torch.cuda.Stream(device)
+            side.wait_stream(torch.cuda.current_stream(device))
+            with torch.cuda.stream(side):  # loads the kernels, records the launches
+                one_step()
+            torch.cuda.current_stream(device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph, capture_error_mode="relaxed"):
+                g_out = one_step()
+            advance = graph.replay
+        else:
+            g_out = one_step()
+
+            def advance() -> None:
+                g_out.copy_(one_step())
+
+        z_in.copy_(z0)  # (the warm-up step moved it)
+        flags.zero_()
+        overflow.zero_()
+        N = z0.shape[0]
+        traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
+        traj[:, 0] = z0.detach()
+        gaps = None
+        if keep_gaps:
+            gaps = torch.empty((N, steps + 1, g_out.shape[-1]), dtype=z0.dtype, device=device)
+            gaps[:, 0] = self.gaps(z0.detach()[:, 0])
+        for step in self._progress(steps, progress):
+            advance()
+            traj[:, step + 1].copy_(z_in)
+            if gaps is not None:
+                gaps[:, step + 1].copy_(g_out)
+        if bool(overflow):
+            return "overflow"
+        if deferred_error(flags) is not None or not bool(torch.isfinite(traj).all()):
+            return None  # the eager rollout says which state failed, and why
+        return traj, gaps
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
         """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""

@@ -1,0 +1,158 @@
+"""The rollout of ``System.simulate(cuda_graph=...)``: one step with static shapes and no
+read of the device, captured in a CUDA graph and replayed.
+
+On the CPU the same static step runs without a capture (``_rollout_graphed(...,
+capture=False)``): it must give the step-by-step trajectories to rounding, read the
+device once per rollout (not per step) and hand failures back to the step-by-step
+rollout, which names them. The capture itself is tested on CUDA (marker ``cuda``)."""
+
+import warnings
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.contact import SolverSettings, solve_cone_qp
+from diffcontact.contact.cone_qp import deferred_checks, deferred_error
+from diffcontact.contact.fused import FLAGS
+from diffcontact.systems import system as system_module
+from diffcontact.testing import count_host_reads
+
+pytest.importorskip("warp")
+
+
+def _static_rollout(system, z0, steps, params=None):
+    """``_rollout_graphed`` without the capture, with simulate's default options."""
+    model, dynamics, fraction, params = system._options("CM", None, None, params)
+    iterations = system._projection_iterations(None)
+    ctx = system._context(z0, params, z0.shape[0])
+    rollout = system_module._Rollout(model, dynamics, fraction, iterations, None)
+    return system._rollout_graphed(z0, steps, ctx, rollout, True, False, capture=False)
+
+
+@pytest.mark.parametrize("task", ["BP5", "BP5-e", "BD5", "CP3", "Gyro"])
+def test_the_static_step_gives_the_step_by_step_trajectories(task):
+    """Every state through the solve, padded to all candidates: the same impulses (the
+    padding takes no part), to the rounding of matrix products of another size, which
+    the chaotic contacts of BP5 may grow over the steps."""
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(16, seed=2)
+    eager = system.simulate(z0, 60, cuda_graph=False)
+    traj, gaps = _static_rollout(system, z0, 60)
+    assert (system.gaps(traj[:, 1:, 0].flatten(0, 1)) < 0).any()  # contacts were met
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
+    torch.testing.assert_close(gaps, system.gaps(traj[..., 0, :, :]), rtol=0, atol=1e-12)
+
+
+def test_a_state_with_more_contacts_than_the_padding_reruns_padded_to_all(monkeypatch):
+    """With the padding cut to one contact, BP5's states with two at once overflow: the
+    rollout is run again padded to every candidate, with the step-by-step result."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(64, seed=2)
+    eager = system.simulate(z0, 60, cuda_graph=False)
+    assert ((system.gaps(eager[:, 1:, 0].flatten(0, 1)) < 0).sum(-1) > 1).any()
+    tries = []
+    attempt = system_module.System._graphed_attempt
+
+    def spy(self, *args):
+        out = attempt(self, *args)
+        tries.append((args[6], out if isinstance(out, str) else "done"))
+        return out
+
+    monkeypatch.setattr(system_module, "GRAPH_CONTACTS", 1)
+    monkeypatch.setattr(system_module.System, "_graphed_attempt", spy)
+    traj, _ = _static_rollout(system, z0, 60)
+    assert tries == [(1, "overflow"), (30, "done")]
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
+
+
+def test_the_static_rollout_reads_the_device_once():
+    """No read inside a step (a graph could not capture one): the overflow flag, the
+    deferred solver flags and the finiteness of the trajectory are read after the last
+    step."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(32, seed=1)
+    _static_rollout(system, z0, 2)
+    reads = [count_host_reads(lambda k=k: _static_rollout(system, z0, k)) for k in (5, 25)]
+    assert reads[1] == reads[0]  # nothing per step
+    assert reads[0] <= 5
+
+
+def test_a_failed_solve_hands_the_rollout_back(monkeypatch):
+    """Flags raised on the device make the static rollout return None, so that simulate
+    runs step by step and raises its error naming the states."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(8, seed=1)
+    assert _static_rollout(system, z0, 30) is not None
+    monkeypatch.setattr(system_module, "deferred_error", lambda flags: "solve failed")
+    assert _static_rollout(system, z0, 30) is None
+
+
+def test_deferred_checks_gather_the_flags_instead_of_raising():
+    A = torch.zeros(1, 2, 2, dtype=torch.float64)
+    b = torch.tensor([[0.1786, 0.3511]], dtype=torch.float64)
+    mu = torch.tensor([[1.4538]], dtype=torch.float64)
+    warp = SolverSettings(backend="warp")
+    with pytest.raises(RuntimeError, match="unbounded"):
+        solve_cone_qp(A, b.neg(), mu, 2, settings=warp)  # unbounded: raises at once
+    flags = torch.zeros(len(FLAGS), dtype=torch.int32)
+    with deferred_checks(flags):
+        solve_cone_qp(A + torch.eye(2), b, mu, 2, settings=warp)
+        assert deferred_error(flags) is None
+        solve_cone_qp(A, b.neg(), mu, 2, settings=warp)  # no error here
+        bad = torch.full_like(b, float("nan"))
+        solve_cone_qp(A + torch.eye(2), bad, mu, 2, settings=warp)
+    assert "unbounded or did not converge" not in (deferred_error(flags) or "")
+    assert deferred_error(flags) == "solve_cone_qp: b contains NaN or infinite values"
+    assert flags[5] == 1  # the unbounded problem's flag was gathered too
+    with pytest.raises(ValueError, match="int32"):
+        with deferred_checks(torch.zeros(len(FLAGS))):
+            pass
+
+
+def test_cuda_graph_option_is_checked():
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=0)
+    with pytest.raises(ValueError, match="cuda_graph must be"):
+        system.simulate(z0, 2, cuda_graph="yes")
+    with pytest.raises(ValueError, match="cuda_graph=True, but the states are on cpu"):
+        system.simulate(z0, 2, cuda_graph=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        system.simulate(z0, 20)  # "auto" on the CPU: step by step, quietly
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+
+@pytest.mark.cuda
+@cuda
+@pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro"])
+def test_graph_replay_equals_the_step_by_step_rollout_on_cuda(task):
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(64, seed=3).cuda()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the capture must not fall back
+        graphed = system.simulate(z0, 40, cuda_graph=True)
+    eager = system.simulate(z0, 40, cuda_graph=False)
+    torch.testing.assert_close(graphed, eager, rtol=0, atol=1e-8)
+
+
+@pytest.mark.cuda
+@cuda
+def test_graph_replay_hands_failures_and_gradients_back_on_cuda():
+    from diffcontact.contact import ConeQPError
+
+    system = dc.load_system("CP3")
+    z0 = system.sample_initial_conditions(8, seed=0).cuda()
+    params = system.parameters().replace(gravity=1e6)
+    with pytest.raises(ConeQPError, match="the contact solve failed at step"):
+        system.simulate(z0, 20, params=params, on_tunnelling="ignore", cuda_graph=True)
+    bp5 = dc.load_system("BP5")
+    z = bp5.sample_initial_conditions(4, seed=5).cuda().requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # "auto" with gradients: step by step, quietly
+        bp5.simulate(z, 30)[:, -1, 0].sum().backward()
+    assert torch.isfinite(z.grad).all()
+    with pytest.raises(ValueError, match="needs gradients"):
+        bp5.simulate(z, 30, cuda_graph=True)
