@@ -20,6 +20,7 @@ GPU's arithmetic.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 
 import torch
@@ -80,11 +81,31 @@ def measure(fn, device: str, per: int, reads_fn=None) -> dict:
     if reads_fn is not None:
         _, reads = count_ops(reads_fn, device)
     out = {"wall_ms": 1e3 * wall / per, "ops": ops / per, "reads": reads / per}
+    if device == "cpu":
+        from diffcontact.testing import count_host_reads
+
+        with cuda_path():
+            out["reads_cuda_path"] = count_host_reads(reads_fn or fn, device) / per
     if device == "cuda":
         counts = cuda_counts(fn)
         out.update({k: v / per for k, v in counts.items() if k != "gpu_busy_s"})
         out["gpu_busy"] = counts["gpu_busy_s"] / wall
     return out
+
+
+@contextlib.contextmanager
+def cuda_path():
+    """Inside, step-by-step rollouts on the CPU take the path they take on CUDA: every state
+    padded through the contact solve instead of a selection of the states in contact (a
+    read of the device per step; ``diffcontact.systems.system._pads_contacts``)."""
+    from diffcontact.systems import system as system_module
+
+    original = system_module._pads_contacts
+    system_module._pads_contacts = lambda device: True
+    try:
+        yield
+    finally:
+        system_module._pads_contacts = original
 
 
 def simulate_row(scenes: int, device: str) -> dict:
@@ -136,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         print(line)
     cuda = args.device == "cuda"
     head = f"{'row':>24} | {'ms':>8} {'torch ops':>10} {'host reads':>11}"
+    if not cuda:
+        head += f" {'CUDA path':>10}"
     if cuda:
         head += f" {'launches':>9} {'syncs':>6} {'memcpy':>7} {'GPU busy':>9}"
     print(head)
@@ -148,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, fn in rows:
         r = fn()
         line = f"{name:>24} | {r['wall_ms']:>8.1f} {r['ops']:>10.0f} {r['reads']:>11.1f}"
+        if not cuda:
+            line += f" {r['reads_cuda_path']:>10.1f}"
         if cuda:
             line += (
                 f" {r['launches']:>9.0f} {r['syncs']:>6.1f} {r['copies']:>7.1f} "
@@ -159,6 +184,12 @@ def main(argv: list[str] | None = None) -> int:
         "operations, forward and backward. host reads: operations that copy a value of the "
         "device to the host (.item(), bool(tensor), nonzero, .tolist(); without the "
         "optimiser's), each a synchronisation on CUDA."
+        + (
+            " CUDA path: the host reads where the rollout takes its CUDA path (every state "
+            "padded through the contact solve, no selection)."
+            if not cuda
+            else ""
+        )
         + (
             " launches: CUDA kernel launches; syncs: host synchronisations; memcpy: "
             "cudaMemcpyAsync calls (device-to-host reads on this path); GPU busy: the "

@@ -38,7 +38,7 @@ def test_the_static_step_gives_the_step_by_step_trajectories(task):
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(16, seed=2)
     eager = system.simulate(z0, 60, cuda_graph=False)
-    traj, gaps = _static_rollout(system, z0, 60)
+    traj, gaps, _ = _static_rollout(system, z0, 60)
     assert (system.gaps(traj[:, 1:, 0].flatten(0, 1)) < 0).any()  # contacts were met
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
     torch.testing.assert_close(gaps, system.gaps(traj[..., 0, :, :]), rtol=0, atol=1e-12)
@@ -61,7 +61,7 @@ def test_a_state_with_more_contacts_than_the_padding_reruns_padded_to_all(monkey
 
     monkeypatch.setattr(system_module, "GRAPH_CONTACTS", 1)
     monkeypatch.setattr(system_module.System, "_graphed_attempt", spy)
-    traj, _ = _static_rollout(system, z0, 60)
+    traj, _, _ = _static_rollout(system, z0, 60)
     assert tries == [(1, "overflow"), (30, "done")]
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
 

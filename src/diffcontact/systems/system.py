@@ -30,6 +30,7 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections.abc import Callable, Mapping
@@ -100,6 +101,13 @@ GRAPH_MIN_STEPS = 16
 #: states had at most 5 active at once); a rollout where a state has more is run again
 #: padded to all candidates
 GRAPH_CONTACTS = 8
+
+
+def _pads_contacts(device: torch.device) -> bool:
+    """Whether a deferred step-by-step rollout on ``device`` sends every state to the
+    contact model, padded, instead of selecting the states in contact: on CUDA, where the
+    selection's read of the device stalls the queue and the padded work is cheap."""
+    return device.type == "cuda"
 
 
 class _Rollout(NamedTuple):
@@ -851,7 +859,7 @@ class System:
             counts = active.sum(-1)  # (N,) contacts per state
             static = static_contacts is not None and gaps.shape[-1] > 0
             if static:
-                n, Ka = gaps.shape[0], min(gaps.shape[-1], static_contacts)
+                n, Ka = gaps.shape[0], min(gaps.shape[-1], max(1, static_contacts))
                 b = torch.arange(n, device=z.device)
             else:
                 # one read of the device for both sizes (each read is a synchronisation on
@@ -1219,13 +1227,32 @@ class System:
             result = self._rollout_graphed(
                 z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
             )
+        eager = (z0, steps, ctx, rollout, keep_gaps, progress, threads)
         if result is None:
-            result = self._rollout_eager(z0, steps, ctx, rollout, keep_gaps, progress, threads)
-        traj, gaps = result
-        if not bool(torch.isfinite(traj.detach()).all()):  # one check per call, not per step
+            result = self._rollout_eager(*eager, defer=True)
+        traj, gaps, pending = result
+        # one read of the device per call for every check (not per step): the deferred
+        # ones of the rollout, finiteness, tunnelling
+        with torch.no_grad():
+            depth = None if on_tunnelling == "ignore" else self._tunnelling_depth(traj, gaps)
+            checks = [
+                torch.zeros((), dtype=torch.bool, device=z0.device) if pending is None else pending,
+                ~torch.isfinite(traj.detach()).all(),
+                torch.zeros((), dtype=torch.bool, device=z0.device)
+                if depth is None
+                else (depth > TUNNELLING_FRACTION).any(),
+            ]
+            failed, nonfinite, tunnelled = torch.stack(checks).tolist()
+        if failed:  # a deferred solver error or padding overflow: step by step, as it was
+            traj, gaps, _ = self._rollout_eager(*eager, defer=False)
+            with torch.no_grad():
+                nonfinite = not bool(torch.isfinite(traj.detach()).all())
+                depth = None if depth is None else self._tunnelling_depth(traj, gaps)
+                tunnelled = depth is not None and bool((depth > TUNNELLING_FRACTION).any())
+        if nonfinite:
             raise ValueError(self._nonfinite_message(list(traj.unbind(1)), steps))
-        if on_tunnelling != "ignore":
-            self._check_tunnelling(traj, on_tunnelling == "raise", gaps)
+        if tunnelled:
+            self._report_tunnelling(depth, traj.shape[0], on_tunnelling == "raise")
         return traj
 
     def _rollout_eager(
@@ -1237,20 +1264,39 @@ class System:
         keep_gaps: bool,
         progress: bool,
         threads: int | str | None,
-    ) -> tuple[Tensor, Tensor | None]:
-        """The rollout step by step: ``(N, steps + 1, 2, P, dim)`` states and, with
-        ``keep_gaps``, ``(N, steps + 1, K)`` their gaps."""
+        defer: bool = False,
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """The rollout step by step: ``(N, steps + 1, 2, P, dim)`` states, with
+        ``keep_gaps`` ``(N, steps + 1, K)`` their gaps, and with ``defer`` a ``()`` bool
+        tensor on the device, True where a deferred check failed: then the caller runs
+        the rollout again with ``defer=False``, which raises the error naming the states.
+
+        ``defer``: the fused solver's error flags are gathered on the device
+        (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
+        solve, and on CUDA each step sends every state to the contact model padded to
+        :data:`GRAPH_CONTACTS` (a state with more active contacts sets the flag) instead
+        of selecting the states in contact (a read of the device): the steps read the
+        device only where the position projection does. Without it, each step reads the
+        device (the selection, the solver's flags) and raises at once."""
         model, dynamics, fraction, iterations, solver_settings = rollout
+        device = z0.device
+        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
+        overflow = torch.zeros((), dtype=torch.bool, device=device)
+        padded = GRAPH_CONTACTS if defer and _pads_contacts(device) else None
         states = [z0]
         gaps: list[Tensor] | None = [self.gaps(z0.detach()[:, 0])] if keep_gaps else None
         z = z0
         iterator = self._progress(steps, progress)
-        with thread_scope(threads, z0.device, steps) as scope:
+        scope_defer = deferred_checks(flags) if defer else contextlib.nullcontext()
+        rerun = False
+        with thread_scope(threads, z0.device, steps) as scope, scope_defer:
             for step in iterator:
                 with scope.step():
                     z1 = self._integrate(z, ctx, dynamics)
                     try:
-                        res = self._resolve(z1, ctx, model, fraction, solver_settings)
+                        res = self._resolve(z1, ctx, model, fraction, solver_settings, padded)
+                        if padded is not None:
+                            overflow.logical_or_((res.gaps < 0).sum(-1).amax() > padded)
                         z = self._project(res, ctx, iterations, solver_settings)
                         if gaps is not None:
                             gaps.append(res.gaps)
@@ -1258,6 +1304,9 @@ class System:
                         # a state that blew up inside the step fails in the first linear algebra
                         # that meets it (the solver's input check, or an SVD / factorisation of
                         # the penetration target): say which states and why
+                        if defer:  # (the undeferred rollout names the first failure)
+                            rerun = True
+                            break
                         nonfinite = not bool(torch.isfinite(z1.detach()).all())
                         if "NaN or infinite" not in str(err) and not nonfinite:
                             raise
@@ -1270,7 +1319,12 @@ class System:
                         failure.states = err.states  # trajectory indices, for callers that go on
                         raise failure from err
                     states.append(z)
-        return torch.stack(states, dim=1), None if gaps is None else torch.stack(gaps, 1)
+        if rerun:
+            return self._rollout_eager(z0, steps, ctx, rollout, keep_gaps, progress, threads)
+        traj = torch.stack(states, dim=1)
+        gaps_all = None if gaps is None else torch.stack(gaps, 1)
+        pending = (flags.any() | overflow) if defer else None
+        return traj, gaps_all, pending
 
     def _progress(self, steps: int, progress: bool) -> Any:
         if not progress:
@@ -1309,7 +1363,7 @@ class System:
         progress: bool,
         strict: bool = False,
         capture: bool = True,
-    ) -> tuple[Tensor, Tensor | None] | None:
+    ) -> tuple[Tensor, Tensor | None, None] | None:
         """The rollout as replays of one step captured in a CUDA graph.
 
         The step is the eager one with static shapes and no read of the device: every
@@ -1367,7 +1421,7 @@ class System:
         progress: bool,
         contacts: int,
         capture: bool,
-    ) -> tuple[Tensor, Tensor | None] | str | None:
+    ) -> tuple[Tensor, Tensor | None, None] | str | None:
         """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``:
         the trajectory and gaps, ``"overflow"`` (a state had more active contacts), or
         None (a solve failed or a state is not finite)."""
@@ -1422,7 +1476,7 @@ class System:
             return "overflow"
         if deferred_error(flags) is not None or not bool(torch.isfinite(traj).all()):
             return None  # the eager rollout says which state failed, and why
-        return traj, gaps
+        return traj, gaps, None
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
         """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""
@@ -1438,21 +1492,21 @@ class System:
             sizes.append(min(radii) if radii else float("inf"))
         return torch.tensor(sizes, dtype=like.dtype, device=like.device)
 
-    def _check_tunnelling(
-        self, traj: Tensor, raise_error: bool, gaps: Tensor | None = None
-    ) -> None:
-        """Warn (or raise) once if any state penetrates deeper than the fraction allows.
-
-        ``gaps``: ``(N, T, K)`` the gaps of ``traj``'s positions where the caller has them.
-        """
+    def _tunnelling_depth(self, traj: Tensor, gaps: Tensor | None = None) -> Tensor:
+        """``(N, T, K)`` every candidate's penetration in units of the smaller radius of its
+        bodies (no read of the device). ``gaps``: ``(N, T, K)`` the gaps of ``traj``'s
+        positions where the caller has them."""
         with torch.no_grad():
             if gaps is None:
                 gaps = self.gaps(traj[..., 0, :, :].detach())  # (N, T, K)
             gaps = gaps.detach()
-            depth = -gaps / self._contact_sizes(gaps)
+            return -gaps / self._contact_sizes(gaps)
+
+    def _report_tunnelling(self, depth: Tensor, n: int, raise_error: bool) -> None:
+        """Warn (or raise) once, naming the states whose ``depth`` (of
+        :meth:`_tunnelling_depth`) passes :data:`TUNNELLING_FRACTION` (some do)."""
+        with torch.no_grad():
             bad = depth > TUNNELLING_FRACTION
-            if not bool(bad.any()):
-                return
             rows = bad.flatten(1).any(-1).nonzero().flatten().tolist()
             worst = depth.flatten(1).amax(-1)
             items = []
@@ -1464,7 +1518,7 @@ class System:
         more = "" if len(rows) <= 5 else f"; and {len(rows) - 5} more"
         message = (
             f"simulate {self.name}: bodies tunnelled (penetration deeper than "
-            f"{TUNNELLING_FRACTION} of the smaller radius) in {len(rows)} of {traj.shape[0]} "
+            f"{TUNNELLING_FRACTION} of the smaller radius) in {len(rows)} of {n} "
             f"trajectories: {'; '.join(items)}{more}. The step dt = {self.dt} is too large "
             "for these speeds: use a smaller dt (on_tunnelling='ignore' silences this)"
         )
