@@ -1233,26 +1233,28 @@ class System:
         traj, gaps, pending = result
         # one read of the device per call for every check (not per step): the deferred
         # ones of the rollout, finiteness, tunnelling
+        check_tunnelling = on_tunnelling != "ignore"
         with torch.no_grad():
-            depth = None if on_tunnelling == "ignore" else self._tunnelling_depth(traj, gaps)
+            no = torch.zeros((), dtype=torch.bool, device=z0.device)
+            if check_tunnelling:
+                gaps, bad = self._tunnelling(traj, gaps)
             checks = [
-                torch.zeros((), dtype=torch.bool, device=z0.device) if pending is None else pending,
+                no if pending is None else pending,
                 ~torch.isfinite(traj.detach()).all(),
-                torch.zeros((), dtype=torch.bool, device=z0.device)
-                if depth is None
-                else (depth > TUNNELLING_FRACTION).any(),
+                bad.any() if check_tunnelling else no,
             ]
             failed, nonfinite, tunnelled = torch.stack(checks).tolist()
         if failed:  # a deferred solver error or padding overflow: step by step, as it was
             traj, gaps, _ = self._rollout_eager(*eager, defer=False)
             with torch.no_grad():
                 nonfinite = not bool(torch.isfinite(traj.detach()).all())
-                depth = None if depth is None else self._tunnelling_depth(traj, gaps)
-                tunnelled = depth is not None and bool((depth > TUNNELLING_FRACTION).any())
+                if check_tunnelling:
+                    gaps, bad = self._tunnelling(traj, gaps)
+                    tunnelled = bool(bad.any())
         if nonfinite:
             raise ValueError(self._nonfinite_message(list(traj.unbind(1)), steps))
         if tunnelled:
-            self._report_tunnelling(depth, traj.shape[0], on_tunnelling == "raise")
+            self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise")
         return traj
 
     def _rollout_eager(
@@ -1492,21 +1494,22 @@ class System:
             sizes.append(min(radii) if radii else float("inf"))
         return torch.tensor(sizes, dtype=like.dtype, device=like.device)
 
-    def _tunnelling_depth(self, traj: Tensor, gaps: Tensor | None = None) -> Tensor:
-        """``(N, T, K)`` every candidate's penetration in units of the smaller radius of its
-        bodies (no read of the device). ``gaps``: ``(N, T, K)`` the gaps of ``traj``'s
-        positions where the caller has them."""
+    def _tunnelling(self, traj: Tensor, gaps: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(N, T, K)`` every candidate's gap along ``traj`` and whether it is deeper than
+        :data:`TUNNELLING_FRACTION` of the smaller radius of its bodies (no read of the
+        device). ``gaps``: ``(N, T, K)`` the gaps of ``traj``'s positions where the
+        caller has them."""
         with torch.no_grad():
             if gaps is None:
                 gaps = self.gaps(traj[..., 0, :, :].detach())  # (N, T, K)
             gaps = gaps.detach()
-            return -gaps / self._contact_sizes(gaps)
+            return gaps, gaps < -TUNNELLING_FRACTION * self._contact_sizes(gaps)
 
-    def _report_tunnelling(self, depth: Tensor, n: int, raise_error: bool) -> None:
-        """Warn (or raise) once, naming the states whose ``depth`` (of
-        :meth:`_tunnelling_depth`) passes :data:`TUNNELLING_FRACTION` (some do)."""
+    def _report_tunnelling(self, gaps: Tensor, bad: Tensor, n: int, raise_error: bool) -> None:
+        """Warn (or raise) once, naming the states that tunnelled (``gaps`` and ``bad`` of
+        :meth:`_tunnelling`; some are)."""
         with torch.no_grad():
-            bad = depth > TUNNELLING_FRACTION
+            depth = -gaps / self._contact_sizes(gaps)
             rows = bad.flatten(1).any(-1).nonzero().flatten().tolist()
             worst = depth.flatten(1).amax(-1)
             items = []
