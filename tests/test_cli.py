@@ -166,6 +166,16 @@ def test_cuda_not_available(capsys, tmp_path):
 
 
 @needs_systems
+def test_cuda_graph_on_the_cpu_is_a_usage_error(capsys, tmp_path):
+    out = str(tmp_path / "x.npz")
+    args = ("simulate", "BP5", "--n", "2", "--steps", "3", "--out", out, "--quiet")
+    code, _, err = run(capsys, *args, "--cuda-graph", "on")
+    assert_usage_error(code, err, "cuda_graph=True, but the states are on cpu")
+    code, _, _ = run(capsys, *args, "--cuda-graph", "off")
+    assert code == 0
+
+
+@needs_systems
 def test_console_error_has_no_traceback(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "diffcontact.cli", "simulate", "NoSuchTask"],

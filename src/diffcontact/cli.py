@@ -128,6 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch CPU threads (default auto: 1 or all available cores, whichever the "
         "timed steps show faster; several threads slow down on a loaded CPU)",
     )  # fmt: skip
+    sim.add_argument(
+        "--cuda-graph", choices=("auto", "on", "off"), default="auto",
+        help="with --device cuda, replay one step captured in a CUDA graph (default auto: "
+        "where it can; on: insist; off: step by step)",
+    )  # fmt: skip
     sim.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     sim.set_defaults(func=_cmd_simulate)
 
@@ -208,6 +213,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             contact_model=args.contact_model,
             progress=not args.quiet,
             threads=args.threads,
+            cuda_graph={"auto": "auto", "on": True, "off": False}[args.cuda_graph],
         )
     except ValueError as err:
         raise UsageError(one_line(err)) from None
