@@ -866,7 +866,7 @@ class System:
                 # CUDA); the states with a contact, in order, by a stable sort instead of a
                 # second read through nonzero
                 n, Ka = 0, 0
-                if counts.numel():
+                if counts.numel() and gaps.shape[-1]:  # (no candidates: nothing to read)
                     n, Ka = torch.stack([(counts > 0).sum(), counts.max()]).tolist()
                 b = torch.argsort((counts == 0).to(torch.uint8), stable=True)[:n]  # (n,)
         if n == 0:
