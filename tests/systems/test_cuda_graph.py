@@ -79,13 +79,13 @@ def test_the_static_rollout_reads_the_device_once():
 
 
 def test_a_failed_solve_hands_the_rollout_back(monkeypatch):
-    """Flags raised on the device make the static rollout return None, so that simulate
+    """Flags raised on the device make the static rollout return "failed", so that simulate
     runs step by step and raises its error naming the states."""
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(8, seed=1)
     assert _static_rollout(system, z0, 30) is not None
     monkeypatch.setattr(system_module, "deferred_error", lambda flags: "solve failed")
-    assert _static_rollout(system, z0, 30) is None
+    assert _static_rollout(system, z0, 30) == "failed"
 
 
 def test_deferred_checks_gather_the_flags_instead_of_raising():
@@ -105,6 +105,11 @@ def test_deferred_checks_gather_the_flags_instead_of_raising():
     assert "unbounded or did not converge" not in (deferred_error(flags) or "")
     assert deferred_error(flags) == "solve_cone_qp: b contains NaN or infinite values"
     assert flags[5] == 1  # the unbounded problem's flag was gathered too
+    # with return_status the caller handles failures: only input errors are gathered
+    flags.zero_()
+    with deferred_checks(flags):
+        _, status = solve_cone_qp(A, b.neg(), mu, 2, settings=warp, return_status=True)
+    assert status.unbounded.all() and deferred_error(flags) is None
     with pytest.raises(ValueError, match="int32"):
         with deferred_checks(torch.zeros(len(FLAGS))):
             pass

@@ -705,7 +705,8 @@ def deferred_checks(flags: Tensor) -> Iterator[Tensor]:
     """Fused (Warp) solves inside do not read their status from the device.
 
     Each Warp-backend call of :func:`solve_cone_qp` in this thread ORs its error flags
-    into ``flags`` (``(len(fused.FLAGS),)`` int32 on the solve's device, in place) and
+    (with ``return_status``, only the input errors: the caller handles failures) into
+    ``flags`` (``(len(fused.FLAGS),)`` int32 on the solve's device, in place) and
     returns its impulses without raising, instead of reading the flags (a host
     synchronisation; none of them can happen inside a captured CUDA graph). The caller
     reads ``flags`` once afterwards (:func:`deferred_error`) and must treat the results
@@ -719,6 +720,14 @@ def deferred_checks(flags: Tensor) -> Iterator[Tensor]:
         yield flags
     finally:
         _DEFERRED.flags = outer
+
+
+@functools.lru_cache(maxsize=8)
+def _input_flags(device: torch.device) -> Tensor:
+    """``(len(fused.FLAGS),)`` int32: 1 at the input-error flags, 0 at the failure flag."""
+    mask = torch.ones(len(fused.FLAGS), dtype=torch.int32, device=device)  # (no copy from
+    mask[fused.FLAGS.index(None)] = 0  # the host: capturable in a CUDA graph)
+    return mask
 
 
 def deferred_error(flags: Tensor) -> str | None:
@@ -875,7 +884,9 @@ def solve_cone_qp(
         )
         deferred = getattr(_DEFERRED, "flags", None)
         if deferred is not None and deferred.device == flags.device:
-            deferred.bitwise_or_(flags)
+            # with return_status the caller handles unconverged problems itself: only the
+            # input errors are gathered then
+            deferred.bitwise_or_(flags * _input_flags(flags.device) if return_status else flags)
             return _finish(
                 f, converged, unbounded, iterations, residual, batch, C, n, resolved,
                 return_status, all_converged=True,

@@ -1183,8 +1183,8 @@ class System:
                 not per step). ``"auto"`` (default): where the states are on CUDA, the
                 cone-QP backend is Warp, the position projection is off, the rollout
                 has at least :data:`GRAPH_MIN_STEPS` steps and nothing in it requires
-                a gradient (else, or if the capture fails, with a warning, step by
-                step); ``True``: insist (``ValueError`` where it cannot);
+                a gradient, else step by step (a capture that fails warns and goes
+                step by step); ``True``: insist (``ValueError`` where it cannot);
                 ``False``: never. Results equal the step-by-step ones to rounding. A
                 failed solve or a non-finite state reruns the rollout step by step,
                 which raises the usual error naming the states.
@@ -1228,8 +1228,8 @@ class System:
                 z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
             )
         eager = (z0, steps, ctx, rollout, keep_gaps, progress, threads)
-        if result is None:
-            result = self._rollout_eager(*eager, defer=True)
+        if result is None or result == "failed":  # (failed: straight to the reads per solve)
+            result = self._rollout_eager(*eager, defer=result is None)
         traj, gaps, pending = result
         # one read of the device per call for every check (not per step): the deferred
         # ones of the rollout, finiteness, tunnelling
@@ -1298,7 +1298,7 @@ class System:
                     try:
                         res = self._resolve(z1, ctx, model, fraction, solver_settings, padded)
                         if padded is not None:
-                            overflow.logical_or_((res.gaps < 0).sum(-1).amax() > padded)
+                            overflow.logical_or_(((res.gaps < 0).sum(-1) > padded).any())
                         z = self._project(res, ctx, iterations, solver_settings)
                         if gaps is not None:
                             gaps.append(res.gaps)
@@ -1365,7 +1365,7 @@ class System:
         progress: bool,
         strict: bool = False,
         capture: bool = True,
-    ) -> tuple[Tensor, Tensor | None, None] | None:
+    ) -> tuple[Tensor, Tensor | None, None] | str | None:
         """The rollout as replays of one step captured in a CUDA graph.
 
         The step is the eager one with static shapes and no read of the device: every
@@ -1377,9 +1377,9 @@ class System:
         the last step. A replay launches the step's hundreds of kernels at once, where
         the eager step pays the host's time for each. Returns None where the graph cannot
         be used (the step needs gradients, or the capture failed; a ``RuntimeWarning``
-        says why unless ``strict``, which raises) or where a solve failed or a state is
-        not finite: the caller then runs the eager rollout, which names the states and
-        the cause. ``capture=False`` runs the same static, read-free steps without a
+        says why unless ``strict``, which raises), ``"failed"`` where a solve failed or a
+        state is not finite: the caller then runs the eager rollout, which names the
+        states and the cause. ``capture=False`` runs the same static, read-free steps without a
         graph (on any device; for tests)."""
         needs_gradient = "the rollout needs gradients, which a graph replay does not record"
 
@@ -1423,10 +1423,10 @@ class System:
         progress: bool,
         contacts: int,
         capture: bool,
-    ) -> tuple[Tensor, Tensor | None, None] | str | None:
+    ) -> tuple[Tensor, Tensor | None, None] | str:
         """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``:
         the trajectory and gaps, ``"overflow"`` (a state had more active contacts), or
-        None (a solve failed or a state is not finite)."""
+        ``"failed"`` (a solve failed or a state is not finite)."""
         model, dynamics, fraction, _, solver_settings = rollout
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
@@ -1439,7 +1439,7 @@ class System:
                 res = self._resolve(z1, ctx, model, fraction, solver_settings, contacts)
             if res.z.requires_grad:
                 raise _NeedsGradient
-            overflow.logical_or_((res.gaps < 0).sum(-1).amax() > contacts)
+            overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
             z_in.copy_(res.z)
             return res.gaps
 
@@ -1477,7 +1477,7 @@ class System:
         if bool(overflow):
             return "overflow"
         if deferred_error(flags) is not None or not bool(torch.isfinite(traj).all()):
-            return None  # the eager rollout says which state failed, and why
+            return "failed"  # the eager rollout says which state failed, and why
         return traj, gaps, None
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
