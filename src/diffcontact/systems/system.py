@@ -97,9 +97,10 @@ ON_TUNNELLING = ("warn", "raise", "ignore")
 #: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
 #: of at least this many steps (the capture costs about two eager steps)
 GRAPH_MIN_STEPS = 16
-#: the contacts per state that a captured step pads to (BP5 and BD5 rollouts of 1024 x 100
-#: states had at most 5 active at once); a rollout where a state has more is run again
-#: padded to all candidates
+#: the contacts per state that a captured step pads to (no state of 4096 BP5 or BD5 rollouts
+#: of 100 steps had more than 5 active at once: ``python benchmarks/run.py simulate
+#: --all-tasks --scenes 4096``, column ``max contacts``); a rollout where a state has more
+#: is run again padded to all candidates
 GRAPH_CONTACTS = 8
 
 
