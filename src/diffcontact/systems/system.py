@@ -1445,14 +1445,15 @@ class System:
             return res.gaps
 
         if capture:
-            side = torch.cuda.Stream(device)
-            side.wait_stream(torch.cuda.current_stream(device))
-            with torch.cuda.stream(side):  # loads the kernels, records the launches
-                one_step()
-            torch.cuda.current_stream(device).wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph, capture_error_mode="relaxed"):
-                g_out = one_step()
+            with torch.cuda.device(device):  # (the graph is captured on the current device)
+                side = torch.cuda.Stream(device)
+                side.wait_stream(torch.cuda.current_stream(device))
+                with torch.cuda.stream(side):  # loads the kernels, records the launches
+                    one_step()
+                torch.cuda.current_stream(device).wait_stream(side)
+                graph = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(graph, capture_error_mode="relaxed"):
+                    g_out = one_step()
             advance = graph.replay
         else:
             g_out = one_step()
