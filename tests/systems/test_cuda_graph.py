@@ -32,9 +32,9 @@ def _static_rollout(system, z0, steps, params=None):
 
 @pytest.mark.parametrize("task", ["BP5", "BP5-e", "BD5", "CP3", "Gyro"])
 def test_the_static_step_gives_the_step_by_step_trajectories(task):
-    """Every state through the solve, padded to all candidates: the same impulses (the
-    padding takes no part), to the rounding of matrix products of another size, which
-    the chaotic contacts of BP5 may grow over the steps."""
+    """Every state through the solve, padded to GRAPH_CONTACTS contacts: the same impulses
+    (the padding takes no part), to the rounding of matrix products of another size,
+    which the chaotic contacts of BP5 may grow over the steps."""
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(16, seed=2)
     eager = system.simulate(z0, 60, cuda_graph=False)
