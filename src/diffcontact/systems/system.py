@@ -1180,8 +1180,8 @@ class System:
             cuda_graph: on a CUDA device, capture one step in a CUDA graph and replay
                 it (the step's hundreds of small kernels launched at once; the step
                 then runs every state through the contact solve, padded, so that its
-                shapes do not depend on the data, and reads the device once per call,
-                not per step). ``"auto"`` (default): where the states are on CUDA, the
+                shapes do not depend on the data; the device is read a few times per
+                call, never inside a step). ``"auto"`` (default): where the states are on CUDA, the
                 cone-QP backend is Warp, the position projection is off, the rollout
                 has at least :data:`GRAPH_MIN_STEPS` steps and nothing in it requires
                 a gradient, else step by step (a capture that fails warns and goes
