@@ -11,6 +11,7 @@
     python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
     python benchmarks/run.py fastops [...]  # sums over a short last dim (fastops.py)
     python benchmarks/run.py launches [...]  # torch ops, CUDA launches and syncs per step
+    python benchmarks/run.py profile_step [...]  # where the read-free step's time goes
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -34,6 +35,7 @@ SUITES = (
     "fastops",
     "launches",
     "kernels",
+    "profile_step",
 )
 
 

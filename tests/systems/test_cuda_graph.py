@@ -78,14 +78,21 @@ def test_the_static_rollout_reads_the_device_once():
     assert reads[0] <= 5
 
 
-def test_a_failed_solve_hands_the_rollout_back(monkeypatch):
-    """Flags raised on the device make the static rollout return "failed", so that simulate
-    runs step by step and raises its error naming the states."""
-    system = dc.load_system("BP5")
-    z0 = system.sample_initial_conditions(8, seed=1)
-    assert _static_rollout(system, z0, 30) is not None
-    monkeypatch.setattr(system_module, "deferred_error", lambda flags: "solve failed")
-    assert _static_rollout(system, z0, 30) == "failed"
+def test_a_failed_solve_is_flagged_for_the_step_by_step_rerun():
+    """A solve that fails inside the static rollout (CP3 under gravity 1e6 blows up) raises
+    nothing there; its flag comes back for simulate to read, which then reruns step by
+    step and names the states."""
+    from diffcontact.contact import ConeQPError
+
+    system = dc.load_system("CP3")
+    z0 = system.sample_initial_conditions(8, seed=0)
+    _, _, failed = _static_rollout(system, z0, 30)
+    assert not bool(failed)
+    params = system.parameters().replace(gravity=1e6)
+    _, _, failed = _static_rollout(system, z0, 20, params=params)
+    assert bool(failed)
+    with pytest.raises(ConeQPError, match="the contact solve failed at step"):
+        system.simulate(z0, 20, params=params, on_tunnelling="ignore")
 
 
 def test_deferred_checks_gather_the_flags_instead_of_raising():
@@ -161,3 +168,47 @@ def test_graph_replay_hands_failures_and_gradients_back_on_cuda():
     assert torch.isfinite(z.grad).all()
     with pytest.raises(ValueError, match="needs gradients"):
         bp5.simulate(z, 30, cuda_graph=True)
+
+
+def _replayed(fn):
+    """``fn()`` captured in a CUDA graph (after a warm-up on a side stream), replayed once."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        fn()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph, capture_error_mode="relaxed"):
+        out = fn()
+    graph.replay()
+    torch.cuda.synchronize()
+    return out
+
+
+@pytest.mark.cuda
+@cuda
+def test_the_steps_linear_algebra_and_the_fused_solve_can_be_captured():
+    """The pieces a captured step needs, each captured alone, replay the eager results
+    (torch's batched cholesky_solve, through MAGMA, cannot be captured)."""
+    from diffcontact.fastops import cholesky_solve, spd_solve
+
+    g = torch.Generator().manual_seed(0)
+    R = torch.randn(256, 6, 6, generator=g, dtype=torch.float64)
+    A = (R @ R.mT + 0.1 * torch.eye(6, dtype=torch.float64)).cuda()
+    b = torch.randn(256, 6, generator=g, dtype=torch.float64).cuda()
+    mu = torch.full((256, 3), 0.5, dtype=torch.float64, device="cuda")
+    flags = torch.zeros(len(FLAGS), dtype=torch.int32, device="cuda")
+    warp = SolverSettings(backend="warp")
+
+    def qp():
+        with deferred_checks(flags):
+            return solve_cone_qp(A, b, mu, 2, settings=warp)
+
+    cases = {
+        "fused solve": qp,
+        "cholesky_solve": lambda: cholesky_solve(b[..., None], torch.linalg.cholesky_ex(A)[0]),
+        "spd_solve": lambda: spd_solve(A, b[..., None]),
+    }
+    for name, fn in cases.items():
+        torch.testing.assert_close(_replayed(fn), fn(), rtol=0, atol=0, msg=name)
+    assert deferred_error(flags) is None

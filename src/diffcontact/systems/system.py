@@ -46,7 +46,6 @@ from diffcontact.contact.cone_qp import (
     ConeQPError,
     SolverSettings,
     deferred_checks,
-    deferred_error,
 )
 from diffcontact.contact.fused import FLAGS as SOLVER_FLAGS
 from diffcontact.contact.impulse import penetration_target
@@ -1229,8 +1228,8 @@ class System:
                 z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
             )
         eager = (z0, steps, ctx, rollout, keep_gaps, progress, threads)
-        if result is None or result == "failed":  # (failed: straight to the reads per solve)
-            result = self._rollout_eager(*eager, defer=result is None)
+        if result is None:
+            result = self._rollout_eager(*eager, defer=True)
         traj, gaps, pending = result
         # one read of the device per call for every check (not per step): the deferred
         # ones of the rollout, finiteness, tunnelling
@@ -1366,7 +1365,7 @@ class System:
         progress: bool,
         strict: bool = False,
         capture: bool = True,
-    ) -> tuple[Tensor, Tensor | None, None] | str | None:
+    ) -> tuple[Tensor, Tensor | None, Tensor] | None:
         """The rollout as replays of one step captured in a CUDA graph.
 
         The step is the eager one with static shapes and no read of the device: every
@@ -1376,12 +1375,13 @@ class System:
         candidates), and the fused solver's error flags are gathered on the device
         (:func:`~diffcontact.contact.cone_qp.deferred_checks`); both are read once after
         the last step. A replay launches the step's hundreds of kernels at once, where
-        the eager step pays the host's time for each. Returns None where the graph cannot
-        be used (the step needs gradients, or the capture failed; a ``RuntimeWarning``
-        says why unless ``strict``, which raises), ``"failed"`` where a solve failed or a
-        state is not finite: the caller then runs the eager rollout, which names the
-        states and the cause. ``capture=False`` runs the same static, read-free steps without a
-        graph (on any device; for tests)."""
+        the eager step pays the host's time for each. Returns what
+        :meth:`_rollout_eager` does with ``defer`` (the flag: a solve failed, and the
+        caller reruns step by step, which names the states and the cause), or None where
+        the graph cannot be used (the step needs gradients, or the capture failed; a
+        ``RuntimeWarning`` says why unless ``strict``, which raises). ``capture=False``
+        runs the same static, read-free steps without a graph (on any device; for
+        tests)."""
         needs_gradient = "the rollout needs gradients, which a graph replay does not record"
 
         def give_up(why: str) -> None:
@@ -1424,10 +1424,10 @@ class System:
         progress: bool,
         contacts: int,
         capture: bool,
-    ) -> tuple[Tensor, Tensor | None, None] | str:
+    ) -> tuple[Tensor, Tensor | None, Tensor] | str:
         """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``:
-        the trajectory and gaps, ``"overflow"`` (a state had more active contacts), or
-        ``"failed"`` (a solve failed or a state is not finite)."""
+        the trajectory, gaps and the solver's failure flag, or ``"overflow"`` (a state
+        had more active contacts: one read of the device)."""
         model, dynamics, fraction, _, solver_settings = rollout
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
@@ -1478,9 +1478,7 @@ class System:
                 gaps[:, step + 1].copy_(g_out)
         if bool(overflow):
             return "overflow"
-        if deferred_error(flags) is not None or not bool(torch.isfinite(traj).all()):
-            return "failed"  # the eager rollout says which state failed, and why
-        return traj, gaps, None
+        return traj, gaps, flags.any()  # (read by simulate with its other checks)
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
         """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""
