@@ -12,7 +12,12 @@ the hot paths differentiate), for float64 and float32, with the ratio plain / fa
   mass matrix (15 x 15) times the constraint Jacobian's rows (200 x 15 x 15 x 2), and a
   constraint selector (15 x 15, a constant) times positions (200 x 15 x 2), where
   ``left_matmul`` keeps ``@`` (fewer than 16384 numbers); backward to the operands that
-  carry a gradient there (both, resp. the positions).
+  carry a gradient there (both, resp. the positions);
+- LAPACK's Cholesky factorisation and solve (``cholesky_ex`` + ``cholesky_solve``, what
+  ``spd_solve`` runs for large or few systems) vs ``spd_solve`` on the 3 x 3 constraint
+  systems of BD5's bodies: 200 training states x 5 bodies (the written-out factorisation),
+  4096 simulated scenes x 5 bodies, and CP3's 200 x 3 x 3 (below ``_UNROLL_BATCH``: LAPACK
+  in both columns); backward to both operands.
 
 Medians over repetitions after a warm-up call.
 """
@@ -24,10 +29,11 @@ import argparse
 import torch
 
 from common import machine_header, median_time
-from diffcontact.fastops import dot_last, left_matmul
+from diffcontact.fastops import dot_last, left_matmul, spd_solve
 
 SUM_SHAPES = ((1024, 10, 2), (1024, 30, 3), (64, 10, 2))
 MATMUL_SHAPES = (((15, 15), (200, 15, 15, 2), True), ((15, 15), (200, 15, 2), False))
+SOLVE_SHAPES = ((200, 5, 3, 3), (4096, 5, 3, 3), (200, 3, 3))
 HEAD = (
     f"{'shape':>26} {'dtype':>8} | {'plain us':>9} {'fastops us':>10} {'ratio':>6} | "
     f"{'+bw plain':>9} {'+bw fastops':>11} {'ratio':>6}"
@@ -78,6 +84,28 @@ def _matmul_row(shapes: tuple, dtype: torch.dtype, device: str, reps: int, grad_
     return _line(f"{shapes[0]} @ {shapes[1]}", dtype, fw, bw)
 
 
+def _lapack_solve(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    L, _ = torch.linalg.cholesky_ex(A)
+    return torch.cholesky_solve(B, L)
+
+
+def _solve_row(shape: tuple, dtype: torch.dtype, device: str, reps: int) -> str:
+    g = torch.Generator().manual_seed(0)
+    R = torch.randn(*shape, generator=g, dtype=dtype)
+    A = (R @ R.mT + torch.eye(shape[-1], dtype=dtype)).to(device)
+    B = torch.randn(*shape[:-1], 1, generator=g, dtype=dtype).to(device)
+    Ag, Bg = A.clone().requires_grad_(), B.clone().requires_grad_()
+    fw = [
+        _time(lambda: _lapack_solve(A, B), device, reps),
+        _time(lambda: spd_solve(A, B), device, reps),
+    ]
+    bw = [
+        _time(lambda: _lapack_solve(Ag, Bg).sum().backward(), device, reps),
+        _time(lambda: spd_solve(Ag, Bg).sum().backward(), device, reps),
+    ]
+    return _line(f"solve {shape}", dtype, fw, bw)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="run.py fastops", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -99,9 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     for *shapes, grad_G in MATMUL_SHAPES:
         for dtype in dtypes:
             print(_matmul_row(tuple(shapes), dtype, args.device, reps, grad_G))
+    for shape in SOLVE_SHAPES:
+        for dtype in dtypes:
+            print(_solve_row(shape, dtype, args.device, max(3, reps // 10)))
     print(
-        "plain: (v * v).sum(-1), resp. G @ X; fastops: dot_last(v, v), resp. "
-        "left_matmul(G, X). ratio: plain time / fastops time (> 1: fastops faster)"
+        "plain: (v * v).sum(-1), resp. G @ X, resp. cholesky_ex + cholesky_solve; fastops: "
+        "dot_last(v, v), resp. left_matmul(G, X), resp. spd_solve. ratio: plain time / "
+        "fastops time (> 1: fastops faster)"
     )
     return 0
 

@@ -119,3 +119,32 @@ def test_cholesky_solve_on_cuda_equals_lapack():
     L = torch.linalg.cholesky(A)
     X = cholesky_solve(B.cuda(), L.cuda())  # two triangular solves there
     torch.testing.assert_close(X.cpu(), torch.cholesky_solve(B, L), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_written_out_spd_solve_equals_lapack_and_marks_indefinite_matrices_nan(n):
+    """Small systems in large batches take the written-out factorisation on the CPU: the
+    same solutions and the same NaN for a matrix that is not positive definite."""
+    from diffcontact import fastops
+
+    A, B = _spd_batch(fastops._UNROLL_BATCH, n, 2)
+    A[5] = -A[5]
+    A[7, 0, 0] = 0.0  # a zero pivot
+    L, info = torch.linalg.cholesky_ex(A)
+    expected = torch.where((info > 0)[:, None, None], torch.nan, torch.cholesky_solve(B, L))
+    X = fastops.spd_solve(A, B)
+    torch.testing.assert_close(X, expected, rtol=1e-12, atol=1e-12, equal_nan=True)
+    assert X[5].isnan().all() and X[7].isnan().all()
+    # batch dimensions broadcast as in the LAPACK path
+    A2, B2 = _spd_batch(4, n, 1)
+    Bb = B2.expand(fastops._UNROLL_BATCH // 4, 4, n, 1)
+    torch.testing.assert_close(fastops.spd_solve(A2, Bb), torch.linalg.solve(A2, Bb))
+
+
+def test_written_out_spd_solve_gradients_match_finite_differences():
+    from diffcontact.fastops import _unrolled_spd_solve
+
+    A, B = _spd_batch(3, 3, 2)
+    A.requires_grad_(True)
+    B.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: _unrolled_spd_solve(0.5 * (a + a.mT), b), (A, B))

@@ -140,3 +140,14 @@ def test_chain_points_2d_satisfy_chain_constraints():
     cons = chain_constraints(lengths)
     torch.testing.assert_close(cons.phi(z[:, 0]), torch.zeros(2, 3, dtype=DT))
     torch.testing.assert_close(cons.phi_dot(z[:, 0], z[:, 1]), torch.zeros(2, 3, dtype=DT))
+
+
+def test_block_diagonal_places_each_block_on_the_diagonal():
+    from diffcontact.mechanics import block_diagonal
+
+    gen = torch.Generator().manual_seed(0)
+    blocks = torch.randn(2, 4, 3, 5, generator=gen, dtype=DT)  # 2 stacks of 4 blocks 3 x 5
+    out = block_diagonal(blocks)
+    assert out.shape == (2, 12, 20)
+    for i in range(2):
+        torch.testing.assert_close(out[i], torch.block_diag(*blocks[i]))

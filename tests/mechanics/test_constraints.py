@@ -148,3 +148,45 @@ def test_bad_inputs_raise():
         chain_constraints([0.3, -0.1])
     with pytest.raises(ValueError, match="dim"):
         concat_constraints(rigid_body_constraints(0, 2), rigid_body_constraints(0, 3))
+
+
+def test_split_gives_one_bodys_constraints_where_bodies_are_independent():
+    bodies = concat_constraints(*(rigid_body_constraints(3 * b, 2, 12) for b in range(4)))
+    one = bodies.split(3)
+    assert one is not None and one.num_points == 3 and one.num_equations == 3
+    assert torch.equal(one.dot_index, rigid_body_constraints(0, 2).dot_index)
+    torch.testing.assert_close(one.dot_target, rigid_body_constraints(0, 2).dot_target)
+    # the batched bodies give the same values and Jacobian blocks as all points at once
+    x, _ = random_state(12, 2, batch=3)
+    torch.testing.assert_close(one.phi(x.unflatten(-2, (4, 3))).flatten(-2), bodies.phi(x))
+    J = bodies.jacobian(x).unflatten(-2, (4, 3)).unflatten(-1, (4, 6))  # (3, 4, 3, 4, 6)
+    blocks = one.jacobian(x.unflatten(-2, (4, 3)))  # (3, 4, 3, 6)
+    torch.testing.assert_close(J.diagonal(dim1=1, dim2=3).movedim(-1, 1), blocks)
+
+
+@pytest.mark.parametrize(
+    "build, size",
+    [
+        (mixed_2d, 3),  # anchors and a linear constraint: never split
+        (gyroscope, 4),  # one body (nothing to batch) with a ball joint
+        (lambda: chain_constraints([0.3, 0.3, 0.3, 0.3]), 2),  # a chain from a pivot
+        # a link between the groups of points 0-1 and 2-3
+        (lambda: dot_constraints([[1, 0, 1, 0], [2, 1, 2, 1]], [0.1, 0.1], 2, 4), 2),
+        # a joint row between bodies 0 and 1
+        (
+            lambda: concat_constraints(
+                rigid_body_constraints(0, 2, 6),
+                rigid_body_constraints(3, 2, 6),
+                dot_constraints([[1, 4, 1, 4]], [0.5], dim=2, num_points=6),
+            ),
+            3,
+        ),
+        # different targets per body
+        (lambda: dot_constraints([[1, 0, 1, 0], [3, 2, 3, 2]], [1.0, 2.0], 2, 4), 2),
+        # different local indices per body
+        (lambda: dot_constraints([[1, 0, 1, 0], [2, 3, 2, 3]], [1.0, 1.0], 2, 4), 2),
+        (lambda: rigid_body_constraints(0, 2, 5), 3),  # 5 points are not groups of 3
+    ],
+)
+def test_split_refuses_constraints_that_couple_or_differ(build, size):
+    assert build().split(size) is None

@@ -354,3 +354,36 @@ def test_constant_force_is_computed_once_with_the_same_trajectories(gravity, mon
     general = system.simulate(z0, 40)
     assert torch.equal(fast, general)
     assert not torch.equal(fast[:, -1], z0)  # it moved (and, with gravity, fell)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_bodies_one_at_a_time_equal_all_points_at_once(monkeypatch, batched):
+    """BD5's disks are constrained each on its own: the dynamics and the contact's Mhat^-1
+    run as a batch of bodies (EqualityConstraints.split). Trajectories and gradients with
+    respect to the masses and second moments equal those of all points at once."""
+    from diffcontact.mechanics import EqualityConstraints
+
+    n, steps = 4, 30
+    z0 = dc.load_system("BD5").sample_initial_conditions(n, seed=3)
+
+    def run(system, one_at_a_time):
+        base = system.parameters()
+        mass, s = base.mass.clone(), base.second_moments.clone()
+        if batched:  # one set per trajectory
+            scale = torch.linspace(0.8, 1.2, n, dtype=F64)
+            mass, s = mass * scale[:, None], s * scale[:, None, None]
+        mass.requires_grad_(True)
+        s.requires_grad_(True)
+        params = base.replace(mass=mass, second_moments=s)
+        assert (system._context(z0, params, n).groups is not None) == one_at_a_time
+        traj = system.simulate(z0, steps, params=params)
+        return (traj, *torch.autograd.grad((traj * traj).sum(), [mass, s]))
+
+    grouped = dc.load_system("BD5")
+    result = run(grouped, True)
+    monkeypatch.setattr(EqualityConstraints, "split", lambda self, size: None)
+    dense = dc.load_system("BD5")
+    expected = run(dense, False)
+    assert (dense.gaps(expected[0][:, :, 0]) < 0).any(), "the rollouts have contacts"
+    for got, want in zip(result, expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-8, atol=1e-9)

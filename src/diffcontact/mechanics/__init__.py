@@ -6,6 +6,7 @@ the state layout ``z: (..., 2, P, dim)`` and the point-major flattening.
 
 from diffcontact.mechanics.bodies import (
     assemble_mass_matrix,
+    block_diagonal,
     body_inverse_mass_matrix,
     body_mass_matrix,
     chain_points_2d,
@@ -41,6 +42,7 @@ __all__ = [
     "VectorField",
     "assemble_mass_matrix",
     "ball_joint",
+    "block_diagonal",
     "body_inverse_mass_matrix",
     "body_mass_matrix",
     "chain_constraints",

@@ -24,6 +24,7 @@ from torch import Tensor
 
 __all__ = [
     "assemble_mass_matrix",
+    "block_diagonal",
     "body_inverse_mass_matrix",
     "body_mass_matrix",
     "chain_points_2d",
@@ -112,6 +113,21 @@ def assemble_mass_matrix(blocks: Sequence[Tensor]) -> Tensor:
         rows.append(F.pad(b, (offset, total - offset - n)))
         offset += n
     return torch.cat(rows, dim=-2)
+
+
+def block_diagonal(blocks: Tensor) -> Tensor:
+    """The block-diagonal matrix of a stack of equal blocks.
+
+    Args:
+        blocks: ``(..., B, m, k)``, block ``b`` at rows ``b m .. (b + 1) m`` and columns
+            ``b k .. (b + 1) k``.
+
+    Returns:
+        ``(..., B m, B k)``; differentiable (one broadcast product with the identity).
+    """
+    B, m, k = blocks.shape[-3:]
+    eye = torch.eye(B, dtype=blocks.dtype, device=blocks.device).view(B, 1, B, 1)
+    return (blocks.unsqueeze(-2) * eye).reshape(*blocks.shape[:-3], B * m, B * k)
 
 
 def kron_identity(M: Tensor, dim: int) -> Tensor:

@@ -167,6 +167,40 @@ class EqualityConstraints:
             anchors=self.anchors.to(device=device, dtype=dtype),
         )
 
+    def split(self, size: int) -> EqualityConstraints | None:
+        """The constraints of one group, if they act on groups of points independently.
+
+        When the points form ``num_points / size`` consecutive groups of ``size`` points
+        (e.g. extended bodies without joints), every equation involves the points of one
+        group only, the equations are ordered group by group, and every group has the same
+        equations on its own points (same local indices and targets), the dynamics of the
+        groups decouple: they can run as a batch of groups of ``size`` points
+        (:func:`~diffcontact.mechanics.dynamics.lagrangian_vector_field` on states
+        ``(..., groups, size, dim)``), with ``E / groups`` equations instead of ``E``.
+
+        Returns:
+            The first group's constraints on ``size`` points, or ``None`` if they do not
+            split so (anchors and linear constraints never do: they are left to the dense
+            path).
+        """
+        P = self.num_points
+        if size <= 0 or P % size or P // size < 2 or self.num_linear or self.num_anchors:
+            return None
+        groups, E = P // size, self.num_dot
+        if E == 0 or E % groups:
+            return None
+        index = self.dot_index.cpu().reshape(groups, E // groups, 4)
+        offset = (torch.arange(groups) * size).view(groups, 1, 1)
+        local = index - offset
+        target = self.dot_target.detach().cpu().reshape(groups, E // groups)
+        if local.min() < 0 or local.max() >= size:
+            return None
+        if not (local == local[0]).all() or not (target == target[0]).all():
+            return None
+        return dot_constraints(
+            local[0].tolist(), target[0].tolist(), dim=self.dim, num_points=size
+        ).to(device=self.dot_index.device, dtype=self.dot_target.dtype)
+
     # ---------------------------------------------------------------- helpers
     def _check(self, x: Tensor, name: str = "x") -> None:
         if x.dim() < 2 or x.shape[-1] != self.dim or x.shape[-2] < self.num_points:

@@ -58,6 +58,7 @@ from diffcontact.mechanics import (
     Mhat_inv,
     assemble_mass_matrix,
     ball_joint,
+    block_diagonal,
     body_inverse_mass_matrix,
     body_mass_matrix,
     chain_constraints,
@@ -254,6 +255,11 @@ class _Context:
     constraints: EqualityConstraints | None
     M: Tensor  # (P, P) or (N, P, P)
     M_inv: Tensor  # (P, P) or (N, P, P)
+    # bodies whose constraints act on each body alone (EqualityConstraints.split): the
+    # constraints of one body and the bodies' inverse mass blocks, (B, q, q) or (N, B, q, q);
+    # the constrained dynamics then run per body (``None``: over all points at once)
+    groups: EqualityConstraints | None
+    M_inv_groups: Tensor | None
     weights: Tensor  # (P,) or (N, P): gravity weights (masses at centres of mass)
     g_vec: Tensor  # (dim,) or (N, dim)
     mu: Tensor  # (K,) or (N, K)
@@ -529,12 +535,19 @@ class System:
         return params
 
     # ------------------------------------------------------------- parameters
-    def _static_on(self, device: torch.device) -> tuple[Any, EqualityConstraints | None]:
+    def _static_on(
+        self, device: torch.device
+    ) -> tuple[Any, EqualityConstraints | None, EqualityConstraints | None]:
+        """The geometry, the constraints and the constraints of one body (if they act on
+        each body alone: :meth:`EqualityConstraints.split`) on ``device``."""
         key = str(device)
         if key not in self._device_cache:
             geometry = self.geometry.to(device)
             constraints = None if self.constraints is None else self.constraints.to(device)
-            self._device_cache[key] = (geometry, constraints)
+            groups = None
+            if constraints is not None and self.second_moments is not None:
+                groups = constraints.split(self.dim + 1)
+            self._device_cache[key] = (geometry, constraints, groups)
         return self._device_cache[key]
 
     def _body_blocks(
@@ -547,6 +560,14 @@ class System:
         s = params.second_moments.to(dtype=dtype, device=device)
         fn = body_inverse_mass_matrix if inverse else body_mass_matrix
         return assemble_mass_matrix(fn(mass, s).unbind(-3))
+
+    def _inverse_mass_groups(
+        self, params: PhysicalParams, dtype: torch.dtype, device: torch.device
+    ) -> Tensor:
+        """The bodies' inverse mass blocks, ``(B, q, q)`` or ``(N, B, q, q)`` (rigid bodies)."""
+        mass = params.mass.to(dtype=dtype, device=device)
+        s = params.second_moments.to(dtype=dtype, device=device)
+        return body_inverse_mass_matrix(mass, s)
 
     def mass_matrix(
         self,
@@ -575,7 +596,9 @@ class System:
         params = self._params(params, n_states)
         batched = params.batch_size() is not None
         dtype, device = like.dtype, like.device
-        geometry, constraints = self._static_on(device)
+        geometry, constraints, groups = self._static_on(device)
+        if params.second_moments is None:  # point masses: no bodies to run one at a time
+            groups = None
         K = self.n_contacts
 
         def cast(t: Tensor | None) -> Tensor | None:
@@ -607,6 +630,10 @@ class System:
             constraints=constraints,
             M=self._body_blocks(params, False, dtype, device),
             M_inv=self._body_blocks(params, True, dtype, device),
+            groups=groups,
+            M_inv_groups=(
+                None if groups is None else self._inverse_mass_groups(params, dtype, device)
+            ),
             weights=weights,
             g_vec=g_vec,
             mu=per_contact(params.mu),
@@ -706,7 +733,7 @@ class System:
 
     def gaps(self, x: Tensor) -> Tensor:
         """Signed gaps ``(..., K)`` of all candidate contacts at positions ``(..., P, dim)``."""
-        geometry, _ = self._static_on(x.device)
+        geometry = self._static_on(x.device)[0]
         return geometry.gaps(x)
 
     def contact_velocities(self, z: Tensor) -> Tensor:
@@ -717,7 +744,7 @@ class System:
         tangential ones (none for the rope's one-row limits), in the contact
         frames of ``docs/conventions.md``.
         """
-        geometry, _ = self._static_on(z.device)
+        geometry = self._static_on(z.device)[0]
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         K = self.n_contacts
         idx = torch.arange(K, device=z.device).expand(*x.shape[:-2], K)
@@ -788,7 +815,7 @@ class System:
             raise ValueError(f"n must be a positive integer, got {n!r}")
         gen = torch.Generator().manual_seed(int(seed))
         drawer = ics.DRAWERS[self.type]
-        geometry, _ = self._static_on(torch.device("cpu"))
+        geometry = self._static_on(torch.device("cpu"))[0]
 
         def draw(m: int, g: torch.Generator) -> Tensor:
             return drawer(self.config, m, g)
@@ -814,6 +841,17 @@ class System:
                     grad_V = self._grad_potential(x, ctx)
                     acc = cache[x.shape] = lagrangian_vector_field(x, v, ctx.M_inv, grad_V)
                 return v, acc
+
+        elif dynamics == "lagrangian" and ctx.groups is not None:
+            # constraints on each body alone: the dynamics of one body at a time, a batch of
+            # (..., B) bodies of q points (E / B equations each instead of E)
+            groups, M_inv = ctx.groups, ctx.M_inv_groups
+            q = groups.num_points
+
+            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+                grad_V = self._grad_potential(x, ctx)
+                xg, vg, gg = (t.unflatten(-2, (-1, q)) for t in (x, v, grad_V))
+                return v, lagrangian_vector_field(xg, vg, M_inv, gg, groups).flatten(-3, -2)
 
         elif dynamics == "lagrangian":
 
@@ -884,7 +922,11 @@ class System:
         J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
         J = torch.where(mask[:, :, None, None, None], J, torch.zeros_like(J)).reshape(n, Ka * d, D)
         M_inv = ctx.select(ctx.M_inv, 2, b)
-        if ctx.constraints is not None:
+        if ctx.groups is not None:  # constraints on each body alone: Mhat^-1 per body
+            J_E = ctx.groups.jacobian(xs.unflatten(-2, (-1, ctx.groups.num_points)))
+            Mh = block_diagonal(Mhat_inv(ctx.select(ctx.M_inv_groups, 3, b), J_E))
+            J_E = block_diagonal(J_E)  # (n, E, D), the rows in the constraints' order
+        elif ctx.constraints is not None:
             J_E = ctx.constraints.jacobian(xs)  # (n, E, D)
             Mh = Mhat_inv(M_inv, J_E)
         else:

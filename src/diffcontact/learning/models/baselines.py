@@ -911,7 +911,7 @@ class INSPCP(nn.Module):
         t = self.tables
         x, v = z[:, 0], z[:, 1]
         n, K = x.shape[0], self.system.n_contacts
-        geometry, _ = self.system._static_on(x.device)
+        geometry = self.system._static_on(x.device)[0]
         idx = self.candidates.expand(n, K)
         jac = geometry.jacobian_sparse(x, idx)
         J_e = t.restrict_sparse(jac.points, jac.values, idx)  # (n, K, d, Pe, dim)
