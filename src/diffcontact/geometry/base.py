@@ -204,6 +204,12 @@ class GeometryBase:
         idx = torch.arange(K, device=x.device).expand(*x.shape[:-2], K)
         return self.jacobian_sparse(x, idx)
 
+    def gaps_and_rows_all(self, x: Tensor) -> tuple[Tensor, SparseJacobian]:
+        """:meth:`gaps` and :meth:`jacobian_sparse_all` at ``x``, together: what the
+        position projection needs in each iteration; a geometry may share the work of the
+        two (the rope's segment vectors and angles)."""
+        return self.gaps(x), self.jacobian_sparse_all(x)
+
     def to(self, device: torch.device | str):
         """A copy with every tensor field on ``device`` (dtypes kept)."""
         changes = {
@@ -334,20 +340,33 @@ class ContactGeometry(GeometryBase):
     def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
         """Every part's rows (:meth:`GeometryBase.jacobian_sparse_all`), part after part,
         entries padded to the largest ``m``."""
-        jacs = [p.jacobian_sparse_all(x) for p in self.parts]
-        m = max(j.points.shape[-1] for j in jacs)
-        batch = broadcast_shapes(*(j.points.shape[:-2] for j in jacs))
-        points = [
-            torch.nn.functional.pad(j.points, (0, m - j.points.shape[-1])).expand(
-                *batch, j.points.shape[-2], m
-            )
-            for j in jacs
+        return _cat_rows([p.jacobian_sparse_all(x) for p in self.parts])
+
+    def gaps_and_rows_all(self, x: Tensor) -> tuple[Tensor, SparseJacobian]:
+        """:meth:`gaps` and :meth:`jacobian_sparse_all` together, from each part's own
+        (:meth:`GeometryBase.gaps_and_rows_all`)."""
+        both = [
+            p.gaps_and_rows_all(x)
+            if hasattr(p, "gaps_and_rows_all")
+            else (p.gaps(x), p.jacobian_sparse_all(x))
+            for p in self.parts
         ]
-        values = [
-            torch.nn.functional.pad(j.values, (0, 0, 0, m - j.points.shape[-1])) for j in jacs
-        ]
-        return SparseJacobian(torch.cat(points, -2), torch.cat(values, -4))
+        return torch.cat([g for g, _ in both], dim=-1), _cat_rows([j for _, j in both])
 
     def to(self, device: torch.device | str) -> ContactGeometry:
         """A copy with every part's tensors on ``device``."""
         return ContactGeometry(tuple(p.to(device) for p in self.parts))
+
+
+def _cat_rows(jacs: list[SparseJacobian]) -> SparseJacobian:
+    """Sparse rows of several parts, part after part, entries padded to the largest ``m``."""
+    m = max(j.points.shape[-1] for j in jacs)
+    batch = broadcast_shapes(*(j.points.shape[:-2] for j in jacs))
+    points = [
+        torch.nn.functional.pad(j.points, (0, m - j.points.shape[-1])).expand(
+            *batch, j.points.shape[-2], m
+        )
+        for j in jacs
+    ]
+    values = [torch.nn.functional.pad(j.values, (0, 0, 0, m - j.points.shape[-1])) for j in jacs]
+    return SparseJacobian(torch.cat(points, -2), torch.cat(values, -4))

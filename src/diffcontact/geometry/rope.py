@@ -149,15 +149,21 @@ class RopeBending(GeometryBase):
         """Rows of every joint: those of :meth:`jacobian_sparse` on ``arange(P - 1)``,
         from the segment vectors without index gathers (the position projection's
         inner loop)."""
+        return self.gaps_and_rows_all(x)[1]
+
+    def gaps_and_rows_all(self, x: Tensor) -> tuple[Tensor, SparseJacobian]:
+        """:meth:`gaps` and :meth:`jacobian_sparse_all` from one evaluation of the
+        segments and angles."""
         _, seg = _rope_points(x, self.first_point, self.n_points, self.anchor)
         a, b = seg[..., :-1, :], seg[..., 1:, :]
         theta = torch.atan2(_cross(a, b), dot_last(a, b))
+        gaps = self.max_angle - theta.abs()
         g_a = -_perp(a) / dot_last(a, a).unsqueeze(-1)
         g_b = _perp(b) / dot_last(b, b).unsqueeze(-1)
         sign = torch.where(theta >= 0, -1.0, 1.0).to(x).unsqueeze(-1)
         inner = _inner_mask(self.n_candidates, x)  # joint 0's point before is the anchor
         values = sign.unsqueeze(-2) * torch.stack((-g_a * inner, g_a - g_b, g_b), dim=-2)
-        return SparseJacobian(
+        return gaps, SparseJacobian(
             _row_points(self.n_candidates, 3, self.first_point, x), values.unsqueeze(-3)
         )
 
@@ -228,12 +234,19 @@ class RopeStretch(GeometryBase):
     def jacobian_sparse_all(self, x: Tensor) -> SparseJacobian:
         """Rows of every segment: those of :meth:`jacobian_sparse` on ``arange(P)``,
         without index gathers."""
+        return self.gaps_and_rows_all(x)[1]
+
+    def gaps_and_rows_all(self, x: Tensor) -> tuple[Tensor, SparseJacobian]:
+        """:meth:`gaps` and :meth:`jacobian_sparse_all` from one evaluation of the
+        segments' lengths."""
         _, seg = _rope_points(x, self.first_point, self.n_candidates, self.anchor)
         u, length = safe_normalize(seg)
         lo, hi = self.lower.to(length), self.upper.to(length)
-        g = torch.where(length - lo <= hi - length, 1.0, -1.0).to(x).unsqueeze(-1) * u
+        below, above = length - lo, hi - length
+        gaps = torch.minimum(below, above)
+        g = torch.where(below <= above, 1.0, -1.0).to(x).unsqueeze(-1) * u
         values = torch.stack((-g * _inner_mask(self.n_candidates, x), g), dim=-2)
-        return SparseJacobian(
+        return gaps, SparseJacobian(
             _row_points(self.n_candidates, 2, self.first_point, x), values.unsqueeze(-3)
         )
 

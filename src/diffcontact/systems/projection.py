@@ -84,23 +84,26 @@ def _gather_rows(mask_rows: Tensor, R: int | None = None) -> tuple[Tensor, Tenso
     return idx, mask_rows.gather(-1, idx)
 
 
-def _rows_all(geometry: Any, x: Tensor) -> SparseJacobian:
-    """Every candidate's sparse rows at ``x: (n, P, dim)``, points expanded to ``(n, K, m)``."""
-    if hasattr(geometry, "jacobian_sparse_all"):
-        jac = geometry.jacobian_sparse_all(x)
+def _gaps_and_rows(geometry: Any, x: Tensor) -> tuple[Tensor, SparseJacobian]:
+    """Every candidate's gap ``(n, K)`` and sparse rows at ``x: (n, P, dim)``, points
+    expanded to ``(n, K, m)``: from one evaluation where the geometry has
+    ``gaps_and_rows_all`` (:meth:`GeometryBase.gaps_and_rows_all`)."""
+    if hasattr(geometry, "gaps_and_rows_all"):
+        gaps, jac = geometry.gaps_and_rows_all(x)
+    elif hasattr(geometry, "jacobian_sparse_all"):
+        gaps, jac = geometry.gaps(x), geometry.jacobian_sparse_all(x)
     else:  # a user geometry with the Geometry protocol only: jacobian_sparse on arange(K)
-        jac = GeometryBase.jacobian_sparse_all(geometry, x)
-    return SparseJacobian(
-        jac.points.expand(*jac.values.shape[:-4], *jac.points.shape[-2:]), jac.values
-    )
+        gaps, jac = geometry.gaps(x), GeometryBase.jacobian_sparse_all(geometry, x)
+    points = jac.points.expand(*jac.values.shape[:-4], *jac.points.shape[-2:])
+    return gaps, SparseJacobian(points, jac.values)
 
 
 def _metric_norms(
     geometry: Any, x: Tensor, M_inv: Tensor, rows: SparseJacobian | None = None
 ) -> Tensor:
     """``(n, K)``: ``||J_k||_{M^-1}`` of every candidate's normal row at ``x: (n, P, dim)``
-    (``rows``: :func:`_rows_all` at ``x`` if the caller has them; their values are
-    detached here).
+    (``rows``: those of :func:`_gaps_and_rows` at ``x`` if the caller has them; their
+    values are detached here).
 
     From the sparse rows (``m`` entries of point ``p_a`` and value ``v_a``):
     ``J_k M^-1 J_k^T = sum_a sum_b M^-1[p_a, p_b] (v_a . v_b)`` (``M^-1 = kron(M_inv,
@@ -108,7 +111,7 @@ def _metric_norms(
     all candidates would take 245 MB for 128 ropes of 200 points.
     """
     n = x.shape[0]
-    jac = _rows_all(geometry, x) if rows is None else rows
+    jac = _gaps_and_rows(geometry, x)[1] if rows is None else rows
     v = jac.values[..., 0, :, :].detach()  # (n, K, m, dim)
     gram = (v.unsqueeze(-2) * v.unsqueeze(-3)).sum(-1)  # (n, K, m, m)
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
@@ -189,12 +192,12 @@ def project_positions(
     phi0 = None if constraints is None else constraints.phi(x_pred)
     K = violated.shape[-1]
     width = widths.to(dtype=x.dtype, device=x.device) if two_sided else None  # (K,)
-    # every candidate's rows at x_pred: the metric below and the first iteration's rows
-    rows_pred = _rows_all(geometry, x_pred)
+    # every candidate's gap and rows at x_pred: the metric below and the first iteration's
+    gaps_raw, rows_i = _gaps_and_rows(geometry, x_pred)
     with torch.no_grad():
         # distances are compared in the mass metric: gap_k / ||J_k||_{M^-1} is the distance
         # (in sqrt(mass) * length) from the linearised limit, whatever the gap's unit
-        scale = _metric_norms(geometry, x_pred, Minv_b, rows_pred).clamp_min(1e-300)
+        scale = _metric_norms(geometry, x_pred, Minv_b, rows_i).clamp_min(1e-300)
         scale_rows = torch.cat([scale, scale], -1) if two_sided else scale
         steps = torch.tensor(STEPS, dtype=x.dtype, device=x.device)
         mask_rows = torch.zeros_like(scale_rows, dtype=torch.bool)
@@ -203,10 +206,11 @@ def project_positions(
         return torch.cat([g, width - g], -1) if width is not None else g
 
     x_i = x_pred
+    dist = None  # after the first iteration: the line search's distances at x_i
     for it in range(iterations):
-        gaps_i = row_gaps(geometry.gaps(x_i))  # (n, R_all), with the graph
         with torch.no_grad():
-            dist = gaps_i.detach() / scale_rows
+            if dist is None:
+                dist = row_gaps(gaps_raw.detach()) / scale_rows
             # the violated rows, and those a step of about the largest violation can reach
             worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
             rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
@@ -219,13 +223,15 @@ def project_positions(
                     )
                 left, R = torch.stack([left.to(R), R]).tolist()
                 if not left:
-                    break  # converged
+                    break  # converged (the line search's gaps said so: no evaluation more)
             mask_rows = rows
+        if it > 0:
+            gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)  # with the graph
+        gaps_i = row_gaps(gaps_raw)  # (n, R_all)
         idx, mask = _gather_rows(mask_rows, int(R))
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
         gap = gaps_i.gather(-1, idx)  # (n, R)
-        rows_i = rows_pred if it == 0 else _rows_all(geometry, x_i)
         J = assemble_jacobian(take_rows(rows_i, cand), P)
         J = J[:, :, 0].reshape(n, R, D)
         sign = torch.where(idx < K, 1.0, -1.0).to(J)
@@ -260,8 +266,11 @@ def project_positions(
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
             merit = (-trial_dist).clamp_min(0).amax(-1)
-            best = steps[merit.argmin(0)]  # (n,)
+            choice = merit.argmin(0)  # (n,)
+            best = steps[choice]
             # limits that a trial step crossed join the next iteration's problem
             mask_rows = mask_rows | (trial_dist < 0).any(0)
+            # the distances at the chosen step: the next iteration's convergence test
+            dist = trial_dist.gather(0, choice.view(1, n, 1).expand(1, *trial_dist.shape[1:]))[0]
         x_i = x_i + best[:, None, None] * dx
     return x.index_put((b,), x_i)
