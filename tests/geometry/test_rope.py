@@ -134,6 +134,10 @@ def test_rows_of_every_candidate_match_the_indexed_rows(P):
         want = part.jacobian(x, torch.arange(k).expand(3, 2, k))
         got = assemble_jacobian(full, P)
         torch.testing.assert_close(got, want, rtol=0, atol=0)
+        # gaps and rows from one evaluation (the projection's): the same numbers
+        gaps, both = part.gaps_and_rows_all(x)
+        assert torch.equal(gaps, part.gaps(x)) and torch.equal(both.values, full.values)
+        assert torch.equal(both.points.expand_as(full.points), full.points)
     # rows gathered from the full set are the indexed rows, repeated indices included
     idx = torch.randint(0, K, (3, 2, 7), generator=gen)
     rows = take_rows(geo.jacobian_sparse_all(x), idx)

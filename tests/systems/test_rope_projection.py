@@ -100,6 +100,36 @@ def test_projection_is_the_nearest_admissible_point_of_a_small_rope():
     torch.testing.assert_close(zp[0, 0], expected, rtol=0, atol=1e-12)
 
 
+def test_a_geometry_with_the_protocol_only_projects_the_same():
+    """The projection's gaps and rows come from ``gaps_and_rows_all`` where a geometry has
+    it (the rope's); a geometry with only ``gaps`` and ``jacobian_sparse`` (and
+    ``gap_widths``) gets the same positions."""
+    from diffcontact.systems.projection import project_positions
+
+    class ProtocolOnly:  # the methods a user's geometry must have, and gap_widths
+        def __init__(self, inner):
+            self.inner, self.d, self.n_candidates = inner, inner.d, inner.n_candidates
+
+        def gaps(self, x):
+            return self.inner.gaps(x)
+
+        def jacobian_sparse(self, x, idx):
+            return self.inner.jacobian_sparse(x, idx)
+
+        def gap_widths(self):
+            return self.inner.gap_widths()
+
+    system = dc.load_system("Rope", initial_conditions={"angular_velocity_std": 6.0})
+    z = system.simulate(system.sample_initial_conditions(8, seed=1), 5, position_projection=0)
+    x = z[:, -1, 0]
+    geometry, M_inv = system.geometry, system.inverse_mass_matrix()
+    assert (geometry.gaps(x) < 0).any(-1).sum() >= 4, "most states violate a limit"
+    want = project_positions(x, geometry, M_inv, 10)
+    got = project_positions(x, ProtocolOnly(geometry), M_inv, 10)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    assert (geometry.gaps(got) > -1e-9).all()
+
+
 def test_gradient_through_one_projected_step():
     system = dc.load_system(
         "Rope", n_points=5, dt=0.01, initial_conditions={"angular_velocity_std": 6.0}
