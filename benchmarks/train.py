@@ -9,6 +9,7 @@
     python benchmarks/run.py train --network          # also the potential network's share
     python benchmarks/run.py train --position-projection 0 --tasks Rope  # without the rope's
                                                       # projection onto its limits
+    python benchmarks/run.py train --rounds 5         # each row 5 times, alternating: medians
 
 By default every task is also timed, side by side in the same run, with the previous
 release: the package and this benchmark at git ref ``--against`` (default
@@ -16,7 +17,11 @@ release: the package and this benchmark at git ref ``--against`` (default
 ``git archive`` into a temporary folder and run in a subprocess on the same chunks, the
 same dtype and the same number of threads (and the same ``--potential-dtype`` when one is
 given: then the release must have that option, as every commit since 2026-11-24 has).
-The ratio column is previous / now.
+The ratio column is previous / now. With ``--rounds N`` each task's timings (this version,
+the float32 column, the previous release) are taken N times in turn and the table shows
+their medians, and the ratios are the medians of the N rounds' ratios: on a shared machine
+whose speed drifts by tens of percent within a minute, a ratio of two timings taken
+seconds apart, repeated, is what can be compared.
 
 One training step is what ``diffcontact train`` does per batch: roll the learned model
 (contact model + true collision detection + CLNN/CHNN with the MLP potential) out over a
@@ -236,6 +241,11 @@ def main(argv: list[str] | None = None) -> int:
         "version only, the data keep the task's",
     )  # fmt: skip
     ap.add_argument(
+        "--rounds", type=int, default=1, metavar="N",
+        help="time each row N times, the versions in turn, and print medians (of the times, "
+        "and of each round's ratios)",
+    )  # fmt: skip
+    ap.add_argument(
         "--compare-dtypes",
         action="store_true",
         help="instead of timing: relative difference of the loss and the gradient of one "
@@ -245,6 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
     args.reps = args.reps or (2 if args.quick else 5)
+    if args.rounds < 1:
+        ap.error(f"--rounds must be at least 1, got {args.rounds}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     args.threads = torch.get_num_threads()
@@ -285,6 +297,11 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
         print(line)
     if previous is not None:
         print(f"previous release: git {args.against}, timed in a subprocess right after each row")
+    if args.rounds > 1:
+        print(
+            f"{args.rounds} rounds per row, the versions in turn: medians of the times and of "
+            "the rounds' ratios"
+        )
     head = f"{'task':>8} | {'s/step':>8} {'chunks/s':>9} | {'chunks with a contact':>21}"
     if args.network:
         head += f" | {'network s':>9} {'share':>5}"
@@ -295,30 +312,40 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
         head += f" {'previous/f32':>12}" if args.mixed else ""
     print(head)
     print("-" * len(head))
+    med = statistics.median
+
+    def ratio(a: list[float], b: list[float]) -> float:  # the median of the rounds' ratios
+        return med([x / y for x, y in zip(a, b, strict=True)])
+
     for task in tasks:
-        r = time_task(task, args, dtype)
+        now, mixed, old, failed = [], [], [], False
+        for _ in range(args.rounds):
+            r = time_task(task, args, dtype)
+            now.append(r["s_per_step"])
+            if args.mixed:
+                f32 = argparse.Namespace(**{**vars(args), "potential_dtype": "float32"})
+                mixed.append(time_task(task, f32, dtype)["s_per_step"])
+            if previous is not None and not failed:
+                try:
+                    old.append(time_release(previous, task, args))
+                except RuntimeError as err:
+                    failed = True
+                    print(err, file=sys.stderr)
         line = (
-            f"{task:>8} | {r['s_per_step']:>8.3f} {args.batch_size / r['s_per_step']:>9.0f} | "
+            f"{task:>8} | {med(now):>8.3f} {args.batch_size / med(now):>9.0f} | "
             f"{r['chunks_with_contact']:>20.0%}"
         )
         if args.network:
             net = time_network(task, args, dtype)
-            line += f" | {net:>9.3f} {net / r['s_per_step']:>5.0%}"
-        mixed = None
+            line += f" | {net:>9.3f} {net / med(now):>5.0%}"
         if args.mixed:
-            mixed = time_task(
-                task, argparse.Namespace(**{**vars(args), "potential_dtype": "float32"}), dtype
-            )
-            mixed = mixed["s_per_step"]
-            line += f" | {mixed:>14.3f} {r['s_per_step'] / mixed:>7.2f}"
-        if previous is not None:
-            try:
-                old = time_release(previous, task, args)
-                line += f" | {old:>15.3f} {old / r['s_per_step']:>12.2f}"
-                line += f" {old / mixed:>12.2f}" if mixed else ""
-            except RuntimeError as err:
-                line += f" | {'failed':>15} {'-':>12}"
-                print(err, file=sys.stderr)
+            line += f" | {med(mixed):>14.3f} {ratio(now, mixed):>7.2f}"
+        if previous is not None and failed:
+            line += f" | {'failed':>15} {'-':>12}"
+        elif previous is not None:
+            line += f" | {med(old):>15.3f} {ratio(old, now):>12.2f}"
+            if args.mixed:
+                line += f" {ratio(old, mixed):>12.2f}"
         print(line, flush=True)
 
 

@@ -141,10 +141,22 @@ def test_written_out_spd_solve_equals_lapack_and_marks_indefinite_matrices_nan(n
     torch.testing.assert_close(fastops.spd_solve(A2, Bb), torch.linalg.solve(A2, Bb))
 
 
-def test_written_out_spd_solve_gradients_match_finite_differences():
+def test_written_out_spd_solve_gradients_match_finite_differences_and_lapack():
     from diffcontact.fastops import _unrolled_spd_solve
 
     A, B = _spd_batch(3, 3, 2)
     A.requires_grad_(True)
     B.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda a, b: _unrolled_spd_solve(0.5 * (a + a.mT), b), (A, B))
+    # the same gradients as the LAPACK path (cholesky_ex + cholesky_solve), so a batch
+    # crossing the size threshold does not change them
+    W = torch.randn(3, 3, 2, dtype=torch.float64)
+    mine = torch.autograd.grad((_unrolled_spd_solve(A, B) * W).sum(), (A, B))
+    lapack = torch.cholesky_solve(B, torch.linalg.cholesky_ex(A)[0])
+    theirs = torch.autograd.grad((lapack * W).sum(), (A, B))
+    for got, want in zip(mine, theirs, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    # second derivatives (Hessian-vector products through a rollout)
+    assert torch.autograd.gradgradcheck(
+        lambda a, b: _unrolled_spd_solve(0.5 * (a + a.mT), b), (A, B)
+    )

@@ -119,39 +119,75 @@ def _unrolled_spd_solve(A: Tensor, B: Tensor) -> Tensor:
     """:func:`spd_solve` for ``n <= 3``, the Cholesky factorisation and the two triangular
     solves written out entry by entry: a few dozen operations on ``(...)``-shaped entries
     whatever the batch, where LAPACK makes one call per matrix (1000 bodies' 3 x 3
-    constraint systems of BD5, 200 states x 5 bodies: 2x faster forward and backward;
-    ``python benchmarks/run.py fastops``). NaN where a pivot is not positive, as LAPACK's.
-    ``A: (..., n, n)``, ``B: (..., n, k)`` with the same batch shape."""
+    constraint systems of BD5, 200 states x 5 bodies; ``python benchmarks/run.py fastops``).
+    NaN where a pivot is not positive, as LAPACK's. ``A: (..., n, n)`` (its lower triangle is
+    read), ``B: (..., n, k)`` with the same batch shape. The backward pass is one more solve
+    with the same factor, ``grad_B = A^-1 grad_X`` and ``grad_A = -sym(grad_B X^T)``
+    (symmetric, as the LAPACK path's; a custom function: two nodes instead of the sixty of
+    the written-out operations), itself differentiable (``create_graph``)."""
+    return _SmallSPDSolve.apply(A, B)
+
+
+def _factor(A: Tensor) -> tuple[list[list[Tensor]], Tensor]:
+    """The Cholesky factor of ``A: (..., n, n)`` as entries ``L[i][j]`` (``j <= i``), each
+    ``(..., 1)``, and ``(...)``: 0 where every pivot is positive, NaN elsewhere."""
     n = A.shape[-1]
-    L: list[list[Tensor]] = [[] for _ in range(n)]  # L[i][j], j <= i: entries (...)
+    a = A.flatten(-2).unbind(-1)  # the entries (...), row-major
+    L: list[list[Tensor]] = [[] for _ in range(n)]
     pivots = []
     for j in range(n):
-        d = A[..., j, j]
+        d = a[j * n + j]
         for k in range(j):
             d = d - L[j][k] * L[j][k]
         pivots.append(d)
         ljj = d.sqrt()
         L[j].append(ljj)
         for i in range(j + 1, n):
-            e = A[..., i, j]
+            e = a[i * n + j]
             for k in range(j):
                 e = e - L[i][k] * L[j][k]
             L[i].append(e / ljj)
-    col = [[t.unsqueeze(-1) for t in row] for row in L]  # entries as (..., 1) against (..., k)
+    smallest = torch.stack(pivots, -1).amin(-1)  # NaN propagates: NaN > 0 is false
+    nan = torch.where(smallest > 0, 0.0, torch.nan).to(A.dtype)
+    return [[t.unsqueeze(-1) for t in row] for row in L], nan
+
+
+def _substitute(L: list[list[Tensor]], B: Tensor) -> Tensor:
+    """``X`` with ``L L^T X = B`` for ``B: (..., n, k)`` and the entries of :func:`_factor`."""
+    n = len(L)
+    b = B.unbind(-2)  # the rows (..., k)
     y: list[Tensor] = []
     for i in range(n):  # L y = B
-        r = B[..., i, :]
+        r = b[i]
         for k in range(i):
-            r = r - col[i][k] * y[k]
-        y.append(r / col[i][i])
-    x: list[Tensor | None] = [None] * n
+            r = r - L[i][k] * y[k]
+        y.append(r / L[i][i])
+    x: list[Tensor] = [y[0]] * n
     for i in reversed(range(n)):  # L^T x = y
         r = y[i]
         for k in range(i + 1, n):
-            r = r - col[k][i] * x[k]
-        x[i] = r / col[i][i]
-    X = torch.stack(x, -2)
-    with torch.no_grad():  # a pivot that is not positive (or NaN): NaN, as cholesky_ex's info
-        smallest = torch.stack(pivots, -1).amin(-1)
-        nan = torch.where(smallest > 0, 0.0, torch.nan).to(X.dtype)
-    return X + nan[..., None, None]
+            r = r - L[k][i] * x[k]
+        x[i] = r / L[i][i]
+    return torch.stack(x, -2)
+
+
+class _SmallSPDSolve(torch.autograd.Function):
+    """``X = A^-1 B`` by :func:`_factor` and :func:`_substitute`, implicit backward pass."""
+
+    @staticmethod
+    def forward(ctx, A: Tensor, B: Tensor) -> Tensor:
+        L, nan = _factor(A)
+        X = _substitute(L, B) + nan[..., None, None]
+        ctx.factor = L
+        ctx.save_for_backward(A, X)
+        return X
+
+    @staticmethod
+    def backward(ctx, grad_X: Tensor) -> tuple[Tensor, Tensor]:
+        A, X = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: a backward pass that is differentiable
+            grad_B = _SmallSPDSolve.apply(A, grad_X)
+        else:  # the kept factor
+            grad_B = _substitute(ctx.factor, grad_X)
+        grad_A = grad_B @ X.mT
+        return -0.5 * (grad_A + grad_A.mT), grad_B  # symmetric, as LAPACK's path gives
