@@ -356,8 +356,10 @@ def test_constant_force_is_computed_once_with_the_same_trajectories(gravity, mon
     assert not torch.equal(fast[:, -1], z0)  # it moved (and, with gravity, fell)
 
 
-@pytest.mark.parametrize("batched", [False, True])
-def test_bodies_one_at_a_time_equal_all_points_at_once(monkeypatch, batched):
+@pytest.mark.parametrize(
+    "batched, dynamics", [(False, "lagrangian"), (True, "lagrangian"), (False, "hamiltonian")]
+)
+def test_bodies_one_at_a_time_equal_all_points_at_once(monkeypatch, batched, dynamics):
     """BD5's disks are constrained each on its own: the dynamics and the contact's Mhat^-1
     run as a batch of bodies (EqualityConstraints.split). Trajectories and gradients with
     respect to the masses and second moments equal those of all points at once."""
@@ -376,7 +378,7 @@ def test_bodies_one_at_a_time_equal_all_points_at_once(monkeypatch, batched):
         s.requires_grad_(True)
         params = base.replace(mass=mass, second_moments=s)
         assert (system._context(z0, params, n).groups is not None) == one_at_a_time
-        traj = system.simulate(z0, steps, params=params)
+        traj = system.simulate(z0, steps, params=params, dynamics=dynamics)
         return (traj, *torch.autograd.grad((traj * traj).sum(), [mass, s]))
 
     grouped = dc.load_system("BD5")

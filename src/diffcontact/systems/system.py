@@ -859,6 +859,16 @@ class System:
                 grad_V = self._grad_potential(x, ctx)
                 return v, lagrangian_vector_field(x, v, ctx.M_inv, grad_V, constraints)
 
+        elif ctx.groups is not None:  # Hamiltonian, one body at a time (as above)
+            groups, M_inv = ctx.groups, ctx.M_inv_groups
+            q = groups.num_points
+
+            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+                grad_V = self._grad_potential(x, ctx)
+                xg, vg, gg = (t.unflatten(-2, (-1, q)) for t in (x, v, grad_V))
+                x_dot, v_dot = hamiltonian_flow(xg, vg, M_inv, gg, groups)
+                return x_dot.flatten(-3, -2), v_dot.flatten(-3, -2)
+
         else:
 
             def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
