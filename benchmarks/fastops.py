@@ -14,10 +14,11 @@ the hot paths differentiate), for float64 and float32, with the ratio plain / fa
   ``left_matmul`` keeps ``@`` (fewer than 16384 numbers); backward to the operands that
   carry a gradient there (both, resp. the positions);
 - LAPACK's Cholesky factorisation and solve (``cholesky_ex`` + ``cholesky_solve``, what
-  ``spd_solve`` runs for large or few systems) vs ``spd_solve`` on the 3 x 3 constraint
-  systems of BD5's bodies: 200 training states x 5 bodies (the written-out factorisation),
-  4096 simulated scenes x 5 bodies, and CP3's 200 x 3 x 3 (below ``_UNROLL_BATCH``: LAPACK
-  in both columns); backward to both operands.
+  ``spd_solve`` runs for large systems or few) vs the written-out factorisation that
+  ``spd_solve`` runs on the CPU for many small ones (``fastops._unrolled_spd_solve``), by
+  the number of 3 x 3 systems: 256 to 2000 (where ``_UNROLL_BATCH`` sets the switch:
+  BD5's training batch is 200 states x 5 bodies) and 20480 (4096 simulated BD5 scenes x 5
+  bodies), and 2 x 2; backward to both operands.
 
 Medians over repetitions after a warm-up call.
 """
@@ -29,11 +30,11 @@ import argparse
 import torch
 
 from common import machine_header, median_time
-from diffcontact.fastops import dot_last, left_matmul, spd_solve
+from diffcontact.fastops import _unrolled_spd_solve, dot_last, left_matmul
 
 SUM_SHAPES = ((1024, 10, 2), (1024, 30, 3), (64, 10, 2))
 MATMUL_SHAPES = (((15, 15), (200, 15, 15, 2), True), ((15, 15), (200, 15, 2), False))
-SOLVE_SHAPES = ((200, 5, 3, 3), (4096, 5, 3, 3), (200, 3, 3))
+SOLVE_SHAPES = ((256, 3, 3), (512, 3, 3), (1000, 3, 3), (2000, 3, 3), (20480, 3, 3), (1000, 2, 2))
 HEAD = (
     f"{'shape':>26} {'dtype':>8} | {'plain us':>9} {'fastops us':>10} {'ratio':>6} | "
     f"{'+bw plain':>9} {'+bw fastops':>11} {'ratio':>6}"
@@ -97,11 +98,11 @@ def _solve_row(shape: tuple, dtype: torch.dtype, device: str, reps: int) -> str:
     Ag, Bg = A.clone().requires_grad_(), B.clone().requires_grad_()
     fw = [
         _time(lambda: _lapack_solve(A, B), device, reps),
-        _time(lambda: spd_solve(A, B), device, reps),
+        _time(lambda: _unrolled_spd_solve(A, B), device, reps),
     ]
     bw = [
         _time(lambda: _lapack_solve(Ag, Bg).sum().backward(), device, reps),
-        _time(lambda: spd_solve(Ag, Bg).sum().backward(), device, reps),
+        _time(lambda: _unrolled_spd_solve(Ag, Bg).sum().backward(), device, reps),
     ]
     return _line(f"solve {shape}", dtype, fw, bw)
 
@@ -132,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             print(_solve_row(shape, dtype, args.device, max(3, reps // 10)))
     print(
         "plain: (v * v).sum(-1), resp. G @ X, resp. cholesky_ex + cholesky_solve; fastops: "
-        "dot_last(v, v), resp. left_matmul(G, X), resp. spd_solve. ratio: plain time / "
+        "dot_last(v, v), resp. left_matmul(G, X), resp. the written-out solve. ratio: plain time / "
         "fastops time (> 1: fastops faster)"
     )
     return 0

@@ -122,12 +122,17 @@ def test_cholesky_solve_on_cuda_equals_lapack():
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
-def test_written_out_spd_solve_equals_lapack_and_marks_indefinite_matrices_nan(n):
+def test_written_out_spd_solve_equals_lapack_and_marks_indefinite_matrices_nan(n, monkeypatch):
     """Small systems in large batches take the written-out factorisation on the CPU: the
     same solutions and the same NaN for a matrix that is not positive definite."""
     from diffcontact import fastops
 
-    A, B = _spd_batch(fastops._UNROLL_BATCH, n, 2)
+    written_out = []
+    original = fastops._unrolled_spd_solve
+    monkeypatch.setattr(
+        fastops, "_unrolled_spd_solve", lambda A, B: written_out.append(1) or original(A, B)
+    )
+    A, B = _spd_batch(2 * fastops._UNROLL_BATCH, n, 2)  # without a gradient: twice as many
     A[5] = -A[5]
     A[7, 0, 0] = 0.0  # a zero pivot
     L, info = torch.linalg.cholesky_ex(A)
@@ -137,8 +142,13 @@ def test_written_out_spd_solve_equals_lapack_and_marks_indefinite_matrices_nan(n
     assert X[5].isnan().all() and X[7].isnan().all()
     # batch dimensions broadcast as in the LAPACK path
     A2, B2 = _spd_batch(4, n, 1)
-    Bb = B2.expand(fastops._UNROLL_BATCH // 4, 4, n, 1)
+    Bb = B2.expand(2 * fastops._UNROLL_BATCH // 4, 4, n, 1)
     torch.testing.assert_close(fastops.spd_solve(A2, Bb), torch.linalg.solve(A2, Bb))
+    assert len(written_out) == 2
+    # with a gradient from half as many; fewer go to LAPACK
+    fastops.spd_solve(A[: fastops._UNROLL_BATCH].requires_grad_(), B[: fastops._UNROLL_BATCH])
+    fastops.spd_solve(A[: fastops._UNROLL_BATCH], B[: fastops._UNROLL_BATCH])
+    assert len(written_out) == 3
 
 
 def test_written_out_spd_solve_gradients_match_finite_differences_and_lapack():
