@@ -160,6 +160,37 @@ def test_non_unique_minimisers():
     assert kept >= 0.6, f"the polish moved along null(A) on {1 - kept:.0%} of the problems"
 
 
+def test_a_disk_in_a_corner_gets_the_interior_points_minimiser():
+    """BD5, a disk touching two walls: 4 rows on the disk's 3 degrees of freedom, so A is
+    singular and the compression minimiser is not unique. Newton from zero ended at a kink
+    of the natural map (a regular dF/df there) and kept a different minimiser than the
+    reference (f_c,n 0.156 against 0.168) for this A, but not for the same A rounded
+    differently, which moved the disk's velocity by 0.03. Where A is singular on the active
+    contacts the fused solver goes to the interior point, as the reference: the same
+    minimiser for this A and for A perturbed at the rounding level."""
+    A = torch.tensor(
+        [[[3.3333333333333335, 4.203038543154335e-17, 0.0, -3.333333333333333],
+          [4.203038543154335e-17, 10.000000000000046, 3.3333333333333335, 6.666666666666713],
+          [0.0, 3.3333333333333335, 3.3333333333333335, 0.0],
+          [-3.333333333333333, 6.666666666666713, 0.0, 10.000000000000046]]],
+        dtype=F64,
+    )  # fmt: skip
+    b = torch.tensor(
+        [[-0.5565553677810036, -0.2713513428144362, -0.3522198867394836, 0.637423911706051]],
+        dtype=F64,
+    )
+    mu = torch.full((1, 2), 0.1, dtype=F64)
+    assert torch.linalg.eigvalsh(A)[0, 0] < 1e-12 * torch.linalg.eigvalsh(A)[0, -1]
+    gen = torch.Generator().manual_seed(0)
+    noise = torch.randn(16, 4, 4, generator=gen, dtype=F64) * 1e-13
+    As = torch.cat([A, A + noise + noise.mT])
+    (f_t, s_t), (f_w, s_w) = both(As, b.expand(17, 4), mu.expand(17, 2), 2)
+    assert s_t.converged.all() and s_w.converged.all()
+    torch.testing.assert_close(f_w, f_t, rtol=0, atol=1e-7)
+    torch.testing.assert_close(f_w, f_w[:1].expand(17, 4), rtol=0, atol=1e-7)
+    assert abs(float(f_w[0, 0]) - 0.1684) < 1e-3  # the reference's, not 0.156
+
+
 @pytest.mark.parametrize(("d", "K", "rank"), [(1, 3, 2), (1, 8, 7), (2, 3, 2)])
 def test_unbounded_problems_have_the_same_status(d, K, rank):
     A, b, mu, lower = _singular_problems(60, K, d, rank, seed=K + 10 * d, unbounded=True)

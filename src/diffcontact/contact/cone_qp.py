@@ -59,9 +59,12 @@ does not move along null directions of ``A`` (:func:`_polish`), so a state gets 
 same impulse whichever states share its batch (to rounding: LAPACK factorises a
 padded matrix with another blocking; ``tests/systems/test_batch_invariance.py``).
 The Warp backend's Newton steps from zero (``SolverSettings.polish_steps``) keep their
-result only where they end at a regular point of the natural map, an isolated and so
-(convex problem) the unique minimiser: where the minimiser may not be unique, the
-interior point picks it as above.
+result only where they end at a point where the natural map is differentiable (strict
+complementarity: no contact's ``f - rho (A f + b)`` on a boundary of the projection's
+pieces) with a regular Jacobian, an isolated and so (convex problem) the unique
+minimiser: where the minimiser may not be unique, the interior point picks it as above.
+(A regular Jacobian alone does not suffice: with a disk in a corner, Newton ended at the
+end of the optimal segment, where one contact just reaches its cone's surface.)
 A minimum-norm choice (a Tikhonov term ``tau I``) was not taken: in floating point it
 fixes the free components only to ``eps / tau`` and would bias every solution by
 ``tau``.

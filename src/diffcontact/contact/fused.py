@@ -23,7 +23,8 @@ fused (NVIDIA Warp) one.
   active contact (the simulator pads at the end; trailing inactive contacts are
   decoupled, with zero impulse and gradient), and a problem without a fast path (several
   contacts) first tries ``2 polish_steps`` Newton steps from zero, kept where they end
-  at a regular point of the natural map, i.e. at the unique minimiser; the interior
+  at a point where the natural map is differentiable with a regular Jacobian, i.e. at
+  the unique minimiser (``warp_kernels._at_a_kink``, ``cone_qp``'s docstring); the interior
   point solves the others (on BP5 nearly all multi-contact problems finish without it;
   ``SolverStatus.iterations`` counts the interior point's iterations). Each Newton system
   is solved reduced to the contacts that press, in per-contact bases of the projection's

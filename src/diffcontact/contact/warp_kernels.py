@@ -2216,6 +2216,58 @@ def _guess(
 
 
 @wp.func
+def _at_a_kink(
+    A: wp.array3d(dtype=Any),
+    b: wp.array2d(dtype=Any),
+    mu: wp.array2d(dtype=Any),
+    lower: wp.array2d(dtype=Any),
+    act: wp.array2d(dtype=wp.bool),
+    r: int,
+    t: int,
+    d: int,
+    K: int,
+    rho: Any,
+    c: Any,
+    vec: wp.array3d(dtype=Any),
+):
+    """Whether the natural map is not differentiable at the point in row F_: for an active
+    contact, ``z = f - rho (A f + b)`` lies (to ``FLAT`` relative to the largest ``|z|``) on
+    a boundary between the projection's pieces of :func:`_project`: the cone's surface
+    (``||z_t|| = mu z_n``), the polar cone's (``mu ||z_t|| = -z_n``) or the lower bound
+    (``z_n = l``). There strict complementarity fails, and a regular dF/df (of one piece)
+    does not make the minimiser unique: e.g. a disk in a corner, a singular A, Newton from
+    zero ending at the end of the optimal segment where one contact just reaches the
+    cone's surface with no sliding velocity. Writes A f into row AF."""
+    zero = type(rho)(0.0)
+    one = type(rho)(1.0)
+    _matvec(A, r, vec, t, F_, AF, K, d)
+    zmax = c
+    for k in range(K):
+        if act[r, k]:
+            zk = _z_block(b, r, t, d, k, rho, vec, F_)
+            for j in range(d):
+                zmax = wp.max(zmax, wp.abs(zk[j]))
+    tol = type(rho)(FLAT) * zmax
+    kink = bool(False)
+    for k in range(K):
+        if act[r, k]:
+            zk = _z_block(b, r, t, d, k, rho, vec, F_)
+            zn = zk[0]
+            m = mu[r, k]
+            if d == 1 or lower[r, k] > zero:
+                if wp.abs(zn - lower[r, k]) <= tol:
+                    kink = True
+            if d > 1:
+                s = wp.sqrt(zk[1] * zk[1] + zk[2] * zk[2])
+                norm = wp.sqrt(one + m * m)
+                if wp.abs(zn + m * s) <= tol * norm:  # the polar cone's surface (mu = 0: z_n = 0)
+                    kink = True
+                if m > zero and wp.abs(m * zn - s) <= tol * norm:  # the cone's surface
+                    kink = True
+    return kink
+
+
+@wp.func
 def _solve_row(
     Am: wp.array3d(dtype=Any),
     bm: wp.array2d(dtype=Any),
@@ -2270,10 +2322,11 @@ def _solve_row(
         )  # fmt: skip
         kept = res <= target
     else:
-        # Newton from zero first: kept where it converges to a point where dF/df is
-        # regular, an isolated and so (convex problem) the unique minimiser, the one the
-        # interior point would have found; else (a minimiser that may not be unique,
-        # which the interior point's central path picks) the interior point
+        # Newton from zero first: kept where it converges to a point where the natural map
+        # is differentiable (strict complementarity) with a regular dF/df, an isolated and
+        # so (convex problem) the unique minimiser, the one the interior point would have
+        # found; else (a minimiser that may not be unique, which the interior point's
+        # central path picks) the interior point
         for i in range(n):
             vec[r, F_, i] = type(gap)(0.0)
         res, m, umin = _polish(
@@ -2281,6 +2334,8 @@ def _solve_row(
             piv,
         )  # fmt: skip
         kept = res <= target and umin > type(gap)(FLAT)
+        if kept:  # and not at a kink of the natural map, where regular is not unique
+            kept = not _at_a_kink(Am, bm, mum, lowerm, act, r, r, d, K, rho, c, vec)
     if not kept:
         _ipm_matrix(Am, mum, sc, r, d, K, Aipm)
         g = gap
