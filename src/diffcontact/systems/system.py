@@ -599,6 +599,7 @@ class System:
         geometry, constraints, groups = self._static_on(device)
         if params.second_moments is None:  # point masses: no bodies to run one at a time
             groups = None
+        M_inv_groups = None if groups is None else self._inverse_mass_groups(params, dtype, device)
         K = self.n_contacts
 
         def cast(t: Tensor | None) -> Tensor | None:
@@ -629,11 +630,11 @@ class System:
             geometry=geometry,
             constraints=constraints,
             M=self._body_blocks(params, False, dtype, device),
-            M_inv=self._body_blocks(params, True, dtype, device),
+            M_inv=self._body_blocks(params, True, dtype, device)
+            if groups is None
+            else block_diagonal(M_inv_groups),  # the same matrix from the same blocks
             groups=groups,
-            M_inv_groups=(
-                None if groups is None else self._inverse_mass_groups(params, dtype, device)
-            ),
+            M_inv_groups=M_inv_groups,
             weights=weights,
             g_vec=g_vec,
             mu=per_contact(params.mu),
@@ -842,7 +843,7 @@ class System:
                     acc = cache[x.shape] = lagrangian_vector_field(x, v, ctx.M_inv, grad_V)
                 return v, acc
 
-        elif dynamics == "lagrangian" and ctx.groups is not None:
+        elif ctx.groups is not None:
             # constraints on each body alone: the dynamics of one body at a time, a batch of
             # (..., B) bodies of q points (E / B equations each instead of E)
             groups, M_inv = ctx.groups, ctx.M_inv_groups
@@ -851,23 +852,16 @@ class System:
             def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
                 grad_V = self._grad_potential(x, ctx)
                 xg, vg, gg = (t.unflatten(-2, (-1, q)) for t in (x, v, grad_V))
-                return v, lagrangian_vector_field(xg, vg, M_inv, gg, groups).flatten(-3, -2)
+                if dynamics == "lagrangian":
+                    return v, lagrangian_vector_field(xg, vg, M_inv, gg, groups).flatten(-3, -2)
+                x_dot, v_dot = hamiltonian_flow(xg, vg, M_inv, gg, groups)
+                return x_dot.flatten(-3, -2), v_dot.flatten(-3, -2)
 
         elif dynamics == "lagrangian":
 
             def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
                 grad_V = self._grad_potential(x, ctx)
                 return v, lagrangian_vector_field(x, v, ctx.M_inv, grad_V, constraints)
-
-        elif ctx.groups is not None:  # Hamiltonian, one body at a time (as above)
-            groups, M_inv = ctx.groups, ctx.M_inv_groups
-            q = groups.num_points
-
-            def field(x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-                grad_V = self._grad_potential(x, ctx)
-                xg, vg, gg = (t.unflatten(-2, (-1, q)) for t in (x, v, grad_V))
-                x_dot, v_dot = hamiltonian_flow(xg, vg, M_inv, gg, groups)
-                return x_dot.flatten(-3, -2), v_dot.flatten(-3, -2)
 
         else:
 
