@@ -27,7 +27,7 @@ import torch
 
 import diffcontact as dc
 from backends import count_dispatches
-from common import machine_header, sync
+from common import READ_FREE_HELP, choose_read_free_projection, machine_header, sync
 from train import make_chunks
 
 SIM_TASK = "BP5"
@@ -86,6 +86,7 @@ def measure(fn, device: str, per: int, reads_fn=None) -> dict:
 
         with cuda_path():
             out["reads_cuda_path"] = count_host_reads(reads_fn or fn, device) / per
+            out["ops_cuda_path"] = count_dispatches(fn) / per
     if device == "cuda":
         counts = cuda_counts(fn)
         out.update({k: v / per for k, v in counts.items() if k != "gpu_busy_s"})
@@ -141,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--scenes", type=int, default=1024, help="BP5 scenes of the simulate row")
     ap.add_argument("--tasks", nargs="+", default=None, help="training rows (default BP5 CP3 Rope)")
+    ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
     args = ap.parse_args(argv)
+    choose_read_free_projection(args.read_free_projection)
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: no CUDA device available")
     if args.scenes < 1:
@@ -158,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     cuda = args.device == "cuda"
     head = f"{'row':>24} | {'ms':>8} {'torch ops':>10} {'host reads':>11}"
     if not cuda:
-        head += f" {'CUDA path':>10}"
+        head += f" {'CUDA path':>10} {'CUDA ops':>9}"
     if cuda:
         head += f" {'launches':>9} {'syncs':>6} {'memcpy':>7} {'GPU busy':>9}"
     print(head)
@@ -172,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         r = fn()
         line = f"{name:>24} | {r['wall_ms']:>8.1f} {r['ops']:>10.0f} {r['reads']:>11.1f}"
         if not cuda:
-            line += f" {r['reads_cuda_path']:>10.1f}"
+            line += f" {r['reads_cuda_path']:>10.1f} {r['ops_cuda_path']:>9.0f}"
         if cuda:
             line += (
                 f" {r['launches']:>9.0f} {r['syncs']:>6.1f} {r['copies']:>7.1f} "
@@ -185,8 +188,10 @@ def main(argv: list[str] | None = None) -> int:
         "device to the host (.item(), bool(tensor), nonzero, .tolist(); without the "
         "optimiser's), each a synchronisation on CUDA."
         + (
-            " CUDA path: the host reads where the rollout takes its CUDA path (every state "
-            "padded through the contact solve, no selection)."
+            " CUDA path, CUDA ops: the host reads and torch operations where the rollout "
+            "takes its CUDA path (every state padded through the contact solve, no "
+            "selection; with --read-free-projection, the position projection read-free: "
+            "every iteration, padded rows)."
             if not cuda
             else ""
         )

@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 
 import diffcontact as dc
-from common import machine_header, sync
+from common import READ_FREE_HELP, choose_read_free_projection, machine_header, sync
 
 # 2026-11-23, the last commit before issue 11's solver and training-step work (the fused
 # solver, fast paths, batch-invariant polish): the "previous release" of the ratio column
@@ -240,6 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         "0: without the projection onto the limits, the work the rope's step adds); this "
         "version only, the data keep the task's",
     )  # fmt: skip
+    ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
     ap.add_argument(
         "--rounds", type=int, default=1, metavar="N",
         help="time each row N times, the versions in turn, and print medians (of the times, "
@@ -260,6 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     args.threads = torch.get_num_threads()
+    choose_read_free_projection(args.read_free_projection)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
     if args.compare_dtypes:
@@ -292,6 +294,8 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
     mlp = "" if args.potential_dtype is None else f", potential MLP in {args.potential_dtype}"
     if args.position_projection is not None:
         mlp += f", position_projection {args.position_projection} (this version)"
+    if args.read_free_projection:
+        mlp += ", read-free projection (this version)"
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states{mlp}")
     for line in machine_header(args.device, dtype):
         print(line)

@@ -139,8 +139,9 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA de
 
 @pytest.mark.cuda
 @cuda
-@pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro"])
+@pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro", "Rope"])
 def test_graph_replay_equals_the_step_by_step_rollout_on_cuda(task):
+    """(Rope: with the read-free position projection in the captured step.)"""
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(64, seed=3).cuda()
     with warnings.catch_warnings():

@@ -46,6 +46,14 @@ what the iterations resolve and the limits are not held (docs/config.md, ``rope`
 
 The iterations stop early once every gap is above ``-tol`` and ``Phi`` is within
 ``tol``. Velocities are not changed (the impulse already made them admissible).
+
+Choosing the states to project, each iteration's rows and the early stop reads the
+device (a synchronisation on CUDA, which a CUDA graph cannot capture). With
+:class:`ReadFree` nothing is read: every state and every iteration take part, the
+correction of an iteration the early stop would have skipped is not applied, and each
+problem is padded to a fixed number of rows (a state that selects more sets a flag on
+the device, and the caller computes again). Same positions to rounding, more
+arithmetic.
 Everything but the discrete choices (rows, step length, early stop) is
 differentiable; with the projection on, ``System`` drops the penetration target
 (it would add a velocity for a violation the projection already removed, which
@@ -54,16 +62,18 @@ pumped energy into a hanging rope).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
+from diffcontact.fastops import spd_solve
 from diffcontact.geometry.base import GeometryBase, SparseJacobian, assemble_jacobian, take_rows
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
-__all__ = ["project_positions"]
+__all__ = ["ReadFree", "project_positions"]
 
 STEPS = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Step lengths tried along each Gauss-Newton direction (the one with the least violation wins)."""
@@ -71,6 +81,38 @@ MARGIN = 0.25
 """A limit enters an iteration's problem once its distance (mass metric) is below
 ``MARGIN`` times the state's largest violation: the limits a correction can reach
 (0 converged too slowly on whipping ropes, 0.5 and more doubled the problem size)."""
+
+
+@dataclass
+class ReadFree:
+    """How :func:`project_positions` runs without reading the device: the step of a
+    CUDA graph, or of a step-by-step rollout on CUDA, where each read stalls the queue.
+
+    Every state takes part (those without a violated limit get no rows and keep their
+    positions), every iteration runs (a state's correction is applied while any state
+    is left to correct, as the early stop would have it, and is zero after), and each
+    state's problem is padded to ``rows`` rows, so that no shape depends on the data.
+
+    Attributes:
+        rows: the rows of each state's problem. A state that selects more in an
+            iteration the early stop would have run sets :attr:`overflowed`; its
+            result is then not the projection's, and the caller must compute it again.
+        needed: ``()`` int64 on the device, updated in place: the most rows any state
+            selected (read once by the caller, after the rollout).
+        diagonal: whether ``M^-1`` is diagonal (point masses), known from the system's
+            structure instead of read from the matrix.
+        two_sided: whether the geometry has two-sided limits (finite ``gap_widths``).
+    """
+
+    rows: int
+    needed: Tensor
+    diagonal: bool
+    two_sided: bool
+
+    @property
+    def overflowed(self) -> Tensor:
+        """``()`` bool on the device: a state needed more than :attr:`rows` rows."""
+        return self.needed > self.rows
 
 
 def _gather_rows(mask_rows: Tensor, R: int | None = None) -> tuple[Tensor, Tensor]:
@@ -132,6 +174,7 @@ def project_positions(
     gaps: Tensor | None = None,
     settings: SolverSettings | None = None,
     tol: float | None = None,
+    read_free: ReadFree | None = None,
 ) -> Tensor:
     """Project positions onto the admissible set of their violated contacts (module docstring).
 
@@ -146,6 +189,10 @@ def project_positions(
         settings: settings of the cone QP.
         tol: the iterations stop early once no gap is below ``-tol`` (default
             ``1e-10`` in float64, ``1e-5`` in lower precision).
+        read_free: run without reading the device (:class:`ReadFree`: every state,
+            every iteration, padded rows); ``None`` (default): the states to project,
+            the rows and the early stop are read from the device (a few reads per
+            iteration, the least work).
 
     Returns:
         ``(N, P, dim)``: ``x`` with the states that violated a candidate projected;
@@ -162,19 +209,26 @@ def project_positions(
         g0 = geometry.gaps(x.detach()) if gaps is None else gaps.detach()
         violated = g0 < 0
         has = violated.any(-1)  # (N,)
-        # one read of the device (a synchronisation on CUDA) for the states to project and
-        # two properties of the problem: point masses (a diagonal M^-1: no dense
-        # products; all states' checked, a superset of the projected ones) and two-sided
-        # limits (the rope's)
-        flags = [has.sum(), (M_inv == torch.diag_embed(M_inv.diagonal(dim1=-2, dim2=-1))).all()]
-        flags.append(torch.isfinite(widths).any() if widths is not None else has.new_zeros(()))
-        flags = torch.stack([f.to(has.device, torch.int64) for f in flags])
-        n, diagonal, two_sided = flags.tolist()
+        if read_free is None:
+            # one read of the device (a synchronisation on CUDA) for the states to project
+            # and two properties of the problem: point masses (a diagonal M^-1: no dense
+            # products; all states' checked, a superset of the projected ones) and
+            # two-sided limits (the rope's)
+            diag = torch.diag_embed(M_inv.diagonal(dim1=-2, dim2=-1))
+            flags = [has.sum(), (M_inv == diag).all()]
+            flags.append(torch.isfinite(widths).any() if widths is not None else has.new_zeros(()))
+            flags = torch.stack([f.to(has.device, torch.int64) for f in flags])
+            n, diagonal, two_sided = flags.tolist()
+        else:
+            n, diagonal, two_sided = x.shape[0], read_free.diagonal, read_free.two_sided
     if n == 0:
         return x
-    b = torch.argsort((~has).to(torch.uint8), stable=True)[:n]  # (n,) states to project
-    x_pred = x[b]  # (n, P, dim)
-    Minv_b = M_inv if M_inv.dim() == 2 else M_inv[b]
+    if read_free is None:
+        b = torch.argsort((~has).to(torch.uint8), stable=True)[:n]  # (n,) states to project
+        x_pred = x[b]  # (n, P, dim)
+        Minv_b = M_inv if M_inv.dim() == 2 else M_inv[b]
+    else:  # every state (those without a violation select no rows: no correction)
+        x_pred, Minv_b = x, M_inv
 
     def minv_rows(rows: Tensor) -> Tensor:
         """``rows M^-1`` for ``rows: (n, R, D)``, ``M^-1 = kron(M_inv, I_dim)`` (symmetric)."""
@@ -207,6 +261,7 @@ def project_positions(
 
     x_i = x_pred
     dist = None  # after the first iteration: the line search's distances at x_i
+    going = None  # read-free: () bool, whether the early stop would still iterate
     for it in range(iterations):
         with torch.no_grad():
             if dist is None:
@@ -215,15 +270,22 @@ def project_positions(
             worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
             rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
             R = rows.sum(-1).max()
-            if it > 0:  # one read: whether a limit is left, and the rows' count
+            if it > 0:  # whether a limit is left, and the rows' count
                 left = (dist * scale_rows < -tol).any()
                 if phi0 is not None:  # and the equality constraints are back where they were
                     left = (
                         left | ((constraints.phi(x_i.detach()) - phi0.detach()).abs() > tol).any()
                     )
-                left, R = torch.stack([left.to(R), R]).tolist()
-                if not left:
-                    break  # converged (the line search's gaps said so: no evaluation more)
+                if read_free is None:  # one read
+                    left, R = torch.stack([left.to(R), R]).tolist()
+                    if not left:
+                        break  # converged (the line search's gaps said so: no evaluation more)
+                else:
+                    going = left if going is None else going & left
+            if read_free is not None:  # the padded rows; the count they had to hold
+                counted = R if going is None else torch.where(going, R, 0)
+                read_free.needed.copy_(torch.maximum(read_free.needed, counted))
+                R = min(read_free.rows, rows.shape[-1])
             mask_rows = rows
         if it > 0:
             gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)  # with the graph
@@ -244,7 +306,7 @@ def project_positions(
             Mh = Mhat_inv(Minv_b, J_E)
             r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
             B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
-            base = -(B @ torch.linalg.solve(J_E @ B, r)).squeeze(-1)  # (n, D)
+            base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
             JM = J @ Mh  # (n, R, D)
         else:
             base = None
@@ -272,5 +334,8 @@ def project_positions(
             mask_rows = mask_rows | (trial_dist < 0).any(0)
             # the distances at the chosen step: the next iteration's convergence test
             dist = trial_dist.gather(0, choice.view(1, n, 1).expand(1, *trial_dist.shape[1:]))[0]
-        x_i = x_i + best[:, None, None] * dx
+        x_next = x_i + best[:, None, None] * dx
+        x_i = x_next if going is None else torch.where(going, x_next, x_i)
+    if read_free is not None:
+        return torch.where(has[:, None, None], x_i, x)
     return x.index_put((b,), x_i)

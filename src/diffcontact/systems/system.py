@@ -80,7 +80,7 @@ from diffcontact.systems.config import (
 )
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
-from diffcontact.systems.projection import project_positions
+from diffcontact.systems.projection import ReadFree, project_positions
 from diffcontact.threads import thread_scope
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
@@ -103,12 +103,33 @@ GRAPH_MIN_STEPS = 16
 #: is run again padded to all candidates
 GRAPH_CONTACTS = 8
 
+#: the rows of each state's problem that a read-free position projection (a captured step,
+#: or a step-by-step rollout on CUDA) pads to at first (enough for Rope's rollouts:
+#: tests/systems/test_read_free_projection.py); a rollout where a state selects more is run
+#: again, and the system remembers the larger count for its next rollouts
+#: (:meth:`System._grow_projection_rows`)
+PROJECTION_ROWS = 16
+
 
 def _pads_contacts(device: torch.device) -> bool:
     """Whether a deferred step-by-step rollout on ``device`` sends every state to the
     contact model, padded, instead of selecting the states in contact: on CUDA, where the
     selection's read of the device stalls the queue and the padded work is cheap."""
     return device.type == "cuda"
+
+
+def _projects_read_free(device: torch.device) -> bool:
+    """Whether such a padded step-by-step rollout (:func:`_pads_contacts`) also runs the
+    position projection read-free (:class:`~diffcontact.systems.projection.ReadFree`; a
+    captured step always does). Not by default: read-free, the projection runs all its
+    iterations, and a Rope training step dispatches 24,477 torch operations instead of
+    12,828 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
+    [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
+    CUDA is bound by its
+    launches (the GPU busy about a tenth of the time, benchmarks/README.md), where a read
+    waits for little. To be measured on a GPU: ``python benchmarks/run.py train --device
+    cuda --tasks Rope [--read-free-projection]``."""
+    return False
 
 
 class _Rollout(NamedTuple):
@@ -351,6 +372,11 @@ class System:
         # to the built-in terms; the dynamics take its gradient by autograd
         self.potential_model: Callable[[Tensor], Tensor] | None = None
         self._device_cache: dict[str, tuple[Any, EqualityConstraints | None]] = {}
+        # what a read-free position projection needs to know without reading the device
+        widths = self.geometry.gap_widths() if hasattr(self.geometry, "gap_widths") else None
+        self._two_sided = widths is not None and bool(torch.isfinite(widths).any())
+        self._point_masses = all(body.kind == "point" for body in self._bodies)
+        self._projection_rows = PROJECTION_ROWS
 
     # ------------------------------------------------------------------ builders
     def _build_circles(self, cfg: BouncingMassesConfig | BouncingDisksConfig) -> None:
@@ -1029,8 +1055,11 @@ class System:
         ctx: _Context,
         iterations: int,
         settings: SolverSettings | None = None,
+        read_free: ReadFree | None = None,
     ) -> Tensor:
-        """``res.z`` with its positions projected (``iterations`` Gauss-Newton steps)."""
+        """``res.z`` with its positions projected (``iterations`` Gauss-Newton steps;
+        ``read_free``: without reading the device,
+        :class:`~diffcontact.systems.projection.ReadFree`)."""
         if iterations == 0 or res.batch_index.shape[0] == 0:
             return res.z
         x = project_positions(
@@ -1041,8 +1070,35 @@ class System:
             constraints=ctx.constraints,
             gaps=res.gaps,
             settings=self._inner_settings(settings),
+            read_free=read_free,
         )
         return torch.stack([x, res.z[..., 1, :, :]], dim=-3)
+
+    def _read_free_projection(self, device: torch.device, iterations: int) -> ReadFree | None:
+        """A :class:`~diffcontact.systems.projection.ReadFree` for one rollout (``None``
+        without the projection): padded to the rows this system remembers."""
+        if not iterations:
+            return None
+        needed = torch.zeros((), dtype=torch.long, device=device)
+        rows = min(self._projection_rows, self._projection_rows_all())
+        return ReadFree(rows, needed, self._point_masses, self._two_sided)
+
+    def _projection_rows_all(self) -> int:
+        """Rows of a projection problem with every limit in it (each side of a two-sided one)."""
+        return self.n_contacts * (2 if self._two_sided else 1)
+
+    def _grow_projection_rows(self, read_free: ReadFree | None) -> bool:
+        """After a rollout whose projection needed more rows than ``read_free`` padded to
+        (one read of the device): remember half as many more, rounded up to a multiple
+        of 8, for this system's next rollouts. Whether it grew."""
+        if read_free is None:
+            return False
+        needed = int(read_free.needed)
+        if needed <= read_free.rows:
+            return False
+        grown = max(needed + 1, -(-3 * needed // 2 // 8) * 8)
+        self._projection_rows = min(self._projection_rows_all(), max(grown, self._projection_rows))
+        return True
 
     def project_positions(
         self,
@@ -1226,14 +1282,17 @@ class System:
                 it (the step's hundreds of small kernels launched at once; the step
                 then runs every state through the contact solve, padded, so that its
                 shapes do not depend on the data; the device is read a few times per
-                call, never inside a step). ``"auto"`` (default): where the states are on CUDA, the
-                cone-QP backend is Warp, the position projection is off, the rollout
-                has at least :data:`GRAPH_MIN_STEPS` steps and nothing in it requires
-                a gradient, else step by step (a capture that fails warns and goes
-                step by step); ``True``: insist (``ValueError`` where it cannot);
-                ``False``: never. Results equal the step-by-step ones to rounding. A
-                failed solve or a non-finite state reruns the rollout step by step,
-                which raises the usual error naming the states.
+                call, never inside a step; the position projection, if on, runs all
+                its iterations on every state with padded rows,
+                :class:`~diffcontact.systems.projection.ReadFree`). ``"auto"``
+                (default): where the states are on CUDA, the cone-QP backend is Warp,
+                the rollout has at least :data:`GRAPH_MIN_STEPS` steps and nothing in
+                it requires a gradient, else step by step (a capture that fails warns
+                and goes step by step); ``True``: insist (``ValueError`` where it
+                cannot); ``False``: never. Results equal the step-by-step ones to
+                rounding (with the projection, to its tolerance). A failed solve or a
+                non-finite state reruns the rollout step by step, which raises the
+                usual error naming the states.
 
         Returns:
             ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
@@ -1274,8 +1333,11 @@ class System:
                 z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
             )
         eager = (z0, steps, ctx, rollout, keep_gaps, progress, threads)
+        read_free = None
         if result is None:
-            result = self._rollout_eager(*eager, defer=True)
+            if _pads_contacts(z0.device) and _projects_read_free(z0.device):
+                read_free = self._read_free_projection(z0.device, iterations)
+            result = self._rollout_eager(*eager, defer=True, read_free=read_free)
         traj, gaps, pending = result
         # one read of the device per call for every check (not per step): the deferred
         # ones of the rollout, finiteness, tunnelling
@@ -1291,6 +1353,7 @@ class System:
             ]
             failed, nonfinite, tunnelled = torch.stack(checks).tolist()
         if failed:  # a deferred solver error or padding overflow: step by step, as it was
+            self._grow_projection_rows(read_free)  # (the next rollout's padding)
             traj, gaps, _ = self._rollout_eager(*eager, defer=False)
             with torch.no_grad():
                 nonfinite = not bool(torch.isfinite(traj.detach()).all())
@@ -1313,6 +1376,7 @@ class System:
         progress: bool,
         threads: int | str | None,
         defer: bool = False,
+        read_free: ReadFree | None = None,
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """The rollout step by step: ``(N, steps + 1, 2, P, dim)`` states, with
         ``keep_gaps`` ``(N, steps + 1, K)`` their gaps, and with ``defer`` a ``()`` bool
@@ -1323,14 +1387,17 @@ class System:
         (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
         solve, and on CUDA each step sends every state to the contact model padded to
         :data:`GRAPH_CONTACTS` (a state with more active contacts sets the flag) instead
-        of selecting the states in contact (a read of the device): the steps read the
-        device only where the position projection does. Without it, each step reads the
-        device (the selection, the solver's flags) and raises at once."""
+        of selecting the states in contact (a read of the device), and the position
+        projection runs ``read_free`` (a state needing more rows sets the flag too): the
+        steps do not read the device. Without ``defer``, each step reads the device (the
+        selection, the solver's flags, the projection's rows and early stop) and raises
+        at once."""
         model, dynamics, fraction, iterations, solver_settings = rollout
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
         padded = GRAPH_CONTACTS if defer and _pads_contacts(device) else None
+        read_free = read_free if padded is not None else None
         states = [z0]
         gaps: list[Tensor] | None = [self.gaps(z0.detach()[:, 0])] if keep_gaps else None
         z = z0
@@ -1345,7 +1412,7 @@ class System:
                         res = self._resolve(z1, ctx, model, fraction, solver_settings, padded)
                         if padded is not None:
                             overflow.logical_or_(((res.gaps < 0).sum(-1) > padded).any())
-                        z = self._project(res, ctx, iterations, solver_settings)
+                        z = self._project(res, ctx, iterations, solver_settings, read_free)
                         if gaps is not None:
                             gaps.append(res.gaps)
                     except (ValueError, torch.linalg.LinAlgError) as err:
@@ -1371,6 +1438,8 @@ class System:
             return self._rollout_eager(z0, steps, ctx, rollout, keep_gaps, progress, threads)
         traj = torch.stack(states, dim=1)
         gaps_all = None if gaps is None else torch.stack(gaps, 1)
+        if read_free is not None:
+            overflow = overflow | read_free.overflowed
         pending = (flags.any() | overflow) if defer else None
         return traj, gaps_all, pending
 
@@ -1391,8 +1460,6 @@ class System:
         reasons = []
         if z0.device.type != "cuda":
             reasons.append(f"the states are on {z0.device}, not a CUDA device")
-        if rollout.iterations:
-            reasons.append("the position projection is on (position_projection > 0)")
         if rollout.dynamics == "hamiltonian" and self.constraints is not None:
             reasons.append("constrained Hamiltonian dynamics solve with torch.linalg.solve")
         if settings.backend != "warp":
@@ -1444,10 +1511,12 @@ class System:
             give_up(needs_gradient)
             return None
         K = len(self.contact_names)
-        for contacts in sorted({min(K, GRAPH_CONTACTS), K}):
+        contacts = min(K, GRAPH_CONTACTS)
+        while True:  # (ends: each "overflow" or "rows" pads to more, up to all candidates)
+            read_free = self._read_free_projection(z0.device, rollout.iterations)
             try:
                 out = self._graphed_attempt(z0, steps, ctx, rollout, keep_gaps, progress,
-                                            contacts, capture)  # fmt: skip
+                                            contacts, capture, read_free)  # fmt: skip
             except _NeedsGradient:
                 give_up(needs_gradient)
                 return None
@@ -1456,9 +1525,12 @@ class System:
                     raise
                 give_up(f"the capture failed: {type(err).__name__}: {err}")
                 return None
-            if out != "overflow":
+            if out == "overflow":
+                contacts = K
+            elif out == "rows":
+                self._grow_projection_rows(read_free)
+            else:
                 return out
-        return None  # (not reached: padded to all candidates, no state overflows)
 
     def _graphed_attempt(
         self,
@@ -1470,11 +1542,13 @@ class System:
         progress: bool,
         contacts: int,
         capture: bool,
+        read_free: ReadFree | None = None,
     ) -> tuple[Tensor, Tensor | None, Tensor] | str:
-        """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``:
-        the trajectory, gaps and the solver's failure flag, or ``"overflow"`` (a state
-        had more active contacts: one read of the device)."""
-        model, dynamics, fraction, _, solver_settings = rollout
+        """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``
+        and the position projection (if on) run ``read_free``: the trajectory, gaps and
+        the solver's failure flag, or ``"overflow"`` (a state had more active contacts)
+        or ``"rows"`` (a state's projection needed more rows); one read of the device."""
+        model, dynamics, fraction, iterations, solver_settings = rollout
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
@@ -1484,10 +1558,10 @@ class System:
             with deferred_checks(flags):
                 z1 = self._integrate(z_in, ctx, dynamics)
                 res = self._resolve(z1, ctx, model, fraction, solver_settings, contacts)
-            if res.z.requires_grad:
-                raise _NeedsGradient
-            overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
-            z_in.copy_(res.z)
+                if res.z.requires_grad:
+                    raise _NeedsGradient
+                overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
+                z_in.copy_(self._project(res, ctx, iterations, solver_settings, read_free))
             return res.gaps
 
         if capture:
@@ -1510,6 +1584,8 @@ class System:
         z_in.copy_(z0)  # (the warm-up step moved it)
         flags.zero_()
         overflow.zero_()
+        if read_free is not None:
+            read_free.needed.zero_()
         N = z0.shape[0]
         traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
         traj[:, 0] = z0.detach()
@@ -1522,8 +1598,12 @@ class System:
             traj[:, step + 1].copy_(z_in)
             if gaps is not None:
                 gaps[:, step + 1].copy_(g_out)
-        if bool(overflow):
+        rows = overflow if read_free is None else read_free.overflowed
+        over_contacts, over_rows = torch.stack([overflow, rows]).tolist()
+        if over_contacts:
             return "overflow"
+        if over_rows:
+            return "rows"
         return traj, gaps, flags.any()  # (read by simulate with its other checks)
 
     def _contact_sizes(self, like: Tensor) -> Tensor:

@@ -1,0 +1,167 @@
+"""The position projection without reading the device (``projection.ReadFree``): what
+a captured CUDA step and a step-by-step rollout on CUDA run.
+
+Every state and every iteration take part and each state's problem is padded to a
+fixed number of rows, so no shape depends on the data; a state's correction stops
+where the early stop of the reading projection would have stopped. On the CPU it must
+give the reading projection's positions and gradients, read the device a fixed number
+of times per rollout (not per step or iteration), and redo a rollout whose states
+needed more rows than the padding, remembering the larger count."""
+
+import itertools
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.systems import system as system_module
+from diffcontact.systems.projection import ReadFree, project_positions
+from diffcontact.testing import count_host_reads
+
+pytest.importorskip("warp")
+
+
+def _read_free(rows: int, system) -> ReadFree:
+    needed = torch.zeros((), dtype=torch.long)
+    return ReadFree(rows, needed, system._point_masses, system._two_sided)
+
+
+def _violating_states(task: str, n: int, steps: int):
+    """Positions after ``steps`` steps without the projection, most past a limit."""
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(n, seed=3)
+    traj = system.simulate(z0, steps, position_projection=0, on_tunnelling="ignore")
+    return system, traj
+
+
+@pytest.mark.parametrize("task", ["Rope", "Rope-D100"])
+def test_the_read_free_projection_gives_the_reading_ones_positions(task):
+    system, traj = _violating_states(task, 32, 10)
+    x = traj[:, -1, 0]
+    violated = (system.gaps(x) < 0).any(-1)
+    assert 0 < int(violated.sum()) < x.shape[0] or task == "Rope-D100"
+    geometry, M_inv = system.geometry, system.inverse_mass_matrix()
+    want = project_positions(x, geometry, M_inv, 10)
+    read_free = _read_free(64, system)
+    got = project_positions(x, geometry, M_inv, 10, read_free=read_free)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    assert torch.equal(got[~violated], x[~violated])  # admissible states untouched
+    assert 0 < int(read_free.needed) <= 64 and not bool(read_free.overflowed)
+    # padded to fewer rows than a state selects: flagged
+    few = _read_free(2, system)
+    project_positions(x, geometry, M_inv, 10, read_free=few)
+    assert bool(few.overflowed) and int(few.needed) == int(read_free.needed)
+
+
+def test_the_read_free_projection_keeps_equality_constraints():
+    """Disks pushed into a wall (block mass matrix, rigid-body constraints)."""
+    system, traj = _violating_states("BD5", 6, 40)
+    flat = traj.flatten(0, 1)
+    hit = (system.gaps(flat[:, 0]) < -1e-4).any(-1)
+    z = torch.cat([flat[hit][:4], flat[~hit][:2]])
+    ctx = system._context(z, None, z.shape[0])
+    args = (z[:, 0], ctx.geometry, ctx.M_inv, 10)
+    want = project_positions(*args, constraints=ctx.constraints)
+    got = project_positions(*args, constraints=ctx.constraints, read_free=_read_free(16, system))
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    assert float((got - z[:, 0]).abs().max()) > 1e-4
+
+
+@pytest.mark.parametrize("task", list(dc.list_tasks()))
+def test_the_structure_known_without_a_read_is_the_matrices(task):
+    """``System._point_masses`` and ``_two_sided`` (what the read-free projection takes
+    from the structure) agree with the inverse mass matrix and the geometry."""
+    system = dc.load_system(task)
+    M_inv = system.inverse_mass_matrix()
+    assert system._point_masses == bool((M_inv == torch.diag_embed(M_inv.diagonal())).all())
+    widths = getattr(system.geometry, "gap_widths", lambda: None)()
+    assert system._two_sided == (widths is not None and bool(torch.isfinite(widths).any()))
+
+
+def _static_rollout(system, z0, steps):
+    """``_rollout_graphed`` without the capture, with simulate's default options."""
+    model, dynamics, _, params = system._options("CM", None, None, None)
+    iterations = system._projection_iterations(None)  # (the penetration target is then off)
+    ctx = system._context(z0, params, z0.shape[0])
+    rollout = system_module._Rollout(model, dynamics, 0.0, iterations, None)
+    return system._rollout_graphed(z0, steps, ctx, rollout, False, False, capture=False)
+
+
+def test_the_static_rope_step_gives_the_step_by_step_trajectories():
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(32, seed=4)
+    eager = system.simulate(z0, 20, cuda_graph=False)
+    loose = system.simulate(z0, 20, position_projection=0)
+    assert float((loose - eager).abs().max()) > 1e-3  # the projection acted
+    traj, _, failed = _static_rollout(system, z0, 20)
+    assert not bool(failed)
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
+    assert system._projection_rows == system_module.PROJECTION_ROWS  # enough: no rerun
+    reads = [count_host_reads(lambda k=k: _static_rollout(system, z0, k)) for k in (4, 16)]
+    assert reads[0] == reads[1] <= 3  # nothing per step or iteration
+
+
+def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(32, seed=4)
+    eager = system.simulate(z0, 20, cuda_graph=False)
+    system._projection_rows = 2
+    tries = []
+    attempt = system_module.System._graphed_attempt
+
+    def spy(self, *args):
+        out = attempt(self, *args)
+        tries.append((args[8].rows, out if isinstance(out, str) else "done"))
+        return out
+
+    monkeypatch.setattr(system_module.System, "_graphed_attempt", spy)
+    traj, _, _ = _static_rollout(system, z0, 20)
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
+    assert tries[0] == (2, "rows") and tries[-1][1] == "done"
+    assert all(a[0] < b[0] for a, b in itertools.pairwise(tries))
+    assert 2 < system._projection_rows <= 2 * system.n_contacts
+    tries.clear()
+    _static_rollout(system, z0, 20)
+    assert tries == [(system._projection_rows, "done")]  # remembered: no rerun
+
+
+def _simulate_with_grad(system, z0, steps, pads: bool, monkeypatch):
+    """``simulate`` with a gradient to the masses; ``pads``: as on CUDA with the
+    read-free projection chosen (every state padded through the contact solve)."""
+    monkeypatch.setattr(system_module, "_pads_contacts", lambda device: pads)
+    monkeypatch.setattr(system_module, "_projects_read_free", lambda device: pads)
+    base = system.parameters()
+    mass = base.mass.clone().requires_grad_(True)
+    traj = system.simulate(z0, steps, params=base.replace(mass=mass))
+    (grad,) = torch.autograd.grad(traj[:, -1, 0].square().sum(), mass)
+    return traj, grad
+
+
+def test_the_cuda_step_by_step_path_projects_without_reads(monkeypatch):
+    """The rollout with gradients as on CUDA with the read-free projection chosen
+    (``system._projects_read_free``): the reading rollout's trajectory and
+    gradient, and a fixed number of reads per call (the reading one reads in every
+    iteration of every step)."""
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(16, seed=5)
+    want, grad_want = _simulate_with_grad(system, z0, 20, False, monkeypatch)
+    got, grad_got = _simulate_with_grad(system, z0, 20, True, monkeypatch)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(grad_got, grad_want, rtol=1e-10, atol=1e-12)
+
+    def reads(steps: int, pads: bool) -> int:
+        return count_host_reads(lambda: _simulate_with_grad(system, z0, steps, pads, monkeypatch))
+
+    assert reads(5, True) == reads(15, True) <= 5
+    assert reads(15, False) > reads(5, False) + 20
+
+
+def test_the_cuda_step_by_step_path_reruns_with_too_few_rows(monkeypatch):
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(16, seed=5)
+    want, grad_want = _simulate_with_grad(system, z0, 20, False, monkeypatch)
+    system._projection_rows = 2
+    got, grad_got = _simulate_with_grad(system, z0, 20, True, monkeypatch)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(grad_got, grad_want, rtol=1e-10, atol=1e-12)
+    assert system._projection_rows > 2
