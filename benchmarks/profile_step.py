@@ -4,10 +4,11 @@
         [--scenes N] [--steps N] [--quick]
 
 Runs ``--steps`` steps of the static step that ``System.simulate(cuda_graph=...)``
-captures (every state padded to ``GRAPH_CONTACTS`` contacts, the solver's flags deferred;
-here run eagerly, ``_rollout_graphed(..., capture=False)``, so that the profiler sees each
-kernel) under ``torch.profiler`` and prints, per task, the device time per step and the
-operations and kernels that take the most of it (CUDA time on CUDA, CPU time on the CPU).
+captures (every state padded to ``GRAPH_CONTACTS`` contacts, the solver's flags deferred,
+the ropes' position projection read-free; here run eagerly, ``_rollout_graphed(...,
+capture=False)``, so that the profiler sees each kernel) under ``torch.profiler`` and
+prints, per task, the device time per step and the operations and kernels that take the
+most of it (CUDA time on CUDA, CPU time on the CPU).
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ def profile_task(task: str, scenes: int, steps: int, device: str, rows: int) -> 
     z0 = system.sample_initial_conditions(scenes, seed=0).to(device)
     model, dynamics, fraction, params = system._options("CM", None, None)
     ctx = system._context(z0, params, scenes)
-    rollout = _Rollout(model, dynamics, fraction, 0, None)
+    iterations = system._projection_iterations(None)  # the ropes' projection, as simulate
+    rollout = _Rollout(model, dynamics, 0.0 if iterations else fraction, iterations, None)
 
     def run(k: int) -> None:
         system._rollout_graphed(z0, k, ctx, rollout, False, False, capture=False)

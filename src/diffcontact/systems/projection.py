@@ -62,6 +62,7 @@ pumped energy into a hanging rope).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -113,6 +114,15 @@ class ReadFree:
     def overflowed(self) -> Tensor:
         """``()`` bool on the device: a state needed more than :attr:`rows` rows."""
         return self.needed > self.rows
+
+
+@functools.lru_cache(maxsize=16)
+def _step_lengths(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """:data:`STEPS` as a tensor, made once per dtype and device: a copy from the host in
+    every call would be a transfer inside a captured CUDA step, which a graph cannot
+    replay (the warm-up step before the capture fills this cache)."""
+    with torch.inference_mode(False):
+        return torch.tensor(STEPS, dtype=dtype, device=device)
 
 
 def _gather_rows(mask_rows: Tensor, R: int | None = None) -> tuple[Tensor, Tensor]:
@@ -253,7 +263,7 @@ def project_positions(
         # (in sqrt(mass) * length) from the linearised limit, whatever the gap's unit
         scale = _metric_norms(geometry, x_pred, Minv_b, rows_i).clamp_min(1e-300)
         scale_rows = torch.cat([scale, scale], -1) if two_sided else scale
-        steps = torch.tensor(STEPS, dtype=x.dtype, device=x.device)
+        steps = _step_lengths(x.dtype, x.device)
         mask_rows = torch.zeros_like(scale_rows, dtype=torch.bool)
 
     def row_gaps(g: Tensor) -> Tensor:  # (..., K) -> (..., R_all): each side of each limit

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The CUDA checks of one GPU session, in the order of what matters most, each under its own
+# time limit so that one slow part cannot take the rest with it:
+#
+#   bash benchmarks/cuda_checks.sh [OUT_DIR]      (default runs/cuda-checks; needs a CUDA GPU)
+#
+# 1. the CUDA tests (pytest -m cuda: captured steps, the read-free rope projection in a
+#    graph, the fused solver on CUDA);
+# 2. simulation of 4096 scenes of every task, step by step and graphed;
+# 3. launches and synchronisations per step;
+# 4. the Rope training step with the reading and the read-free projection
+#    (system._projects_read_free decides which one a step on CUDA takes);
+# 5. where a graphed step's GPU time goes.
+#
+# Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
+# The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache
+# (WARP_CACHE_PATH) holds them: part 0 does that once, timed on its own.
+set -u
+OUT=${1:-runs/cuda-checks}
+mkdir -p "$OUT"
+PY=${PYTHON:-python3}
+start=$(date +%s)
+part() {  # part NAME SECONDS COMMAND...
+    local name=$1 limit=$2
+    shift 2
+    echo "== $name (limit ${limit}s)"
+    timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
+    local rc=$?
+    tail -n 25 "$OUT/$name.txt"
+    echo "== $name: exit $rc, t=$(($(date +%s) - start))s"
+}
+if ! $PY -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null; then
+    echo "cuda_checks.sh: no CUDA device available to $PY (set PYTHON=...)" >&2
+    exit 2
+fi
+part 0_first_solve 600 $PY -c "
+import time, torch
+from diffcontact.contact import SolverSettings, solve_cone_qp
+for dtype in (torch.float64, torch.float32):
+    t = time.perf_counter()
+    A = torch.eye(4, dtype=dtype, device='cuda').expand(8, 4, 4)
+    b = -torch.ones(8, 4, dtype=dtype, device='cuda')
+    mu = torch.ones(8, 2, dtype=dtype, device='cuda')
+    solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend='warp'))
+    torch.cuda.synchronize()
+    print('first Warp solve on CUDA', dtype, round(time.perf_counter() - t, 1), 's')
+"
+part 1_pytest_cuda 300 $PY -m pytest -q -m cuda -p no:cacheprovider
+part 2_simulate_4096 300 $PY benchmarks/run.py simulate --device cuda --all-tasks --scenes 4096 --cuda-graph both
+part 3_launches 200 $PY benchmarks/run.py launches --device cuda
+part 4_train_rope 200 $PY benchmarks/run.py train --device cuda --tasks Rope BP5 --against none --reps 3
+part 4_train_rope_read_free 200 $PY benchmarks/run.py train --device cuda --tasks Rope --against none --reps 3 --read-free-projection
+part 5_profile_step 200 $PY benchmarks/run.py profile_step --device cuda --tasks BP5 BD5 Rope
+echo "cuda_checks.sh: done in $(($(date +%s) - start))s; outputs in $OUT"
