@@ -122,8 +122,8 @@ def _projects_read_free(device: torch.device) -> bool:
     """Whether such a padded step-by-step rollout (:func:`_pads_contacts`) also runs the
     position projection read-free (:class:`~diffcontact.systems.projection.ReadFree`; a
     captured step always does). Not by default: read-free, the projection runs all its
-    iterations, and a Rope training step dispatches 24,477 torch operations instead of
-    12,828 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
+    iterations, and a Rope training step dispatches 24,473 torch operations instead of
+    12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
     [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
     CUDA is bound by its
     launches (the GPU busy about a tenth of the time, benchmarks/README.md), where a read
