@@ -46,6 +46,10 @@ what the iterations resolve and the limits are not held (docs/config.md, ``rope`
 
 The iterations stop early once every gap is above ``-tol`` and ``Phi`` is within
 ``tol``. Velocities are not changed (the impulse already made them admissible).
+Everything but the discrete choices (rows, step length, early stop) is
+differentiable; with the projection on, ``System`` drops the penetration target
+(it would add a velocity for a violation the projection already removed, which
+pumped energy into a hanging rope).
 
 Choosing the states to project, each iteration's rows and the early stop reads the
 device (a synchronisation on CUDA, which a CUDA graph cannot capture). With
@@ -54,10 +58,6 @@ correction of an iteration the early stop would have skipped is not applied, and
 problem is padded to a fixed number of rows (a state that selects more sets a flag on
 the device, and the caller computes again). Same positions to rounding, more
 arithmetic.
-Everything but the discrete choices (rows, step length, early stop) is
-differentiable; with the projection on, ``System`` drops the penetration target
-(it would add a velocity for a violation the projection already removed, which
-pumped energy into a hanging rope).
 """
 
 from __future__ import annotations

@@ -125,10 +125,9 @@ def _projects_read_free(device: torch.device) -> bool:
     iterations, and a Rope training step dispatches 24,473 torch operations instead of
     12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
     [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
-    CUDA is bound by its
-    launches (the GPU busy about a tenth of the time, benchmarks/README.md), where a read
-    waits for little. To be measured on a GPU: ``python benchmarks/run.py train --device
-    cuda --tasks Rope [--read-free-projection]``."""
+    CUDA is bound by its launches (the GPU busy about a tenth of the time,
+    benchmarks/README.md), where a read waits for little. To be measured on a GPU:
+    ``python benchmarks/run.py train --device cuda --tasks Rope [--read-free-projection]``."""
     return False
 
 
@@ -1525,10 +1524,12 @@ class System:
                     raise
                 give_up(f"the capture failed: {type(err).__name__}: {err}")
                 return None
-            if out == "overflow":
+            if out == "overflow" and contacts < K:
                 contacts = K
-            elif out == "rows":
-                self._grow_projection_rows(read_free)
+            elif out == "rows" and self._grow_projection_rows(read_free):
+                continue
+            elif isinstance(out, str):  # (padded to every candidate and row: cannot happen)
+                raise RuntimeError(f"simulate {self.name}: the static rollout overflowed ({out})")
             else:
                 return out
 
