@@ -58,7 +58,7 @@ def machine_header(device: str, dtype: torch.dtype) -> list[str]:
 READ_FREE_HELP = (
     "run the position projection read-free in step-by-step rollouts that pad their "
     "contacts (CUDA; on the CPU, the CUDA path column): all its iterations, padded rows, "
-    "no read of the device (diffcontact.systems.system._projects_read_free; a captured "
+    "no read of the device (diffcontact.systems.rollout._projects_read_free; a captured "
     "step always does)"
 )
 
@@ -66,8 +66,8 @@ READ_FREE_HELP = (
 def choose_read_free_projection(on: bool) -> None:
     """With ``on``, step-by-step rollouts that pad their contacts (on CUDA) run the position
     projection read-free for the rest of the process (the choice
-    ``diffcontact.systems.system._projects_read_free`` makes, off by default)."""
+    ``diffcontact.systems.rollout._projects_read_free`` makes, off by default)."""
     if on:
-        from diffcontact.systems import system as system_module
+        from diffcontact.systems import rollout
 
-        system_module._projects_read_free = lambda device: True
+        rollout._projects_read_free = lambda device: True

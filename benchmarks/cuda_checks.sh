@@ -9,7 +9,7 @@
 # 2. simulation of 4096 scenes of every task, step by step and graphed;
 # 3. launches and synchronisations per step;
 # 4. the Rope training step with the reading and the read-free projection
-#    (system._projects_read_free decides which one a step on CUDA takes);
+#    (diffcontact.systems.rollout._projects_read_free decides which one a step on CUDA takes);
 # 5. where a graphed step's GPU time goes.
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.

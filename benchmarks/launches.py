@@ -98,15 +98,15 @@ def measure(fn, device: str, per: int, reads_fn=None) -> dict:
 def cuda_path():
     """Inside, step-by-step rollouts on the CPU take the path they take on CUDA: every state
     padded through the contact solve instead of a selection of the states in contact (a
-    read of the device per step; ``diffcontact.systems.system._pads_contacts``)."""
-    from diffcontact.systems import system as system_module
+    read of the device per step; ``diffcontact.systems.rollout._pads_contacts``)."""
+    from diffcontact.systems import rollout
 
-    original = system_module._pads_contacts
-    system_module._pads_contacts = lambda device: True
+    original = rollout._pads_contacts
+    rollout._pads_contacts = lambda device: True
     try:
         yield
     finally:
-        system_module._pads_contacts = original
+        rollout._pads_contacts = original
 
 
 def simulate_row(scenes: int, device: str) -> dict:

@@ -5,10 +5,10 @@
 
 Runs ``--steps`` steps of the static step that ``System.simulate(cuda_graph=...)``
 captures (every state padded to ``GRAPH_CONTACTS`` contacts, the solver's flags deferred,
-the ropes' position projection read-free; here run eagerly, ``_rollout_graphed(...,
-capture=False)``, so that the profiler sees each kernel) under ``torch.profiler`` and
-prints, per task, the device time per step and the operations and kernels that take the
-most of it (CUDA time on CUDA, CPU time on the CPU).
+the ropes' position projection read-free; here run eagerly,
+``Rollout.graphed(capture=False)``, so that the profiler sees each kernel) under
+``torch.profiler`` and prints, per task, the device time per step and the operations and
+kernels that take the most of it (CUDA time on CUDA, CPU time on the CPU).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from torch.profiler import ProfilerActivity, profile
 
 import diffcontact as dc
 from common import machine_header
-from diffcontact.systems.system import _Rollout
+from diffcontact.systems.rollout import Rollout, RolloutOptions
 
 
 def profile_task(task: str, scenes: int, steps: int, device: str, rows: int) -> None:
@@ -30,10 +30,10 @@ def profile_task(task: str, scenes: int, steps: int, device: str, rows: int) -> 
     model, dynamics, fraction, params = system._options("CM", None, None)
     ctx = system._context(z0, params, scenes)
     iterations = system._projection_iterations(None)  # the ropes' projection, as simulate
-    rollout = _Rollout(model, dynamics, 0.0 if iterations else fraction, iterations, None)
+    options = RolloutOptions(model, dynamics, 0.0 if iterations else fraction, iterations, None)
 
     def run(k: int) -> None:
-        system._rollout_graphed(z0, k, ctx, rollout, False, False, capture=False)
+        Rollout(system, ctx, z0, k, options).graphed(capture=False)
         if device == "cuda":
             torch.cuda.synchronize()
 

@@ -73,12 +73,14 @@ def graph_used(system, z0: torch.Tensor, steps: int, cuda_graph, caught) -> bool
         print(f"  ({w.category.__name__}: {w.message})", file=sys.stderr)
     if cuda_graph is False or z0.device.type != "cuda":
         return False
-    from diffcontact.systems.system import _Rollout
+    from diffcontact.systems.rollout import Rollout, RolloutOptions
 
-    model, dynamics, fraction, _ = system._options("CM", None, None)
-    rollout = _Rollout(model, dynamics, fraction, system._projection_iterations(None), None)
+    model, dynamics, fraction, params = system._options("CM", None, None)
+    iterations = system._projection_iterations(None)
+    options = RolloutOptions(model, dynamics, fraction, iterations, None)
+    run = Rollout(system, system._context(z0, params, z0.shape[0]), z0, steps, options)
     fell_back = any("no CUDA graph" in str(w.message) for w in caught)
-    return system._graph_wanted(cuda_graph, z0, rollout, steps) and not fell_back
+    return run.graph_wanted(cuda_graph) and not fell_back
 
 
 COMPARE_TASK = "BP5"

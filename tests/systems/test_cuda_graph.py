@@ -1,10 +1,11 @@
 """The rollout of ``System.simulate(cuda_graph=...)``: one step with static shapes and no
 read of the device, captured in a CUDA graph and replayed.
 
-On the CPU the same static step runs without a capture (``_rollout_graphed(...,
-capture=False)``): it must give the step-by-step trajectories to rounding, read the
-device once per rollout (not per step) and hand failures back to the step-by-step
-rollout, which names them. The capture itself is tested on CUDA (marker ``cuda``)."""
+On the CPU the same static step runs without a capture
+(``Rollout.graphed(capture=False)``): it must give the step-by-step trajectories to
+rounding, read the device once per rollout (not per step) and hand failures back to the
+step-by-step rollout, which names them. The capture itself is tested on CUDA (marker
+``cuda``)."""
 
 import warnings
 
@@ -15,19 +16,20 @@ import diffcontact as dc
 from diffcontact.contact import SolverSettings, solve_cone_qp
 from diffcontact.contact.cone_qp import deferred_checks, deferred_error
 from diffcontact.contact.fused import FLAGS
-from diffcontact.systems import system as system_module
+from diffcontact.systems import rollout as rollout_module
 from diffcontact.testing import count_host_reads
 
 pytest.importorskip("warp")
 
 
 def _static_rollout(system, z0, steps, params=None):
-    """``_rollout_graphed`` without the capture, with simulate's default options."""
+    """``Rollout.graphed`` without the capture, with simulate's default options."""
     model, dynamics, fraction, params = system._options("CM", None, None, params)
     iterations = system._projection_iterations(None)
     ctx = system._context(z0, params, z0.shape[0])
-    rollout = system_module._Rollout(model, dynamics, fraction, iterations, None)
-    return system._rollout_graphed(z0, steps, ctx, rollout, True, False, capture=False)
+    options = rollout_module.RolloutOptions(model, dynamics, fraction, iterations, None)
+    run = rollout_module.Rollout(system, ctx, z0, steps, options, keep_gaps=True)
+    return run.graphed(capture=False)
 
 
 @pytest.mark.parametrize("task", ["BP5", "BP5-e", "BD5", "CP3", "Gyro"])
@@ -52,15 +54,15 @@ def test_a_state_with_more_contacts_than_the_padding_reruns_padded_to_all(monkey
     eager = system.simulate(z0, 60, cuda_graph=False)
     assert ((system.gaps(eager[:, 1:, 0].flatten(0, 1)) < 0).sum(-1) > 1).any()
     tries = []
-    attempt = system_module.System._graphed_attempt
+    attempt = rollout_module.Rollout._attempt
 
-    def spy(self, *args):
-        out = attempt(self, *args)
-        tries.append((args[6], out if isinstance(out, str) else "done"))
+    def spy(self, contacts, *args):
+        out = attempt(self, contacts, *args)
+        tries.append((contacts, out if isinstance(out, str) else "done"))
         return out
 
-    monkeypatch.setattr(system_module, "GRAPH_CONTACTS", 1)
-    monkeypatch.setattr(system_module.System, "_graphed_attempt", spy)
+    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 1)
+    monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
     traj, _, _ = _static_rollout(system, z0, 60)
     assert tries == [(1, "overflow"), (30, "done")]
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import diffcontact as dc
-from diffcontact.systems import system as system_module
+from diffcontact.systems import rollout as rollout_module
 from diffcontact.systems.projection import ReadFree, project_positions
 from diffcontact.testing import count_host_reads
 
@@ -79,12 +79,12 @@ def test_the_structure_known_without_a_read_is_the_matrices(task):
 
 
 def _static_rollout(system, z0, steps):
-    """``_rollout_graphed`` without the capture, with simulate's default options."""
+    """``Rollout.graphed`` without the capture, with simulate's default options."""
     model, dynamics, _, params = system._options("CM", None, None, None)
     iterations = system._projection_iterations(None)  # (the penetration target is then off)
     ctx = system._context(z0, params, z0.shape[0])
-    rollout = system_module._Rollout(model, dynamics, 0.0, iterations, None)
-    return system._rollout_graphed(z0, steps, ctx, rollout, False, False, capture=False)
+    options = rollout_module.RolloutOptions(model, dynamics, 0.0, iterations, None)
+    return rollout_module.Rollout(system, ctx, z0, steps, options).graphed(capture=False)
 
 
 def test_the_static_rope_step_gives_the_step_by_step_trajectories():
@@ -96,7 +96,7 @@ def test_the_static_rope_step_gives_the_step_by_step_trajectories():
     traj, _, failed = _static_rollout(system, z0, 20)
     assert not bool(failed)
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
-    assert system._projection_rows == system_module.PROJECTION_ROWS  # enough: no rerun
+    assert system._projection_rows == rollout_module.PROJECTION_ROWS  # enough: no rerun
     reads = [count_host_reads(lambda k=k: _static_rollout(system, z0, k)) for k in (4, 16)]
     assert reads[0] == reads[1] <= 3  # nothing per step or iteration
 
@@ -107,14 +107,14 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
     eager = system.simulate(z0, 20, cuda_graph=False)
     system._projection_rows = 2
     tries = []
-    attempt = system_module.System._graphed_attempt
+    attempt = rollout_module.Rollout._attempt
 
-    def spy(self, *args):
-        out = attempt(self, *args)
-        tries.append((args[8].rows, out if isinstance(out, str) else "done"))
+    def spy(self, contacts, capture, read_free):
+        out = attempt(self, contacts, capture, read_free)
+        tries.append((read_free.rows, out if isinstance(out, str) else "done"))
         return out
 
-    monkeypatch.setattr(system_module.System, "_graphed_attempt", spy)
+    monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
     traj, _, _ = _static_rollout(system, z0, 20)
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
     assert tries[0] == (2, "rows") and tries[-1][1] == "done"
@@ -128,8 +128,8 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
 def _simulate_with_grad(system, z0, steps, pads: bool, monkeypatch):
     """``simulate`` with a gradient to the masses; ``pads``: as on CUDA with the
     read-free projection chosen (every state padded through the contact solve)."""
-    monkeypatch.setattr(system_module, "_pads_contacts", lambda device: pads)
-    monkeypatch.setattr(system_module, "_projects_read_free", lambda device: pads)
+    monkeypatch.setattr(rollout_module, "_pads_contacts", lambda device: pads)
+    monkeypatch.setattr(rollout_module, "_projects_read_free", lambda device: pads)
     base = system.parameters()
     mass = base.mass.clone().requires_grad_(True)
     traj = system.simulate(z0, steps, params=base.replace(mass=mass))
@@ -139,7 +139,7 @@ def _simulate_with_grad(system, z0, steps, pads: bool, monkeypatch):
 
 def test_the_cuda_step_by_step_path_projects_without_reads(monkeypatch):
     """The rollout with gradients as on CUDA with the read-free projection chosen
-    (``system._projects_read_free``): the reading rollout's trajectory and
+    (``rollout._projects_read_free``): the reading rollout's trajectory and
     gradient, and a fixed number of reads per call (the reading one reads in every
     iteration of every step)."""
     system = dc.load_system("Rope")

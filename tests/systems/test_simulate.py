@@ -309,7 +309,7 @@ def test_padded_steps_read_nothing_and_give_the_same_values_and_gradients(task, 
     no selection), forced on the CPU: no read per step, and the trajectories and the
     gradients of the selected rollout."""
     pytest.importorskip("warp")
-    from diffcontact.systems import system as system_module
+    from diffcontact.systems import rollout as rollout_module
 
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(16, seed=2)
@@ -323,17 +323,17 @@ def test_padded_steps_read_nothing_and_give_the_same_values_and_gradients(task, 
         return traj.detach(), z.grad, mu.grad
 
     selected = run()
-    monkeypatch.setattr(system_module, "_pads_contacts", lambda device: True)
+    monkeypatch.setattr(rollout_module, "_pads_contacts", lambda device: True)
     padded = run()
     for a, b in zip(padded, selected, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
     reads = [count_host_reads(lambda k=k: system.simulate(z0, steps=k)) for k in (10, 20)]
     assert reads[1] == reads[0]
     # a state with more active contacts than the padding: the rollout runs again selected
-    monkeypatch.setattr(system_module, "GRAPH_CONTACTS", 1)
+    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 1)
     z0 = system.sample_initial_conditions(64, seed=2)
     again = system.simulate(z0, 60)
-    monkeypatch.setattr(system_module, "_pads_contacts", lambda device: False)
+    monkeypatch.setattr(rollout_module, "_pads_contacts", lambda device: False)
     plain = system.simulate(z0, 60)
     if task == "BP5":  # (CP3's links have one limit each)
         assert ((system.gaps(plain[:, 1:, 0].flatten(0, 1)) < 0).sum(-1) > 1).any()

@@ -30,14 +30,13 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 
 from __future__ import annotations
 
-import contextlib
 import math
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from dataclasses import field as dataclass_field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -45,9 +44,7 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import (
     ConeQPError,
     SolverSettings,
-    deferred_checks,
 )
-from diffcontact.contact.fused import FLAGS as SOLVER_FLAGS
 from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
@@ -81,7 +78,7 @@ from diffcontact.systems.config import (
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import ReadFree, project_positions
-from diffcontact.threads import thread_scope
+from diffcontact.systems.rollout import PROJECTION_ROWS, Rollout, RolloutOptions
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
 
@@ -93,56 +90,6 @@ TUNNELLING_FRACTION = 1.0
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
 0.75 for BP5's smallest body, 0.46 for BD5)."""
 ON_TUNNELLING = ("warn", "raise", "ignore")
-
-#: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
-#: of at least this many steps (the capture costs about two eager steps)
-GRAPH_MIN_STEPS = 16
-#: the contacts per state that a captured step pads to (no state of 4096 BP5 or BD5 rollouts
-#: of 100 steps had more than 5 active at once: ``python benchmarks/run.py simulate
-#: --all-tasks --scenes 4096``, column ``max contacts``); a rollout where a state has more
-#: is run again padded to all candidates
-GRAPH_CONTACTS = 8
-
-#: the rows of each state's problem that a read-free position projection (a captured step,
-#: or a step-by-step rollout on CUDA) pads to at first (enough for Rope's rollouts:
-#: tests/systems/test_read_free_projection.py); a rollout where a state selects more is run
-#: again, and the system remembers the larger count for its next rollouts
-#: (:meth:`System._grow_projection_rows`)
-PROJECTION_ROWS = 16
-
-
-def _pads_contacts(device: torch.device) -> bool:
-    """Whether a deferred step-by-step rollout on ``device`` sends every state to the
-    contact model, padded, instead of selecting the states in contact: on CUDA, where the
-    selection's read of the device stalls the queue and the padded work is cheap."""
-    return device.type == "cuda"
-
-
-def _projects_read_free(device: torch.device) -> bool:
-    """Whether such a padded step-by-step rollout (:func:`_pads_contacts`) also runs the
-    position projection read-free (:class:`~diffcontact.systems.projection.ReadFree`; a
-    captured step always does). Not by default: read-free, the projection runs all its
-    iterations, and a Rope training step dispatches 24,473 torch operations instead of
-    12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
-    [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
-    CUDA is bound by its launches (the GPU busy about a tenth of the time,
-    benchmarks/README.md), where a read waits for little. To be measured on a GPU:
-    ``python benchmarks/run.py train --device cuda --tasks Rope [--read-free-projection]``."""
-    return False
-
-
-class _Rollout(NamedTuple):
-    """The options of a rollout that every step uses."""
-
-    model: ContactModel
-    dynamics: str
-    fraction: float
-    iterations: int
-    solver_settings: SolverSettings | None
-
-
-class _NeedsGradient(Exception):
-    """A captured step's result requires grad (raised before the capture goes on)."""
 
 
 def list_tasks() -> list[str]:
@@ -916,7 +863,8 @@ class System:
         every state, its active candidates first, padded to that many candidates (those
         without an active contact as all-padded problems, which get zero impulses; active
         contacts beyond it are dropped, which the caller must detect), so that the shapes
-        do not depend on the data and the device is never read (:meth:`_rollout_graphed`)."""
+        do not depend on the data and the device is never read
+        (:meth:`~diffcontact.systems.rollout.Rollout.graphed`)."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         P, dim, d = self.n_points, self.dim, self.d
         D = P * dim
@@ -1285,7 +1233,8 @@ class System:
                 its iterations on every state with padded rows,
                 :class:`~diffcontact.systems.projection.ReadFree`). ``"auto"``
                 (default): where the states are on CUDA, the cone-QP backend is Warp,
-                the rollout has at least :data:`GRAPH_MIN_STEPS` steps and nothing in
+                the rollout has at least
+                :data:`~diffcontact.systems.rollout.GRAPH_MIN_STEPS` steps and nothing in
                 it requires a gradient, else step by step (a capture that fails warns
                 and goes step by step); ``True``: insist (``ValueError`` where it
                 cannot); ``False``: never. Results equal the step-by-step ones to
@@ -1325,18 +1274,11 @@ class System:
         # the gaps of each state, for the tunnelling check: the contact resolution's own
         # (a step's positions are final there unless the position projection moves them)
         keep_gaps = not iterations and on_tunnelling != "ignore"
-        rollout = _Rollout(model, dynamics, fraction, iterations, solver_settings)
-        result = None
-        if self._graph_wanted(cuda_graph, z0, rollout, steps):
-            result = self._rollout_graphed(
-                z0, steps, ctx, rollout, keep_gaps, progress, strict=cuda_graph is True
-            )
-        eager = (z0, steps, ctx, rollout, keep_gaps, progress, threads)
-        read_free = None
+        options = RolloutOptions(model, dynamics, fraction, iterations, solver_settings)
+        run = Rollout(self, ctx, z0, steps, options, keep_gaps, progress, threads)
+        result = run.graphed(strict=cuda_graph is True) if run.graph_wanted(cuda_graph) else None
         if result is None:
-            if _pads_contacts(z0.device) and _projects_read_free(z0.device):
-                read_free = self._read_free_projection(z0.device, iterations)
-            result = self._rollout_eager(*eager, defer=True, read_free=read_free)
+            result = run.eager(defer=True)
         traj, gaps, pending = result
         # one read of the device per call for every check (not per step): the deferred
         # ones of the rollout, finiteness, tunnelling
@@ -1352,8 +1294,8 @@ class System:
             ]
             failed, nonfinite, tunnelled = torch.stack(checks).tolist()
         if failed:  # a deferred solver error or padding overflow: step by step, as it was
-            self._grow_projection_rows(read_free)  # (the next rollout's padding)
-            traj, gaps, _ = self._rollout_eager(*eager, defer=False)
+            run.grow_padding()  # (the next rollout's)
+            traj, gaps, _ = run.eager(defer=False)
             with torch.no_grad():
                 nonfinite = not bool(torch.isfinite(traj.detach()).all())
                 if check_tunnelling:
@@ -1364,248 +1306,6 @@ class System:
         if tunnelled:
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise")
         return traj
-
-    def _rollout_eager(
-        self,
-        z0: Tensor,
-        steps: int,
-        ctx: _Context,
-        rollout: _Rollout,
-        keep_gaps: bool,
-        progress: bool,
-        threads: int | str | None,
-        defer: bool = False,
-        read_free: ReadFree | None = None,
-    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """The rollout step by step: ``(N, steps + 1, 2, P, dim)`` states, with
-        ``keep_gaps`` ``(N, steps + 1, K)`` their gaps, and with ``defer`` a ``()`` bool
-        tensor on the device, True where a deferred check failed: then the caller runs
-        the rollout again with ``defer=False``, which raises the error naming the states.
-
-        ``defer``: the fused solver's error flags are gathered on the device
-        (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
-        solve, and on CUDA each step sends every state to the contact model padded to
-        :data:`GRAPH_CONTACTS` (a state with more active contacts sets the flag) instead
-        of selecting the states in contact (a read of the device), and the position
-        projection runs ``read_free`` (a state needing more rows sets the flag too): the
-        steps do not read the device. Without ``defer``, each step reads the device (the
-        selection, the solver's flags, the projection's rows and early stop) and raises
-        at once."""
-        model, dynamics, fraction, iterations, solver_settings = rollout
-        device = z0.device
-        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
-        overflow = torch.zeros((), dtype=torch.bool, device=device)
-        padded = GRAPH_CONTACTS if defer and _pads_contacts(device) else None
-        read_free = read_free if padded is not None else None
-        states = [z0]
-        gaps: list[Tensor] | None = [self.gaps(z0.detach()[:, 0])] if keep_gaps else None
-        z = z0
-        iterator = self._progress(steps, progress)
-        scope_defer = deferred_checks(flags) if defer else contextlib.nullcontext()
-        rerun = False
-        with thread_scope(threads, z0.device, steps) as scope, scope_defer:
-            for step in iterator:
-                with scope.step():
-                    z1 = self._integrate(z, ctx, dynamics)
-                    try:
-                        res = self._resolve(z1, ctx, model, fraction, solver_settings, padded)
-                        if padded is not None:
-                            overflow.logical_or_(((res.gaps < 0).sum(-1) > padded).any())
-                        z = self._project(res, ctx, iterations, solver_settings, read_free)
-                        if gaps is not None:
-                            gaps.append(res.gaps)
-                    except (ValueError, torch.linalg.LinAlgError) as err:
-                        # a state that blew up inside the step fails in the first linear algebra
-                        # that meets it (the solver's input check, or an SVD / factorisation of
-                        # the penetration target): say which states and why
-                        if defer:  # (the undeferred rollout names the first failure)
-                            rerun = True
-                            break
-                        nonfinite = not bool(torch.isfinite(z1.detach()).all())
-                        if "NaN or infinite" not in str(err) and not nonfinite:
-                            raise
-                        states.append(z1)
-                        raise ValueError(self._nonfinite_message(states, step + 1)) from err
-                    except ConeQPError as err:
-                        failure = ConeQPError(
-                            self._solver_failure_message(err, z0, z1, step + 1), err.status
-                        )
-                        failure.states = err.states  # trajectory indices, for callers that go on
-                        raise failure from err
-                    states.append(z)
-        if rerun:
-            return self._rollout_eager(z0, steps, ctx, rollout, keep_gaps, progress, threads)
-        traj = torch.stack(states, dim=1)
-        gaps_all = None if gaps is None else torch.stack(gaps, 1)
-        if read_free is not None:
-            overflow = overflow | read_free.overflowed
-        pending = (flags.any() | overflow) if defer else None
-        return traj, gaps_all, pending
-
-    def _progress(self, steps: int, progress: bool) -> Any:
-        if not progress:
-            return range(steps)
-        from tqdm.auto import tqdm
-
-        return tqdm(range(steps), desc=f"simulate {self.name}", unit="step")
-
-    def _graph_wanted(self, cuda_graph: bool | str, z0: Tensor, rollout: _Rollout, steps: int):
-        """Whether :meth:`simulate` tries :meth:`_rollout_graphed` (see its ``cuda_graph``)."""
-        if cuda_graph not in (True, False, "auto"):
-            raise ValueError(f"cuda_graph must be True, False or 'auto', got {cuda_graph!r}")
-        if cuda_graph is False:
-            return False
-        settings = (rollout.solver_settings or SolverSettings()).resolved(z0.dtype, z0.device)
-        reasons = []
-        if z0.device.type != "cuda":
-            reasons.append(f"the states are on {z0.device}, not a CUDA device")
-        if rollout.dynamics == "hamiltonian" and self.constraints is not None:
-            reasons.append("constrained Hamiltonian dynamics solve with torch.linalg.solve")
-        if settings.backend != "warp":
-            reasons.append(f"the cone-QP backend is {settings.backend!r}, not 'warp'")
-        if cuda_graph is True and reasons:
-            raise ValueError("simulate: cuda_graph=True, but " + "; ".join(reasons))
-        return not reasons and (cuda_graph is True or steps >= GRAPH_MIN_STEPS)
-
-    def _rollout_graphed(
-        self,
-        z0: Tensor,
-        steps: int,
-        ctx: _Context,
-        rollout: _Rollout,
-        keep_gaps: bool,
-        progress: bool,
-        strict: bool = False,
-        capture: bool = True,
-    ) -> tuple[Tensor, Tensor | None, Tensor] | None:
-        """The rollout as replays of one step captured in a CUDA graph.
-
-        The step is the eager one with static shapes and no read of the device: every
-        state goes to the contact model with its active candidates padded to
-        :data:`GRAPH_CONTACTS` (:meth:`_resolve`'s ``static_contacts``; a state with more
-        active contacts sets a flag, and the rollout is run again padded to all
-        candidates), and the fused solver's error flags are gathered on the device
-        (:func:`~diffcontact.contact.cone_qp.deferred_checks`); both are read once after
-        the last step. A replay launches the step's hundreds of kernels at once, where
-        the eager step pays the host's time for each. Returns what
-        :meth:`_rollout_eager` does with ``defer`` (the flag: a solve failed, and the
-        caller reruns step by step, which names the states and the cause), or None where
-        the graph cannot be used (the step needs gradients, or the capture failed; a
-        ``RuntimeWarning`` says why unless ``strict``, which raises). ``capture=False``
-        runs the same static, read-free steps without a graph (on any device; for
-        tests)."""
-        needs_gradient = "the rollout needs gradients, which a graph replay does not record"
-
-        def give_up(why: str) -> None:
-            """Raise (strict) or warn, except that a rollout that needs gradients (a
-            normal case) quietly goes step by step."""
-            message = f"simulate {self.name}: no CUDA graph ({why}); running step by step"
-            if strict:
-                raise ValueError(message.replace("no CUDA graph", "cuda_graph=True failed"))
-            if why != needs_gradient:
-                warnings.warn(message, RuntimeWarning, stacklevel=4)
-
-        tensors = [z0] + [t for t in vars(ctx).values() if isinstance(t, Tensor)]
-        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-            give_up(needs_gradient)
-            return None
-        K = len(self.contact_names)
-        contacts = min(K, GRAPH_CONTACTS)
-        while True:  # (ends: each "overflow" or "rows" pads to more, up to all candidates)
-            read_free = self._read_free_projection(z0.device, rollout.iterations)
-            try:
-                out = self._graphed_attempt(z0, steps, ctx, rollout, keep_gaps, progress,
-                                            contacts, capture, read_free)  # fmt: skip
-            except _NeedsGradient:
-                give_up(needs_gradient)
-                return None
-            except Exception as err:  # the capture (CUDA's errors vary with the call)
-                if not capture or isinstance(err, ValueError):
-                    raise
-                give_up(f"the capture failed: {type(err).__name__}: {err}")
-                return None
-            if out == "overflow" and contacts < K:
-                contacts = K
-            elif out == "rows" and self._grow_projection_rows(read_free):
-                continue
-            elif isinstance(out, str):  # (padded to every candidate and row: cannot happen)
-                raise RuntimeError(f"simulate {self.name}: the static rollout overflowed ({out})")
-            else:
-                return out
-
-    def _graphed_attempt(
-        self,
-        z0: Tensor,
-        steps: int,
-        ctx: _Context,
-        rollout: _Rollout,
-        keep_gaps: bool,
-        progress: bool,
-        contacts: int,
-        capture: bool,
-        read_free: ReadFree | None = None,
-    ) -> tuple[Tensor, Tensor | None, Tensor] | str:
-        """One try of :meth:`_rollout_graphed` with the contacts padded to ``contacts``
-        and the position projection (if on) run ``read_free``: the trajectory, gaps and
-        the solver's failure flag, or ``"overflow"`` (a state had more active contacts)
-        or ``"rows"`` (a state's projection needed more rows); one read of the device."""
-        model, dynamics, fraction, iterations, solver_settings = rollout
-        device = z0.device
-        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
-        overflow = torch.zeros((), dtype=torch.bool, device=device)
-        z_in = z0.detach().clone()
-
-        def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
-            with deferred_checks(flags):
-                z1 = self._integrate(z_in, ctx, dynamics)
-                res = self._resolve(z1, ctx, model, fraction, solver_settings, contacts)
-                if res.z.requires_grad:
-                    raise _NeedsGradient
-                overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
-                z_in.copy_(self._project(res, ctx, iterations, solver_settings, read_free))
-            return res.gaps
-
-        if capture:
-            with torch.cuda.device(device):  # (the graph is captured on the current device)
-                side = torch.cuda.Stream(device)
-                side.wait_stream(torch.cuda.current_stream(device))
-                with torch.cuda.stream(side):  # loads the kernels, records the launches
-                    one_step()
-                torch.cuda.current_stream(device).wait_stream(side)
-                graph = torch.cuda.CUDAGraph()
-                with torch.cuda.graph(graph, capture_error_mode="relaxed"):
-                    g_out = one_step()
-            advance = graph.replay
-        else:
-            g_out = one_step()
-
-            def advance() -> None:
-                g_out.copy_(one_step())
-
-        z_in.copy_(z0)  # (the warm-up step moved it)
-        flags.zero_()
-        overflow.zero_()
-        if read_free is not None:
-            read_free.needed.zero_()
-        N = z0.shape[0]
-        traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
-        traj[:, 0] = z0.detach()
-        gaps = None
-        if keep_gaps:
-            gaps = torch.empty((N, steps + 1, g_out.shape[-1]), dtype=z0.dtype, device=device)
-            gaps[:, 0] = self.gaps(z0.detach()[:, 0])
-        for step in self._progress(steps, progress):
-            advance()
-            traj[:, step + 1].copy_(z_in)
-            if gaps is not None:
-                gaps[:, step + 1].copy_(g_out)
-        rows = overflow if read_free is None else read_free.overflowed
-        over_contacts, over_rows = torch.stack([overflow, rows]).tolist()
-        if over_contacts:
-            return "overflow"
-        if over_rows:
-            return "rows"
-        return traj, gaps, flags.any()  # (read by simulate with its other checks)
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
         """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""

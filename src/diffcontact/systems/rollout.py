@@ -1,0 +1,346 @@
+"""The loops of :meth:`System.simulate <diffcontact.systems.System.simulate>`: a rollout
+step by step, or as replays of one step captured in a CUDA graph.
+
+A :class:`Rollout` holds what every step of one call uses (the system, its context of
+parameters on the device, the initial states, the options) and runs the steps:
+
+- :meth:`Rollout.eager`: step by step. With ``defer`` the fused solver's error flags are
+  gathered on the device and read once after the last step; on CUDA every state then goes
+  through the contact solve padded to :data:`GRAPH_CONTACTS` contacts instead of a
+  selection of the states in contact (a read of the device per step). Without ``defer``
+  each step reads the device and raises at once, naming the states.
+- :meth:`Rollout.graphed`: one step with static shapes and no read of the device (the
+  padded contacts, the deferred flags, the position projection read-free,
+  :class:`~diffcontact.systems.projection.ReadFree`), captured in a CUDA graph and
+  replayed; ``capture=False`` runs the same steps without a graph (on any device, for
+  tests).
+
+Both return the trajectory, its gaps (where kept) and, deferred, a ``()`` bool tensor on
+the device that says whether a check failed (a solve, or padding that was too small):
+``simulate`` reads it with its other checks and then runs the rollout again step by step
+without ``defer``, which raises the error naming the states.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, deferred_checks
+from diffcontact.contact.fused import FLAGS as SOLVER_FLAGS
+from diffcontact.contact.models import ContactModel
+from diffcontact.systems.projection import ReadFree
+from diffcontact.threads import thread_scope
+
+if TYPE_CHECKING:
+    from diffcontact.systems.system import System
+
+__all__ = ["GRAPH_CONTACTS", "GRAPH_MIN_STEPS", "PROJECTION_ROWS", "Rollout", "RolloutOptions"]
+
+#: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
+#: of at least this many steps (the capture costs about two eager steps)
+GRAPH_MIN_STEPS = 16
+#: the contacts per state that a captured step pads to (no state of 4096 BP5 or BD5 rollouts
+#: of 100 steps had more than 5 active at once: ``python benchmarks/run.py simulate
+#: --all-tasks --scenes 4096``, column ``max contacts``); a rollout where a state has more
+#: is run again padded to all candidates
+GRAPH_CONTACTS = 8
+#: the rows of each state's problem that a read-free position projection (a captured step,
+#: or a step-by-step rollout on CUDA) pads to at first (enough for Rope's rollouts:
+#: tests/systems/test_read_free_projection.py); a rollout where a state selects more is run
+#: again, and the system remembers the larger count for its next rollouts
+#: (:meth:`System._grow_projection_rows`)
+PROJECTION_ROWS = 16
+
+
+def _pads_contacts(device: torch.device) -> bool:
+    """Whether a deferred step-by-step rollout on ``device`` sends every state to the
+    contact model, padded, instead of selecting the states in contact: on CUDA, where the
+    selection's read of the device stalls the queue and the padded work is cheap."""
+    return device.type == "cuda"
+
+
+def _projects_read_free(device: torch.device) -> bool:
+    """Whether such a padded step-by-step rollout (:func:`_pads_contacts`) also runs the
+    position projection read-free (:class:`~diffcontact.systems.projection.ReadFree`; a
+    captured step always does). Not by default: read-free, the projection runs all its
+    iterations, and a Rope training step dispatches 24,473 torch operations instead of
+    12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
+    [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
+    CUDA is bound by its launches (the GPU busy about a tenth of the time,
+    benchmarks/README.md), where a read waits for little. To be measured on a GPU:
+    ``python benchmarks/run.py train --device cuda --tasks Rope [--read-free-projection]``."""
+    return False
+
+
+class RolloutOptions(NamedTuple):
+    """The options of a rollout that every step uses."""
+
+    model: ContactModel
+    dynamics: str
+    fraction: float
+    iterations: int
+    solver_settings: SolverSettings | None
+
+
+class _NeedsGradient(Exception):
+    """A captured step's result requires grad (raised before the capture goes on)."""
+
+
+#: what a rollout returns: ``(N, steps + 1, 2, P, dim)`` states, ``(N, steps + 1, K)``
+#: gaps (or ``None``) and the deferred checks' ``()`` bool flag (or ``None``)
+Result = tuple[Tensor, Tensor | None, Tensor | None]
+
+
+@dataclass
+class Rollout:
+    """One rollout of ``system`` from ``z0: (N, 2, P, dim)`` over ``steps`` steps.
+
+    Attributes:
+        system: the :class:`~diffcontact.systems.System` whose steps run.
+        ctx: its parameters and static structure on ``z0``'s device (``System._context``).
+        z0: the initial states.
+        steps: the number of steps.
+        options: :class:`RolloutOptions`.
+        keep_gaps: also return every state's gaps (the contact resolution's own).
+        progress: show a progress bar over the steps.
+        threads: torch's CPU threads of a step-by-step rollout
+            (:func:`~diffcontact.threads.thread_scope`).
+    """
+
+    system: System
+    ctx: Any
+    z0: Tensor
+    steps: int
+    options: RolloutOptions
+    keep_gaps: bool = False
+    progress: bool = False
+    threads: int | str | None = None
+    #: the read-free projection of the last deferred :meth:`eager` call, if it ran one
+    _read_free: ReadFree | None = field(default=None, init=False, repr=False)
+
+    def grow_padding(self) -> None:
+        """After a deferred :meth:`eager` whose flag was set: if its read-free projection
+        needed more rows than it had, the system remembers more for its next rollouts
+        (one read of the device)."""
+        self.system._grow_projection_rows(self._read_free)
+
+    def _steps(self) -> Any:
+        if not self.progress:
+            return range(self.steps)
+        from tqdm.auto import tqdm
+
+        return tqdm(range(self.steps), desc=f"simulate {self.system.name}", unit="step")
+
+    def eager(self, defer: bool = False) -> Result:
+        """The rollout step by step (:data:`Result`; the flag only with ``defer``, True
+        where a deferred check failed: then the caller runs the rollout again without
+        ``defer``, which raises the error naming the states).
+
+        ``defer``: the fused solver's error flags are gathered on the device
+        (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
+        solve, and on CUDA each step sends every state to the contact model padded to
+        :data:`GRAPH_CONTACTS` (a state with more active contacts sets the flag) instead
+        of selecting the states in contact (a read of the device), and the position
+        projection runs read-free where :func:`_projects_read_free` says so (a state
+        needing more rows sets the flag too; :meth:`grow_padding`). Without ``defer``,
+        each step reads the device (the selection, the solver's flags, the projection's
+        rows and early stop) and raises at once."""
+        system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
+        model, dynamics, fraction, iterations, solver_settings = self.options
+        device = z0.device
+        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
+        overflow = torch.zeros((), dtype=torch.bool, device=device)
+        padded = GRAPH_CONTACTS if defer and _pads_contacts(device) else None
+        read_free = None
+        if padded is not None and _projects_read_free(device):
+            read_free = system._read_free_projection(device, iterations)
+        self._read_free = read_free
+        states = [z0]
+        gaps: list[Tensor] | None = [system.gaps(z0.detach()[:, 0])] if self.keep_gaps else None
+        z = z0
+        scope_defer = deferred_checks(flags) if defer else contextlib.nullcontext()
+        rerun = False
+        with thread_scope(self.threads, device, steps) as scope, scope_defer:
+            for step in self._steps():
+                with scope.step():
+                    z1 = system._integrate(z, ctx, dynamics)
+                    try:
+                        res = system._resolve(z1, ctx, model, fraction, solver_settings, padded)
+                        if padded is not None:
+                            overflow.logical_or_(((res.gaps < 0).sum(-1) > padded).any())
+                        z = system._project(res, ctx, iterations, solver_settings, read_free)
+                        if gaps is not None:
+                            gaps.append(res.gaps)
+                    except (ValueError, torch.linalg.LinAlgError) as err:
+                        # a state that blew up inside the step fails in the first linear algebra
+                        # that meets it (the solver's input check, or an SVD / factorisation of
+                        # the penetration target): say which states and why
+                        if defer:  # (the undeferred rollout names the first failure)
+                            rerun = True
+                            break
+                        nonfinite = not bool(torch.isfinite(z1.detach()).all())
+                        if "NaN or infinite" not in str(err) and not nonfinite:
+                            raise
+                        states.append(z1)
+                        raise ValueError(system._nonfinite_message(states, step + 1)) from err
+                    except ConeQPError as err:
+                        failure = ConeQPError(
+                            system._solver_failure_message(err, z0, z1, step + 1), err.status
+                        )
+                        failure.states = err.states  # trajectory indices, for callers that go on
+                        raise failure from err
+                    states.append(z)
+        if rerun:
+            return self.eager()
+        traj = torch.stack(states, dim=1)
+        gaps_all = None if gaps is None else torch.stack(gaps, 1)
+        if read_free is not None:
+            overflow = overflow | read_free.overflowed
+        pending = (flags.any() | overflow) if defer else None
+        return traj, gaps_all, pending
+
+    def graph_wanted(self, cuda_graph: bool | str) -> bool:
+        """Whether ``simulate`` tries :meth:`graphed` (see its ``cuda_graph``)."""
+        if cuda_graph not in (True, False, "auto"):
+            raise ValueError(f"cuda_graph must be True, False or 'auto', got {cuda_graph!r}")
+        if cuda_graph is False:
+            return False
+        z0, options = self.z0, self.options
+        settings = (options.solver_settings or SolverSettings()).resolved(z0.dtype, z0.device)
+        reasons = []
+        if z0.device.type != "cuda":
+            reasons.append(f"the states are on {z0.device}, not a CUDA device")
+        if options.dynamics == "hamiltonian" and self.system.constraints is not None:
+            reasons.append("constrained Hamiltonian dynamics solve with torch.linalg.solve")
+        if settings.backend != "warp":
+            reasons.append(f"the cone-QP backend is {settings.backend!r}, not 'warp'")
+        if cuda_graph is True and reasons:
+            raise ValueError("simulate: cuda_graph=True, but " + "; ".join(reasons))
+        return not reasons and (cuda_graph is True or self.steps >= GRAPH_MIN_STEPS)
+
+    def graphed(self, strict: bool = False, capture: bool = True) -> Result | None:
+        """The rollout as replays of one step captured in a CUDA graph.
+
+        The step is the eager one with static shapes and no read of the device: every
+        state goes to the contact model with its active candidates padded to
+        :data:`GRAPH_CONTACTS` (``System._resolve``'s ``static_contacts``; a state with
+        more active contacts sets a flag, and the rollout is run again padded to all
+        candidates), the position projection (if on) runs read-free with the rows the
+        system remembers (a state needing more sets a flag, and the rollout is run again
+        with more), and the fused solver's error flags are gathered on the device
+        (:func:`~diffcontact.contact.cone_qp.deferred_checks`); all are read once after
+        the last step. A replay launches the step's hundreds of kernels at once, where
+        the eager step pays the host's time for each. Returns what :meth:`eager` does
+        with ``defer`` (the flag: a solve failed, and the caller reruns step by step,
+        which names the states and the cause), or None where the graph cannot be used
+        (the step needs gradients, or the capture failed; a ``RuntimeWarning`` says why
+        unless ``strict``, which raises). ``capture=False`` runs the same static,
+        read-free steps without a graph (on any device; for tests)."""
+        system = self.system
+        needs_gradient = "the rollout needs gradients, which a graph replay does not record"
+
+        def give_up(why: str) -> None:
+            """Raise (strict) or warn, except that a rollout that needs gradients (a
+            normal case) quietly goes step by step."""
+            message = f"simulate {system.name}: no CUDA graph ({why}); running step by step"
+            if strict:
+                raise ValueError(message.replace("no CUDA graph", "cuda_graph=True failed"))
+            if why != needs_gradient:
+                warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+        tensors = [self.z0] + [t for t in vars(self.ctx).values() if isinstance(t, Tensor)]
+        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            give_up(needs_gradient)
+            return None
+        K = len(system.contact_names)
+        contacts = min(K, GRAPH_CONTACTS)
+        while True:  # (ends: each "overflow" or "rows" pads to more, up to all candidates)
+            read_free = system._read_free_projection(self.z0.device, self.options.iterations)
+            try:
+                out = self._attempt(contacts, capture, read_free)
+            except _NeedsGradient:
+                give_up(needs_gradient)
+                return None
+            except Exception as err:  # the capture (CUDA's errors vary with the call)
+                if not capture or isinstance(err, ValueError):
+                    raise
+                give_up(f"the capture failed: {type(err).__name__}: {err}")
+                return None
+            if out == "overflow" and contacts < K:
+                contacts = K
+            elif out == "rows" and system._grow_projection_rows(read_free):
+                continue
+            elif isinstance(out, str):  # (padded to every candidate and row: cannot happen)
+                raise RuntimeError(f"simulate {system.name}: the static rollout overflowed ({out})")
+            else:
+                return out
+
+    def _attempt(self, contacts: int, capture: bool, read_free: ReadFree | None) -> Result | str:
+        """One try of :meth:`graphed` with the contacts padded to ``contacts`` and the
+        position projection (if on) run ``read_free``: :data:`Result`, or ``"overflow"``
+        (a state had more active contacts) or ``"rows"`` (a state's projection needed
+        more rows); one read of the device."""
+        system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
+        model, dynamics, fraction, iterations, solver_settings = self.options
+        device = z0.device
+        flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
+        overflow = torch.zeros((), dtype=torch.bool, device=device)
+        z_in = z0.detach().clone()
+
+        def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
+            with deferred_checks(flags):
+                z1 = system._integrate(z_in, ctx, dynamics)
+                res = system._resolve(z1, ctx, model, fraction, solver_settings, contacts)
+                if res.z.requires_grad:
+                    raise _NeedsGradient
+                overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
+                z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))
+            return res.gaps
+
+        if capture:
+            with torch.cuda.device(device):  # (the graph is captured on the current device)
+                side = torch.cuda.Stream(device)
+                side.wait_stream(torch.cuda.current_stream(device))
+                with torch.cuda.stream(side):  # loads the kernels, records the launches
+                    one_step()
+                torch.cuda.current_stream(device).wait_stream(side)
+                graph = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(graph, capture_error_mode="relaxed"):
+                    g_out = one_step()
+            advance = graph.replay
+        else:
+            g_out = one_step()
+
+            def advance() -> None:
+                g_out.copy_(one_step())
+
+        z_in.copy_(z0)  # (the warm-up step moved it)
+        flags.zero_()
+        overflow.zero_()
+        if read_free is not None:
+            read_free.needed.zero_()
+        N = z0.shape[0]
+        traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
+        traj[:, 0] = z0.detach()
+        gaps = None
+        if self.keep_gaps:
+            gaps = torch.empty((N, steps + 1, g_out.shape[-1]), dtype=z0.dtype, device=device)
+            gaps[:, 0] = system.gaps(z0.detach()[:, 0])
+        for step in self._steps():
+            advance()
+            traj[:, step + 1].copy_(z_in)
+            if gaps is not None:
+                gaps[:, step + 1].copy_(g_out)
+        rows = overflow if read_free is None else read_free.overflowed
+        over_contacts, over_rows = torch.stack([overflow, rows]).tolist()
+        if over_contacts:
+            return "overflow"
+        if over_rows:
+            return "rows"
+        return traj, gaps, flags.any()  # (read by simulate with its other checks)
