@@ -206,3 +206,47 @@ def test_metric_norms_of_the_sparse_rows_equal_the_dense_ones(task):
         big = torch.kron(Mi, torch.eye(dim, dtype=F64))  # (n, P dim, P dim)
         dense = torch.einsum("nkd,nde,nke->nk", J, big, J).sqrt()
         torch.testing.assert_close(_metric_norms(ctx.geometry, x, M_inv), dense, rtol=1e-12, atol=0)
+
+
+def test_the_point_mass_system_from_sparse_rows_equals_the_dense_one():
+    """The projection's ``A = J M^-1 J^T`` and step ``M^-1 J^T lambda`` for point masses,
+    from the sparse rows (``_point_mass_system``), equal the dense products: for one mass
+    matrix and per-state ones, rows with a point twice, padded (zero) rows, and in their
+    gradients."""
+    from diffcontact.geometry.base import SparseJacobian, assemble_jacobian
+    from diffcontact.systems.projection import _point_mass_system
+
+    g = torch.Generator().manual_seed(0)
+    n, R, m, P, dim = 4, 5, 3, 7, 2
+    points = torch.randint(0, P, (n, R, m), generator=g)
+    points[:, 0, 1] = points[:, 0, 0]  # a row with one point twice
+    values = torch.randn(n, R, m, dim, generator=g, dtype=F64)
+    values[:, -1] = 0.0  # a padded row
+    lam = torch.rand(n, R, generator=g, dtype=F64)
+    w = torch.rand(P, generator=g, dtype=F64) + 0.5
+    J = assemble_jacobian(SparseJacobian(points, values.unsqueeze(2)), P)[:, :, 0]
+    J = J.reshape(n, R, P * dim)
+    per_state = torch.diag_embed(w * torch.arange(1.0, n + 1, dtype=F64)[:, None])
+    for M_inv in (torch.diag(w), per_state):
+        Mi = M_inv.expand(n, P, P) if M_inv.dim() == 2 else M_inv
+        big = torch.kron(Mi, torch.eye(dim, dtype=F64))
+        A, dx_of = _point_mass_system(values, points, M_inv, P)
+        torch.testing.assert_close(A, J @ big @ J.mT, rtol=1e-13, atol=1e-13)
+        want = (big @ J.mT @ lam.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(dx_of(lam), want, rtol=1e-13, atol=1e-13)
+
+    def sparse(v, weights):
+        A, dx_of = _point_mass_system(v, points, torch.diag(weights), P)
+        return A.sum() + dx_of(lam).square().sum()
+
+    def dense(v, weights):
+        Jd = assemble_jacobian(SparseJacobian(points, v.unsqueeze(2)), P)[:, :, 0]
+        Jd = Jd.reshape(n, R, P * dim)
+        big = torch.kron(torch.diag(weights), torch.eye(dim, dtype=F64))
+        return (Jd @ big @ Jd.mT).sum() + (big @ Jd.mT @ lam.unsqueeze(-1)).square().sum()
+
+    args = [values.clone().requires_grad_(True), w.clone().requires_grad_(True)]
+    got = torch.autograd.grad(sparse(*args), args)
+    want = torch.autograd.grad(dense(*args), args)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
