@@ -304,23 +304,36 @@ def project_positions(
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
         gap = gaps_i.gather(-1, idx)  # (n, R)
+        J = assemble_jacobian(take_rows(rows_i, cand), P)
+        J = J[:, :, 0].reshape(n, R, D)
+        sign = torch.where(idx < K, 1.0, -1.0).to(J)
+        J = torch.where(mask.unsqueeze(-1), sign.unsqueeze(-1) * J, torch.zeros_like(J))
         gap = torch.where(mask, gap, torch.zeros_like(gap))
-        taken = take_rows(rows_i, cand)
-        sign = torch.where(idx < K, 1.0, -1.0).to(gap)
-        if phi0 is None and diagonal:  # point masses, no equality constraints: sparse rows
-            values = taken.values[:, :, 0]  # (n, R, m, dim)
-            values = torch.where(
-                mask[..., None, None], sign[..., None, None] * values, torch.zeros_like(values)
-            )
-            A, dx_of = _point_mass_system(values, taken.points, Minv_b, P)
-            A = 0.5 * (A + A.transpose(-1, -2))
-            lam = _solve_rows(A, gap, mask, settings)
-            dx = dx_of(lam)
+        if constraints is not None and phi0 is not None:
+            # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1 J_E^T)^-1 r
+            # takes Phi back to its value at x_pred
+            J_E = constraints.jacobian(x_i)  # (n, E, D)
+            Mh = Mhat_inv(Minv_b, J_E)
+            r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
+            B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
+            base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
+            JM = J @ Mh  # (n, R, D)
         else:
-            J = assemble_jacobian(taken, P)[:, :, 0].reshape(n, R, D)
-            J = torch.where(mask.unsqueeze(-1), sign.unsqueeze(-1) * J, torch.zeros_like(J))
-            dx = _dense_step(J, gap, mask, x_i, Minv_b, minv_rows, constraints, phi0, settings)
-        dx = dx.reshape(n, P, dim)
+            base = None
+            JM = minv_rows(J)
+        A = JM @ J.transpose(-1, -2)
+        A = 0.5 * (A + A.transpose(-1, -2))
+        rhs = gap if base is None else gap + (J @ base.unsqueeze(-1)).squeeze(-1)
+        rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
+        lam, status = solve_cone_qp(
+            A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=settings, return_status=True
+        )
+        # a problem the solver did not finish still gives a direction (the line search
+        # below keeps only steps that reduce the violation); an unbounded one does not
+        usable = ~status.unbounded & torch.isfinite(lam).all(-1)
+        lam = torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
+        dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
+        dx = (dx if base is None else dx + base).reshape(n, P, dim)
         with torch.no_grad():  # backtracking: the step length with the least violation
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
@@ -336,79 +349,3 @@ def project_positions(
     if read_free is not None:
         return torch.where(has[:, None, None], x_i, x)
     return x.index_put((b,), x_i)
-
-
-def _solve_rows(A: Tensor, gap: Tensor, mask: Tensor, settings: SolverSettings | None) -> Tensor:
-    """``lambda = argmin_{lambda >= 0} 0.5 lambda^T A lambda + lambda^T gap`` over the rows
-    of ``mask`` (``(n, R)``; zero elsewhere): the frictionless cone QP. A problem the solver
-    did not finish still gives a direction (the line search keeps only steps that reduce
-    the violation); an unbounded one does not, and gets zero."""
-    rhs = torch.where(mask, gap, torch.zeros_like(gap))
-    lam, status = solve_cone_qp(
-        A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=settings, return_status=True
-    )
-    usable = ~status.unbounded & torch.isfinite(lam).all(-1)
-    return torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
-
-
-def _point_mass_system(
-    values: Tensor, points: Tensor, M_inv: Tensor, n_points: int
-) -> tuple[Tensor, Any]:
-    """``A = J M^-1 J^T`` ``(n, R, R)`` for point masses (a diagonal ``M^-1``) from the
-    sparse rows, and the map ``lambda -> M^-1 J^T lambda`` ``(n, P * dim)``.
-
-    ``values: (n, R, m, dim)`` (row ``r``'s ``m`` entries, zero on padding) at ``points:
-    (n, R, m)``. ``A_rs = sum_a sum_b [p_ra == p_sb] w_p (v_ra . v_sb)`` with ``w`` the
-    diagonal of ``M^-1``: one product of the ``R m`` entries with themselves, masked to
-    the pairs at one point, instead of a dense ``(n, R, P * dim)`` Jacobian (a product
-    ``P * dim / (m^2 dim)`` times larger: 44x for a rope of 200 points). Differentiable.
-    """
-    n, R, m, dim = values.shape
-    w = M_inv.diagonal(dim1=-2, dim2=-1)  # (P,) or (n, P)
-    flat = points.reshape(n, R * m)
-    w_e = w[flat] if w.dim() == 1 else w.gather(-1, flat)  # (n, R m): each entry's weight
-    v = values.reshape(n, R * m, dim)
-    wv = v * w_e.unsqueeze(-1)
-    same = flat.unsqueeze(-1) == flat.unsqueeze(-2)  # (n, R m, R m): entries at one point
-    G = wv @ v.transpose(-1, -2)
-    A = torch.where(same, G, torch.zeros_like(G)).view(n, R, m, R, m).sum((2, 4))
-    index = flat.unsqueeze(-1).expand(n, R * m, dim)
-
-    def dx_of(lam: Tensor) -> Tensor:
-        contrib = (wv.view(n, R, m, dim) * lam[:, :, None, None]).reshape(n, R * m, dim)
-        return wv.new_zeros(n, n_points, dim).scatter_add(1, index, contrib).flatten(1)
-
-    return A, dx_of
-
-
-def _dense_step(
-    J: Tensor,
-    gap: Tensor,
-    mask: Tensor,
-    x_i: Tensor,
-    M_inv: Tensor,
-    minv_rows: Any,
-    constraints: EqualityConstraints | None,
-    phi0: Tensor | None,
-    settings: SolverSettings | None,
-) -> Tensor:
-    """The Gauss-Newton step ``dx: (n, P * dim)`` from the dense rows ``J: (n, R, P * dim)``
-    (zero on padding) and their gaps (module docstring): with equality constraints,
-    ``Mhat^-1`` keeps the step tangent to ``Phi`` and ``dx_E = -M^-1 J_E^T (J_E M^-1
-    J_E^T)^-1 r`` takes ``Phi`` back to its value at ``x_pred``."""
-    if constraints is not None and phi0 is not None:
-        J_E = constraints.jacobian(x_i)  # (n, E, D)
-        Mh = Mhat_inv(M_inv, J_E)
-        r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
-        B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
-        base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
-        JM = J @ Mh  # (n, R, D)
-        gap = gap + (J @ base.unsqueeze(-1)).squeeze(-1)
-    else:
-        base = None
-        JM = minv_rows(J)
-    A = JM @ J.transpose(-1, -2)
-    A = 0.5 * (A + A.transpose(-1, -2))
-    lam = _solve_rows(A, gap, mask, settings)
-    dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
-    return dx if base is None else dx + base
