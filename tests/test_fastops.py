@@ -81,6 +81,33 @@ def test_shared_returns_the_broadcast_matrix_only():
     torch.testing.assert_close(J @ shared(M.expand(7, 4, 4)), J @ M.expand(7, 4, 4))
 
 
+def test_times_matrix_scales_by_a_large_diagonal_and_multiplies_otherwise(monkeypatch):
+    """``X @ M``: by ``M``'s diagonal where ``M`` is one large diagonal matrix without a
+    gradient (spied: no product), the product otherwise; the same values, and with a
+    gradient to ``M`` its full gradient (off-diagonal entries included)."""
+    from diffcontact import fastops
+
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(5, 3, 80, generator=g, dtype=torch.float64)
+    diagonal = torch.diag(torch.rand(80, generator=g, dtype=torch.float64) + 0.5)
+    dense = diagonal + 0.01 * torch.randn(80, 80, generator=g, dtype=torch.float64)
+    small = torch.diag(torch.rand(8, generator=g, dtype=torch.float64))
+    products = []
+    matmul = torch.Tensor.__matmul__
+    monkeypatch.setattr(torch.Tensor, "__matmul__", lambda a, b: products.append(1) or matmul(a, b))
+    for M, X_, multiplies in ((diagonal, X, False), (dense, X, True), (small, X[..., :8], True)):
+        products.clear()
+        got = fastops.times_matrix(X_, M.expand(5, *M.shape))
+        assert bool(products) == multiplies
+        assert torch.equal(got, matmul(X_, M))  # (exact: the product adds zeros)
+    M = diagonal.clone().requires_grad_(True)
+    fastops.times_matrix(X, M.expand(5, 80, 80)).square().sum().backward()
+    M_ref = diagonal.clone().requires_grad_(True)
+    matmul(X, M_ref).square().sum().backward()
+    torch.testing.assert_close(M.grad, M_ref.grad, rtol=1e-13, atol=1e-13)
+    assert float((M.grad - torch.diag(M.grad.diagonal())).abs().max()) > 0  # off-diagonal
+
+
 def _spd_batch(n: int, size: int, k: int, device: str = "cpu"):
     g = torch.Generator().manual_seed(n + size)
     R = torch.randn(n, size, size, generator=g, dtype=torch.float64)

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-from diffcontact.fastops import cholesky_solve, shared, spd_solve
+from diffcontact.fastops import cholesky_solve, spd_solve, times_matrix
 
 
 @dataclass
@@ -143,7 +143,7 @@ def two_phase_impulse(
     Returns:
         An :class:`ImpulseResult`.
     """
-    JM = J_C @ shared(Mhat_inv)  # (one product where Mhat_inv is one matrix broadcast)
+    JM = times_matrix(J_C, Mhat_inv)  # (one product where Mhat_inv is one matrix broadcast)
     A = JM @ J_C.transpose(-1, -2)
     A = 0.5 * (A + A.transpose(-1, -2))
     A_qp = A

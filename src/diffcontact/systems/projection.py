@@ -304,10 +304,14 @@ def project_positions(
         cand = idx % K  # (n, R) the candidate of each row
         R = idx.shape[-1]
         gap = gaps_i.gather(-1, idx)  # (n, R)
-        J = assemble_jacobian(take_rows(rows_i, cand), P)
-        J = J[:, :, 0].reshape(n, R, D)
-        sign = torch.where(idx < K, 1.0, -1.0).to(J)
-        J = torch.where(mask.unsqueeze(-1), sign.unsqueeze(-1) * J, torch.zeros_like(J))
+        # each row's sign (the other side of a two-sided limit) and mask, applied to its
+        # few sparse entries before the dense (n, R, P * dim) rows are assembled
+        taken = take_rows(rows_i, cand)
+        values = taken.values[:, :, :1]  # (n, R, 1, m, dim): the normal rows
+        sign = torch.where(idx < K, 1.0, -1.0).to(values)[:, :, None, None, None]
+        keep = mask[:, :, None, None, None]
+        values = torch.where(keep, sign * values, torch.zeros_like(values))
+        J = assemble_jacobian(SparseJacobian(taken.points, values), P).reshape(n, R, D)
         gap = torch.where(mask, gap, torch.zeros_like(gap))
         if constraints is not None and phi0 is not None:
             # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1 J_E^T)^-1 r
