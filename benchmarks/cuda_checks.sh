@@ -2,7 +2,10 @@
 # The CUDA checks of one GPU session, in the order of what matters most, each under its own
 # time limit so that one slow part cannot take the rest with it:
 #
-#   bash benchmarks/cuda_checks.sh [OUT_DIR]      (default runs/cuda-checks; needs a CUDA GPU)
+#   bash benchmarks/cuda_checks.sh [OUT_DIR [PART ...]]   (needs a CUDA GPU)
+#
+# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-5) pick the parts to run (default
+# all), e.g. "0 1" and then "2 3 4 5" in two calls where one call may not take them all.
 #
 # 1. the CUDA tests (pytest -m cuda: captured steps, the read-free rope projection in a
 #    graph, the fused solver on CUDA);
@@ -17,12 +20,15 @@
 # (WARP_CACHE_PATH) holds them: part 0 does that once, timed on its own.
 set -u
 OUT=${1:-runs/cuda-checks}
+shift $(($# > 0 ? 1 : 0))
+PARTS=" ${*:-0 1 2 3 4 5} "
 mkdir -p "$OUT"
 PY=${PYTHON:-python3}
 start=$(date +%s)
-part() {  # part NAME SECONDS COMMAND...
+part() {  # part NAME SECONDS COMMAND... (NAME starts with the part's number)
     local name=$1 limit=$2
     shift 2
+    [[ "$PARTS" == *" ${name%%_*} "* ]] || return 0
     echo "== $name (limit ${limit}s)"
     timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
     local rc=$?
