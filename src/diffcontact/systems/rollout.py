@@ -38,7 +38,7 @@ from diffcontact.systems.projection import ReadFree
 from diffcontact.threads import thread_scope
 
 if TYPE_CHECKING:
-    from diffcontact.systems.system import System
+    from diffcontact.systems.system import System, _Context
 
 __all__ = ["GRAPH_CONTACTS", "GRAPH_MIN_STEPS", "PROJECTION_ROWS", "Rollout", "RolloutOptions"]
 
@@ -114,7 +114,7 @@ class Rollout:
     """
 
     system: System
-    ctx: Any
+    ctx: _Context
     z0: Tensor
     steps: int
     options: RolloutOptions
