@@ -4,8 +4,9 @@
 #
 #   bash benchmarks/cuda_checks.sh [OUT_DIR [PART ...]]   (needs a CUDA GPU)
 #
-# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-5) pick the parts to run (default
-# all), e.g. "0 1" and then "2 3 4 5" in two calls where one call may not take them all.
+# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-5) pick the parts to run and their
+# order (default all, in order), e.g. "0 2 4" and then "3 1 5" in two calls where one call
+# may not take them all.
 #
 # 1. the CUDA tests (pytest -m cuda: captured steps, the read-free rope projection in a
 #    graph, the fused solver on CUDA);
@@ -21,14 +22,19 @@
 set -u
 OUT=${1:-runs/cuda-checks}
 shift $(($# > 0 ? 1 : 0))
-PARTS=" ${*:-0 1 2 3 4 5} "
+PARTS=${*:-0 1 2 3 4 5}
+for number in $PARTS; do
+    if [[ $number != [0-5] ]]; then
+        echo "cuda_checks.sh: unknown part $number (parts are 0-5)" >&2
+        exit 2
+    fi
+done
 mkdir -p "$OUT"
 PY=${PYTHON:-python3}
 start=$(date +%s)
 part() {  # part NAME SECONDS COMMAND... (NAME starts with the part's number)
     local name=$1 limit=$2
     shift 2
-    [[ "$PARTS" == *" ${name%%_*} "* ]] || return 0
     echo "== $name (limit ${limit}s)"
     timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
     local rc=$?
@@ -39,7 +45,8 @@ if ! $PY -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"
     echo "cuda_checks.sh: no CUDA device available to $PY (set PYTHON=...)" >&2
     exit 2
 fi
-part 0_first_solve 600 $PY -c "
+part_0() {
+    part 0_first_solve 300 $PY -c "
 import time, torch
 from diffcontact.contact import SolverSettings, solve_cone_qp
 for dtype in (torch.float64, torch.float32):
@@ -51,10 +58,21 @@ for dtype in (torch.float64, torch.float32):
     torch.cuda.synchronize()
     print('first Warp solve on CUDA', dtype, round(time.perf_counter() - t, 1), 's')
 "
-part 1_pytest_cuda 300 $PY -m pytest -q -m cuda -p no:cacheprovider
-part 2_simulate_4096 300 $PY benchmarks/run.py simulate --device cuda --all-tasks --scenes 4096 --cuda-graph both
-part 3_launches 200 $PY benchmarks/run.py launches --device cuda
-part 4_train_rope 200 $PY benchmarks/run.py train --device cuda --tasks Rope BP5 --against none --reps 3
-part 4_train_rope_read_free 200 $PY benchmarks/run.py train --device cuda --tasks Rope --against none --reps 3 --read-free-projection
-part 5_profile_step 200 $PY benchmarks/run.py profile_step --device cuda --tasks BP5 BD5 Rope
+}
+part_1() { part 1_pytest_cuda 240 $PY -m pytest -q -m cuda -p no:cacheprovider; }
+part_2() {
+    part 2_simulate_4096 240 $PY benchmarks/run.py simulate --device cuda --all-tasks \
+        --scenes 4096 --cuda-graph both
+}
+part_3() { part 3_launches 150 $PY benchmarks/run.py launches --device cuda; }
+part_4() {
+    part 4_train_rope 150 $PY benchmarks/run.py train --device cuda --tasks Rope BP5 \
+        --against none --reps 3
+    part 4_train_rope_read_free 150 $PY benchmarks/run.py train --device cuda --tasks Rope \
+        --against none --reps 3 --read-free-projection
+}
+part_5() {
+    part 5_profile_step 150 $PY benchmarks/run.py profile_step --device cuda --tasks BP5 BD5 Rope
+}
+for number in $PARTS; do "part_$number"; done
 echo "cuda_checks.sh: done in $(($(date +%s) - start))s; outputs in $OUT"

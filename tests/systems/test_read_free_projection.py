@@ -165,3 +165,26 @@ def test_the_cuda_step_by_step_path_reruns_with_too_few_rows(monkeypatch):
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
     torch.testing.assert_close(grad_got, grad_want, rtol=1e-10, atol=1e-12)
     assert system._projection_rows > 2
+
+
+def test_the_rope_limits_widths_are_made_on_the_ropes_device(monkeypatch):
+    """A captured CUDA step cannot copy from the host: the projection's widths must be
+    made where the rope lives (the H200 run of 2026-11-27 failed to capture the Rope
+    step on exactly this copy). The "meta" device stands in for CUDA here."""
+    from diffcontact.geometry.base import ContactGeometry, GeometryBase
+    from diffcontact.geometry.rope import rope_limits
+
+    class OneSided(GeometryBase):  # a part with the default (all inf) widths
+        d = 1
+        n_candidates = 3
+
+    rope = rope_limits(5).to("meta")
+    assert [p.gap_widths().device.type for p in rope.parts] == ["meta", "meta"]
+
+    def made_on_the_host(self):
+        raise AssertionError("the default widths were made on the host and copied")
+
+    monkeypatch.setattr(GeometryBase, "gap_widths", made_on_the_host)
+    mixed = ContactGeometry((*rope.parts, OneSided()))
+    widths = mixed.gap_widths()
+    assert widths.device.type == "meta" and widths.shape == (rope.n_candidates + 3,)

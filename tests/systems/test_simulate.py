@@ -329,7 +329,8 @@ def test_padded_steps_read_nothing_and_give_the_same_values_and_gradients(task, 
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
     reads = [count_host_reads(lambda k=k: system.simulate(z0, steps=k)) for k in (10, 20)]
     assert reads[1] == reads[0]
-    # a state with more active contacts than the padding: the rollout runs again selected
+    # a state with more active contacts than the padding: the rollout runs again selected,
+    # and the system pads to more next time
     monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 1)
     z0 = system.sample_initial_conditions(64, seed=2)
     again = system.simulate(z0, 60)
@@ -337,6 +338,7 @@ def test_padded_steps_read_nothing_and_give_the_same_values_and_gradients(task, 
     plain = system.simulate(z0, 60)
     if task == "BP5":  # (CP3's links have one limit each)
         assert ((system.gaps(plain[:, 1:, 0].flatten(0, 1)) < 0).sum(-1) > 1).any()
+        assert system._contact_padding > 1  # remembered for the next rollouts
     assert torch.equal(again, plain)
 
 

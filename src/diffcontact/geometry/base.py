@@ -262,9 +262,14 @@ class ContactGeometry(GeometryBase):
         return torch.cat([p.gaps(x) for p in self.parts], dim=-1)
 
     def gap_widths(self) -> Tensor:
-        """``(K,)`` the parts' widths (``inf`` for a part without ``gap_widths``), on the
-        device of the first part whose widths live on one (a rope moved to CUDA)."""
-        widths = [p.gap_widths() if hasattr(p, "gap_widths") else None for p in self.parts]
+        """``(K,)`` the parts' widths (``inf`` for a part without its own ``gap_widths``), on
+        the device of the first part whose widths live on one (a rope moved to CUDA). Made
+        without a copy from the host where the parts make theirs on the device: the
+        position projection asks for them inside a captured CUDA step."""
+        widths = [  # the default (all inf) is made on the device here: no copy from the host
+            None if type(p).gap_widths is GeometryBase.gap_widths else p.gap_widths()
+            for p in self.parts
+        ]
         device = next((w.device for w in widths if w is not None and w.device.type != "cpu"), None)
         return torch.cat(
             [

@@ -101,8 +101,14 @@ class RopeBending(GeometryBase):
         return self.n_points - 1
 
     def gap_widths(self) -> Tensor:
-        """``(n_points - 1,)``: ``2 max_angle`` (``gap`` on the other side is ``width - gap``)."""
-        return torch.full((self.n_candidates,), 2.0 * self.max_angle, dtype=torch.float64)
+        """``(n_points - 1,)``: ``2 max_angle`` (``gap`` on the other side is ``width - gap``),
+        on the anchor's device (made there: a CUDA graph's capture cannot copy from the host)."""
+        return torch.full(
+            (self.n_candidates,),
+            2.0 * self.max_angle,
+            dtype=torch.float64,
+            device=self.anchor.device,
+        )
 
     def gaps(self, x: Tensor) -> Tensor:
         """``max_angle - |theta|`` per joint.

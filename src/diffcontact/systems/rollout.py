@@ -45,10 +45,12 @@ __all__ = ["GRAPH_CONTACTS", "GRAPH_MIN_STEPS", "PROJECTION_ROWS", "Rollout", "R
 #: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
 #: of at least this many steps (the capture costs about two eager steps)
 GRAPH_MIN_STEPS = 16
-#: the contacts per state that a captured step pads to (no state of 4096 BP5 or BD5 rollouts
-#: of 100 steps had more than 5 active at once: ``python benchmarks/run.py simulate
-#: --all-tasks --scenes 4096``, column ``max contacts``); a rollout where a state has more
-#: is run again padded to all candidates
+#: the contacts per state that a padded step (a captured one, or a step-by-step one on CUDA)
+#: sends to the solve at first (no state of 4096 BP5 or BD5 rollouts of 100 steps had more
+#: than 5 active at once: ``python benchmarks/run.py simulate --all-tasks --scenes 4096``,
+#: column ``max contacts``); a rollout where a state has more is run again, and the system
+#: remembers half as many more as it needed for its next rollouts
+#: (:meth:`System._grow_contact_padding`; Rope-D400's 4096 ropes needed 12)
 GRAPH_CONTACTS = 8
 #: the rows of each state's problem that a read-free position projection (a captured step,
 #: or a step-by-step rollout on CUDA) pads to at first (enough for Rope's rollouts:
@@ -68,13 +70,12 @@ def _pads_contacts(device: torch.device) -> bool:
 def _projects_read_free(device: torch.device) -> bool:
     """Whether such a padded step-by-step rollout (:func:`_pads_contacts`) also runs the
     position projection read-free (:class:`~diffcontact.systems.projection.ReadFree`; a
-    captured step always does). Not by default: read-free, the projection runs all its
-    iterations, and a Rope training step dispatches 24,473 torch operations instead of
-    12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
-    [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``), while a step on
-    CUDA is bound by its launches (the GPU busy about a tenth of the time,
-    benchmarks/README.md), where a read waits for little. To be measured on a GPU:
-    ``python benchmarks/run.py train --device cuda --tasks Rope [--read-free-projection]``."""
+    captured step always does). Not by default, as measured: read-free, the projection runs
+    all its iterations, and a Rope training step dispatches 24,473 torch operations instead
+    of 12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
+    [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``); on an H200 a Rope
+    training step took 0.367 s read-free and 0.230 s reading (``python benchmarks/run.py
+    train --device cuda --tasks Rope [--read-free-projection]``, benchmarks/README.md)."""
     return False
 
 
@@ -123,12 +124,32 @@ class Rollout:
     threads: int | str | None = None
     #: the read-free projection of the last deferred :meth:`eager` call, if it ran one
     _read_free: ReadFree | None = field(default=None, init=False, repr=False)
+    #: the contacts the last padded rollout sent per state, and ``()`` on the device: the
+    #: most active contacts a state had in it
+    _padded: int | None = field(default=None, init=False, repr=False)
+    _most: Tensor | None = field(default=None, init=False, repr=False)
 
     def grow_padding(self) -> None:
-        """After a deferred :meth:`eager` whose flag was set: if its read-free projection
-        needed more rows than it had, the system remembers more for its next rollouts
-        (one read of the device)."""
+        """After a deferred :meth:`eager` whose flag was set: if its padded contacts or its
+        read-free projection's rows were too few, the system remembers more for its next
+        rollouts (a read of the device each)."""
+        self.system._grow_contact_padding(self._most, self._padded)
         self.system._grow_projection_rows(self._read_free)
+
+    def contact_padding(self) -> int:
+        """The contacts per state a padded step sends to the solve: :data:`GRAPH_CONTACTS`,
+        or what the system remembers from a rollout that needed more, at most every
+        candidate."""
+        K = len(self.system.contact_names)
+        return min(K, self.system._contact_padding or GRAPH_CONTACTS)
+
+    def _track(self, like: Tensor, padded: int) -> Tensor:
+        """Start tracking the most active contacts of a state in a rollout padded to
+        ``padded``: the ``()`` int64 tensor on ``like``'s device that :func:`_count`
+        updates."""
+        self._padded = padded
+        self._most = torch.zeros((), dtype=torch.long, device=like.device)
+        return self._most
 
     def _steps(self) -> Any:
         if not self.progress:
@@ -156,7 +177,8 @@ class Rollout:
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
-        padded = GRAPH_CONTACTS if defer and _pads_contacts(device) else None
+        padded = self.contact_padding() if defer and _pads_contacts(device) else None
+        most = None if padded is None else self._track(z0, padded)
         read_free = None
         if padded is not None and _projects_read_free(device):
             read_free = system._read_free_projection(device, iterations)
@@ -172,8 +194,8 @@ class Rollout:
                     z1 = system._integrate(z, ctx, dynamics)
                     try:
                         res = system._resolve(z1, ctx, model, fraction, solver_settings, padded)
-                        if padded is not None:
-                            overflow.logical_or_(((res.gaps < 0).sum(-1) > padded).any())
+                        if most is not None:
+                            _count(most, res.gaps)
                         z = system._project(res, ctx, iterations, solver_settings, read_free)
                         if gaps is not None:
                             gaps.append(res.gaps)
@@ -200,6 +222,8 @@ class Rollout:
             return self.eager()
         traj = torch.stack(states, dim=1)
         gaps_all = None if gaps is None else torch.stack(gaps, 1)
+        if most is not None:
+            overflow = most > padded
         if read_free is not None:
             overflow = overflow | read_free.overflowed
         pending = (flags.any() | overflow) if defer else None
@@ -258,9 +282,8 @@ class Rollout:
         if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
             give_up(needs_gradient)
             return None
-        K = len(system.contact_names)
-        contacts = min(K, GRAPH_CONTACTS)
         while True:  # (ends: each "overflow" or "rows" pads to more, up to all candidates)
+            contacts = self.contact_padding()
             read_free = system._read_free_projection(self.z0.device, self.options.iterations)
             try:
                 out = self._attempt(contacts, capture, read_free)
@@ -272,8 +295,8 @@ class Rollout:
                     raise
                 give_up(f"the capture failed: {type(err).__name__}: {err}")
                 return None
-            if out == "overflow" and contacts < K:
-                contacts = K
+            if out == "overflow" and system._grow_contact_padding(self._most, contacts):
+                continue
             elif out == "rows" and system._grow_projection_rows(read_free):
                 continue
             elif isinstance(out, str):  # (padded to every candidate and row: cannot happen)
@@ -290,7 +313,7 @@ class Rollout:
         model, dynamics, fraction, iterations, solver_settings = self.options
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
-        overflow = torch.zeros((), dtype=torch.bool, device=device)
+        most = self._track(z0, contacts)
         z_in = z0.detach().clone()
 
         def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
@@ -299,7 +322,7 @@ class Rollout:
                 res = system._resolve(z1, ctx, model, fraction, solver_settings, contacts)
                 if res.z.requires_grad:
                     raise _NeedsGradient
-                overflow.logical_or_(((res.gaps < 0).sum(-1) > contacts).any())
+                _count(most, res.gaps)
                 z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))
             return res.gaps
 
@@ -322,7 +345,7 @@ class Rollout:
 
         z_in.copy_(z0)  # (the warm-up step moved it)
         flags.zero_()
-        overflow.zero_()
+        most.zero_()
         if read_free is not None:
             read_free.needed.zero_()
         N = z0.shape[0]
@@ -337,6 +360,7 @@ class Rollout:
             traj[:, step + 1].copy_(z_in)
             if gaps is not None:
                 gaps[:, step + 1].copy_(g_out)
+        overflow = most > contacts
         rows = overflow if read_free is None else read_free.overflowed
         over_contacts, over_rows = torch.stack([overflow, rows]).tolist()
         if over_contacts:
@@ -344,3 +368,10 @@ class Rollout:
         if over_rows:
             return "rows"
         return traj, gaps, flags.any()  # (read by simulate with its other checks)
+
+
+def _count(most: Tensor, gaps: Tensor) -> None:
+    """``most``, ``()`` int64 on the device, becomes at least the most active contacts of
+    a state of ``gaps: (N, K)`` (in place, no read of the device)."""
+    if gaps.shape[0]:
+        torch.maximum(most, (gaps < 0).sum(-1).amax(), out=most)

@@ -166,6 +166,12 @@ def load_config(spec: Any, **overrides: Any):
     return parse_config(data, source)
 
 
+def _grown(needed: int) -> int:
+    """A padding remembered after a rollout needed ``needed``: half as much more, rounded
+    up to a multiple of 8 (and more than ``needed``)."""
+    return max(needed + 1, -(-3 * needed // 2 // 8) * 8)
+
+
 def load_system(spec: Any, **overrides: Any) -> System:
     """A :class:`System` from a built-in task name, a ``.yaml``/``.json`` path or a dict.
 
@@ -323,6 +329,9 @@ class System:
         self._two_sided = widths is not None and bool(torch.isfinite(widths).any())
         self._point_masses = all(body.kind == "point" for body in self._bodies)
         self._projection_rows = PROJECTION_ROWS
+        # the contacts per state a padded step sends to the solve, once a rollout needed
+        # more than GRAPH_CONTACTS (None: GRAPH_CONTACTS; Rollout.contact_padding)
+        self._contact_padding: int | None = None
 
     # ------------------------------------------------------------------ builders
     def _build_circles(self, cfg: BouncingMassesConfig | BouncingDisksConfig) -> None:
@@ -1043,8 +1052,22 @@ class System:
         needed = int(read_free.needed)
         if needed <= read_free.rows:
             return False
-        grown = max(needed + 1, -(-3 * needed // 2 // 8) * 8)
-        self._projection_rows = min(self._projection_rows_all(), max(grown, self._projection_rows))
+        grown = max(_grown(needed), self._projection_rows)
+        self._projection_rows = min(self._projection_rows_all(), grown)
+        return True
+
+    def _grow_contact_padding(self, most: Tensor | None, padded: int | None) -> bool:
+        """After a padded rollout in which a state had ``most`` (``()`` on the device, one
+        read) active contacts, more than the ``padded`` it was sent with: remember half as
+        many more, rounded up to a multiple of 8, up to every candidate, for this system's
+        next rollouts. Whether it grew."""
+        if most is None or padded is None:
+            return False
+        needed = int(most)
+        if needed <= padded:
+            return False
+        grown = max(_grown(needed), self._contact_padding or 0)
+        self._contact_padding = min(len(self.contact_names), grown)
         return True
 
     def project_positions(
