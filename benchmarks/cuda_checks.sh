@@ -4,7 +4,7 @@
 #
 #   bash benchmarks/cuda_checks.sh [OUT_DIR [PART ...]]   (needs a CUDA GPU)
 #
-# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-5) pick the parts to run and their
+# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-6) pick the parts to run and their
 # order (default all, in order), e.g. "0 2 4" and then "3 1 5" in two calls where one call
 # may not take them all.
 #
@@ -14,7 +14,10 @@
 # 3. launches and synchronisations per step;
 # 4. the Rope training step with the reading and the read-free projection
 #    (diffcontact.systems.rollout._projects_read_free decides which one a step on CUDA takes);
-# 5. where a graphed step's GPU time goes.
+# 5. where a graphed step's GPU time goes;
+# 6. how Rope-D400's step-by-step time grows along its rollout (rollout_growth: 4096 ropes
+#    took 0.11 s for 3 steps and 22 s for 19 on an H200 before the projection asked the
+#    solver for any minimiser, benchmarks/README.md).
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
 # The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache
@@ -22,10 +25,10 @@
 set -u
 OUT=${1:-runs/cuda-checks}
 shift $(($# > 0 ? 1 : 0))
-PARTS=${*:-0 1 2 3 4 5}
+PARTS=${*:-0 1 2 3 4 5 6}
 for number in $PARTS; do
-    if [[ $number != [0-5] ]]; then
-        echo "cuda_checks.sh: unknown part $number (parts are 0-5)" >&2
+    if [[ $number != [0-6] ]]; then
+        echo "cuda_checks.sh: unknown part $number (parts are 0-6)" >&2
         exit 2
     fi
 done
@@ -73,6 +76,10 @@ part_4() {
 }
 part_5() {
     part 5_profile_step 150 $PY benchmarks/run.py profile_step --device cuda --tasks BP5 BD5 Rope
+}
+part_6() {
+    part 6_rollout_growth 200 $PY benchmarks/run.py rollout_growth --device cuda --task Rope-D400 \
+        --scenes 4096 --first 3
 }
 for number in $PARTS; do "part_$number"; done
 echo "cuda_checks.sh: done in $(($(date +%s) - start))s; outputs in $OUT"

@@ -12,6 +12,7 @@
     python benchmarks/run.py fastops [...]  # sums over a short last dim (fastops.py)
     python benchmarks/run.py launches [...]  # torch ops, CUDA launches and syncs per step
     python benchmarks/run.py profile_step [...]  # where the read-free step's time goes
+    python benchmarks/run.py rollout_growth [...]  # time along a rollout, selected vs padded
 
 Each suite takes its own options (``python benchmarks/run.py SUITE --help``); see
 benchmarks/README.md for what is measured.
@@ -36,6 +37,7 @@ SUITES = (
     "launches",
     "kernels",
     "profile_step",
+    "rollout_growth",
 )
 
 

@@ -191,6 +191,63 @@ def test_a_disk_in_a_corner_gets_the_interior_points_minimiser():
     assert abs(float(f_w[0, 0]) - 0.1684) < 1e-3  # the reference's, not 0.156
 
 
+def _kinked_problems(n: int, K: int, seed: int):
+    """d = 1 problems with a positive definite A whose unique minimiser f* has rows at a
+    kink of the natural map (f*_k = 0 and w*_k = (A f* + b)_k = 0), beside pressing rows
+    (f* > 0, w* = 0) and separating ones (f* = 0, w* > 0)."""
+    gen = torch.Generator().manual_seed(seed)
+    B = torch.randn(n, K, K, generator=gen, dtype=F64)
+    A = B @ B.mT / K + 0.1 * torch.eye(K, dtype=F64)
+    kind = torch.arange(K) % 3  # 0 pressing, 1 kink, 2 separating
+    f = torch.where(kind == 0, 0.2 + torch.rand(n, K, generator=gen, dtype=F64), 0.0)
+    w = torch.where(kind == 2, 0.2 + torch.rand(n, K, generator=gen, dtype=F64), 0.0)
+    b = w - (A @ f.unsqueeze(-1)).squeeze(-1)
+    return A, b, f
+
+
+def test_any_minimiser_keeps_newton_at_kinks_with_the_same_solution():
+    """SolverSettings(canonical=False): the Newton steps from zero are kept at a kink of the
+    natural map (no interior point), and where the minimiser is unique (A positive
+    definite) it is the canonical one. The position projection asks for this: its
+    problems have many rows at kinks (rows just corrected, at gap 0 with multiplier 0),
+    and the interior point there cost a one-thread-per-problem GPU launch its time."""
+    A, b, f_star = _kinked_problems(64, 9, seed=3)
+    mu = torch.ones(64, 9, dtype=F64)
+    f_c, s_c = solve_cone_qp(
+        A, b, mu, 1, settings=SolverSettings(backend="warp"), return_status=True
+    )
+    any_ = SolverSettings(backend="warp", canonical=False)
+    f_a, s_a = solve_cone_qp(A, b, mu, 1, settings=any_, return_status=True)
+    assert s_c.converged.all() and s_a.converged.all()
+    assert (s_c.iterations > 0).float().mean() > 0.9  # the kinks sent them to the interior point
+    assert (s_a.iterations == 0).all()  # Newton from zero kept
+    torch.testing.assert_close(f_a, f_star, rtol=0, atol=1e-9)
+    torch.testing.assert_close(f_c, f_star, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(("K", "rank"), [(3, 2), (8, 5)])
+def test_any_minimiser_of_a_singular_problem_has_the_canonical_ones_A_f(K, rank):
+    """Singular A: the minimisers form a set on which A f is constant; canonical=False may
+    return another member of it than the interior point's, with the same A f and
+    objective (all the position projection's step M^-1 J^T lambda depends on)."""
+    A, b, mu, lower = _singular_problems(100, K, 1, rank, seed=K, unbounded=False)
+    lower = torch.zeros_like(lower)
+    f_c, s_c = solve_cone_qp(
+        A, b, mu, 1, lower, settings=SolverSettings(backend="warp"), return_status=True
+    )
+    any_ = SolverSettings(backend="warp", canonical=False)
+    f_a, s_a = solve_cone_qp(A, b, mu, 1, lower, settings=any_, return_status=True)
+    assert s_c.converged.all() and s_a.converged.all()
+    Af_c, Af_a = ((A @ f.unsqueeze(-1)).squeeze(-1) for f in (f_c, f_a))
+    torch.testing.assert_close(Af_a, Af_c, rtol=0, atol=1e-8)
+    assert natural_residual(A, b, mu, lower, f_a, 1).max() < 1e-9
+
+
+def test_canonical_must_be_a_bool():
+    with pytest.raises(ValueError, match="canonical must be a bool"):
+        SolverSettings(canonical="no")
+
+
 @pytest.mark.parametrize(("d", "K", "rank"), [(1, 3, 2), (1, 8, 7), (2, 3, 2)])
 def test_unbounded_problems_have_the_same_status(d, K, rank):
     A, b, mu, lower = _singular_problems(60, K, d, rank, seed=K + 10 * d, unbounded=True)

@@ -134,6 +134,13 @@ class SolverSettings:
             the input dtype: faster, but a float32 interior point cannot reach the gap
             that identifies the active set of every problem, and some problems then
             end unconverged (``test_leading_batch_dims_and_float32`` runs this mode).
+        canonical: where the minimiser is not unique (a singular ``A``), return the
+            canonical one, the interior point's (default; the impulses of a state then do
+            not depend on its batch). ``False``: any minimiser, for callers that use only
+            ``A f`` (the position projection, whose step ``M^-1 J^T lambda`` is the same for
+            every minimiser): the Warp backend then keeps its Newton steps from zero at
+            kinks of the natural map too, where it would otherwise run the interior point.
+            The torch backend runs the interior point always.
         backend: ``"auto"`` (default), ``"torch"`` or ``"warp"``: the reference solver of
             batched torch operations, or the same algorithm fused into one NVIDIA Warp
             kernel per call (one thread per problem; ``pip install diffcontact[warp]``).
@@ -151,8 +158,11 @@ class SolverSettings:
     check_inputs: bool = True
     compute_dtype: torch.dtype | None = torch.float64
     backend: str = "auto"
+    canonical: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.canonical, bool):
+            raise ValueError(f"SolverSettings.canonical must be a bool, got {self.canonical!r}")
         if self.backend not in fused.BACKENDS:
             raise ValueError(
                 f"SolverSettings.backend must be one of {', '.join(fused.BACKENDS)}, "
@@ -175,6 +185,7 @@ class SolverSettings:
             check_inputs=self.check_inputs,
             compute_dtype=dtype,
             backend=fused.resolve_backend(self.backend, dtype, device),
+            canonical=self.canonical,
         )
 
 

@@ -670,6 +670,7 @@ def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings)
     args += [n, 0, d, K, int(warm), int(settings.check_inputs), 2]
     args += [settings.retries, settings.max_iter]
     args += [settings.polish_steps, FIRST_STEPS_FACTOR * settings.polish_steps]
+    args.append(int(settings.canonical))
     args += [
         scalar(x)
         for x in (

@@ -2291,6 +2291,7 @@ def _solve_row(
     tol: Any,
     polish_steps: int,
     first_steps: int,
+    canonical: int,
     blowup: Any,
     eps: Any,
     tiny: Any,
@@ -2301,8 +2302,9 @@ def _solve_row(
     piv: wp.array2d(dtype=wp.int32),
 ):
     """The solve of ``_forward`` for workspace row r: polish of the guess in vec[r, F_]
-    (if ``guessed``), else ``first_steps`` Newton steps from zero; where that does not
-    finish, interior point and polish with retries. Leaves the polished
+    (if ``guessed``), else ``first_steps`` Newton steps from zero (kept at a kink of the
+    natural map only where ``canonical`` is 0: ``SolverSettings.canonical``); where that
+    does not finish, interior point and polish with retries. Leaves the polished
     point (f, F, P, dmu, dl in their rows of vec; the reduced factorisation of dF/df of
     :func:`_reduced_factor` in M[r], piv[r]); returns (residual, interior-point
     iterations, interior point diverged, the size m of the factorised block)."""
@@ -2334,7 +2336,8 @@ def _solve_row(
             piv,
         )  # fmt: skip
         kept = res <= target and umin > type(gap)(FLAT)
-        if kept:  # and not at a kink of the natural map, where regular is not unique
+        if kept and canonical != 0:  # and not at a kink of the natural map, where
+            # regular is not unique (the caller asks for the canonical minimiser)
             kept = not _at_a_kink(Am, bm, mum, lowerm, act, r, r, d, K, rho, c, vec)
     if not kept:
         _ipm_matrix(Am, mum, sc, r, d, K, Aipm)
@@ -2507,6 +2510,7 @@ def fused_forward(
     max_iter: int,
     polish_steps: int,
     first_steps: int,
+    canonical: int,
     gap: Any,
     target: Any,
     tol: Any,
@@ -2608,8 +2612,8 @@ def fused_forward(
             guessed = True
         res, iterations, _div, m = _solve_row(
             Am, bm, mum, lowerm, Aipm, bipm, muipm, loweripm, apex, act, sc, r, d, K, guessed,
-            gap, max_iter, retries, target, tol, polish_steps, first_steps, blowup, eps, tiny, inf,
-            vec, M, V, piv,
+            gap, max_iter, retries, target, tol, polish_steps, first_steps, canonical, blowup, eps,
+            tiny, inf, vec, M, V, piv,
         )  # fmt: skip
         if p == 0:
             res0 = res

@@ -63,7 +63,7 @@ arithmetic.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -269,6 +269,11 @@ def project_positions(
     def row_gaps(g: Tensor) -> Tensor:  # (..., K) -> (..., R_all): each side of each limit
         return torch.cat([g, width - g], -1) if width is not None else g
 
+    # the step M^-1 J^T lambda is the same for every minimiser lambda (two differ by a null
+    # vector g of A = J M^-1 J^T, and g^T A g = 0 makes M^-1 J^T g = 0): any will do, which
+    # spares the fused solver's interior point at the many kinks of these problems (rows
+    # just corrected sit at gap 0 with lambda 0)
+    any_minimiser = replace(settings or SolverSettings(), canonical=False)
     x_i = x_pred
     dist = None  # after the first iteration: the line search's distances at x_i
     going = None  # read-free: () bool, whether the early stop would still iterate
@@ -330,8 +335,9 @@ def project_positions(
         rhs = gap if base is None else gap + (J @ base.unsqueeze(-1)).squeeze(-1)
         rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
         lam, status = solve_cone_qp(
-            A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=settings, return_status=True
-        )
+            A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=any_minimiser,
+            return_status=True,
+        )  # fmt: skip
         # a problem the solver did not finish still gives a direction (the line search
         # below keeps only steps that reduce the violation); an unbounded one does not
         usable = ~status.unbounded & torch.isfinite(lam).all(-1)

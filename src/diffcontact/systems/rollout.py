@@ -6,9 +6,10 @@ parameters on the device, the initial states, the options) and runs the steps:
 
 - :meth:`Rollout.eager`: step by step. With ``defer`` the fused solver's error flags are
   gathered on the device and read once after the last step; on CUDA every state then goes
-  through the contact solve padded to :data:`GRAPH_CONTACTS` contacts instead of a
-  selection of the states in contact (a read of the device per step). Without ``defer``
-  each step reads the device and raises at once, naming the states.
+  through the contact solve padded to :data:`GRAPH_CONTACTS` contacts (or more that the
+  system remembers: :meth:`Rollout.contact_padding`) instead of a selection of the states
+  in contact (a read of the device per step). Without ``defer`` each step reads the
+  device and raises at once, naming the states.
 - :meth:`Rollout.graphed`: one step with static shapes and no read of the device (the
   padded contacts, the deferred flags, the position projection read-free,
   :class:`~diffcontact.systems.projection.ReadFree`), captured in a CUDA graph and
@@ -166,7 +167,8 @@ class Rollout:
         ``defer``: the fused solver's error flags are gathered on the device
         (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
         solve, and on CUDA each step sends every state to the contact model padded to
-        :data:`GRAPH_CONTACTS` (a state with more active contacts sets the flag) instead
+        :meth:`contact_padding` (a state with more active contacts sets the flag, and the
+        system pads to more next time) instead
         of selecting the states in contact (a read of the device), and the position
         projection runs read-free where :func:`_projects_read_free` says so (a state
         needing more rows sets the flag too; :meth:`grow_padding`). Without ``defer``,
@@ -251,21 +253,21 @@ class Rollout:
     def graphed(self, strict: bool = False, capture: bool = True) -> Result | None:
         """The rollout as replays of one step captured in a CUDA graph.
 
-        The step is the eager one with static shapes and no read of the device: every
-        state goes to the contact model with its active candidates padded to
-        :data:`GRAPH_CONTACTS` (``System._resolve``'s ``static_contacts``; a state with
-        more active contacts sets a flag, and the rollout is run again padded to all
-        candidates), the position projection (if on) runs read-free with the rows the
-        system remembers (a state needing more sets a flag, and the rollout is run again
-        with more), and the fused solver's error flags are gathered on the device
-        (:func:`~diffcontact.contact.cone_qp.deferred_checks`); all are read once after
-        the last step. A replay launches the step's hundreds of kernels at once, where
-        the eager step pays the host's time for each. Returns what :meth:`eager` does
-        with ``defer`` (the flag: a solve failed, and the caller reruns step by step,
-        which names the states and the cause), or None where the graph cannot be used
-        (the step needs gradients, or the capture failed; a ``RuntimeWarning`` says why
-        unless ``strict``, which raises). ``capture=False`` runs the same static,
-        read-free steps without a graph (on any device; for tests)."""
+        The step is the eager one with static shapes and no read of the device: every state
+        goes to the contact model with its active candidates padded to
+        :meth:`contact_padding` (``System._resolve``'s ``static_contacts``; a state with
+        more active contacts sets a flag, and the rollout is run again with the padding
+        grown, which the system remembers), the position projection (if on) runs read-free
+        with the rows the system remembers (a state needing more sets a flag, and the
+        rollout is run again with more), and the fused solver's error flags are gathered on
+        the device (:func:`~diffcontact.contact.cone_qp.deferred_checks`); all are read once
+        after the last step. A replay launches the step's hundreds of kernels at once, where
+        the eager step pays the host's time for each. Returns what :meth:`eager` does with
+        ``defer`` (the flag: a solve failed, and the caller reruns step by step, which names
+        the states and the cause), or None where the graph cannot be used (the step needs
+        gradients, or the capture failed; a ``RuntimeWarning`` says why unless ``strict``,
+        which raises). ``capture=False`` runs the same static, read-free steps without a
+        graph (on any device; for tests)."""
         system = self.system
         needs_gradient = "the rollout needs gradients, which a graph replay does not record"
 
@@ -282,7 +284,7 @@ class Rollout:
         if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
             give_up(needs_gradient)
             return None
-        while True:  # (ends: each "overflow" or "rows" pads to more, up to all candidates)
+        while True:  # (ends: each "overflow" or "rows" pads to more, up to every candidate)
             contacts = self.contact_padding()
             read_free = system._read_free_projection(self.z0.device, self.options.iterations)
             try:

@@ -1,0 +1,95 @@
+"""Benchmark: how a step-by-step rollout's time grows along its steps, and with the
+states in contact selected (reads of the device) or every state padded.
+
+    python benchmarks/run.py rollout_growth [--device cpu|cuda] [--task Rope-D400]
+        [--scenes N] [--first K] [--steps N] [--rows N] [--quick]
+
+Times ``System.simulate(cuda_graph=False)`` of ``--scenes`` states over the first
+``--first`` steps and over all ``--steps``, each with the contact resolution selecting the
+states in contact (``rollout._pads_contacts`` False: a read of the device per step) and
+padding every state (True: the CUDA default), twice in turn after a warm-up; then profiles
+one padded rollout of ``--first`` steps and lists the operations and kernels that take the
+most device time. Written after the H200 run of 2026-11-27, where 4096 Rope-D400 ropes
+took far longer per step over 19 steps than over their first 3 (benchmarks/README.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+import diffcontact as dc
+from common import machine_header
+from diffcontact.systems import rollout as rollout_module
+
+
+def _timed(system: dc.System, z0: torch.Tensor, steps: int, pads: bool) -> float:
+    rollout_module._pads_contacts = lambda device: pads
+    if z0.is_cuda:
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    system.simulate(z0, steps, cuda_graph=False, on_tunnelling="ignore")
+    if z0.is_cuda:
+        torch.cuda.synchronize()
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="Rope, 64 states, 2 and 5 steps")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    ap.add_argument("--task", default="Rope-D400")
+    ap.add_argument("--scenes", type=int, default=4096)
+    ap.add_argument("--first", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=None, help="default: the task's horizon")
+    ap.add_argument("--rows", type=int, default=12, help="operations listed")
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device available")
+    if args.task not in dc.list_tasks():
+        ap.error(f"unknown task {args.task!r}; choose from {', '.join(dc.list_tasks())}")
+    task, scenes, first, steps = args.task, args.scenes, args.first, args.steps
+    if args.quick:
+        task, scenes, first, steps = "Rope", 64, 2, 5
+    system = dc.load_system(task)
+    steps = system.default_steps if steps is None else steps
+    if scenes < 1 or not 1 <= first <= steps:
+        ap.error("need --scenes >= 1 and 1 <= --first <= --steps")
+    print("a step-by-step rollout's time along its steps, states selected or padded")
+    for line in machine_header(args.device, torch.float64):
+        print(line)
+    z0 = system.sample_initial_conditions(scenes, seed=0, device=args.device)
+    original = rollout_module._pads_contacts
+    try:
+        _timed(system, z0, 1, True)  # warm-up (kernels, caches, the padding it needs)
+        print(f"{task}, {scenes} states")
+        print(f"{'contacts':>9} | {f'{first} steps s':>12} {f'{steps} steps s':>12} | per step")
+        for pads in (False, True, False, True):
+            t_first = _timed(system, z0, first, pads)
+            t_all = _timed(system, z0, steps, pads)
+            name = "padded" if pads else "selected"
+            print(
+                f"{name:>9} | {t_first:12.3f} {t_all:12.3f} | first {t_first / first:.4f} s, "
+                f"the rest {(t_all - t_first) / max(steps - first, 1):.4f} s"
+            )
+        rollout_module._pads_contacts = lambda device: True
+        activities = [ProfilerActivity.CPU]
+        if args.device == "cuda":
+            activities.append(ProfilerActivity.CUDA)
+        with profile(activities=activities) as prof:
+            system.simulate(z0, first, cuda_graph=False, on_tunnelling="ignore")
+            if args.device == "cuda":
+                torch.cuda.synchronize()
+        key = "self_device_time_total" if args.device == "cuda" else "self_cpu_time_total"
+        print(f"padded rollout of {first} steps, by {key}:")
+        print(prof.key_averages().table(sort_by=key, row_limit=args.rows))
+    finally:
+        rollout_module._pads_contacts = original
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
