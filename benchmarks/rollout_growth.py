@@ -7,10 +7,14 @@ states in contact selected (reads of the device) or every state padded.
 Times ``System.simulate(cuda_graph=False)`` of ``--scenes`` states over the first
 ``--first`` steps and over all ``--steps``, each with the contact resolution selecting the
 states in contact (``rollout._pads_contacts`` False: a read of the device per step) and
-padding every state (True: the CUDA default), twice in turn after a warm-up; then profiles
-one padded rollout of ``--first`` steps and lists the operations and kernels that take the
-most device time. Written after the H200 run of 2026-11-27, where 4096 Rope-D400 ropes
-took far longer per step over 19 steps than over their first 3 (benchmarks/README.md).
+padding every state (True: the CUDA default), twice in turn after a warm-up; then counts,
+for the position projection's solves of one rollout (the ropes'), the rows and the fused
+solver's interior-point iterations per problem, with the projection asking for any
+minimiser (its setting) and for the canonical one (``SolverSettings.canonical``, the
+solver's default); then profiles one padded rollout of ``--first`` steps and lists the
+operations and kernels that take the most device time. Written after the H200 run of
+2026-11-27, where 4096 Rope-D400 ropes took far longer per step over 19 steps than over
+their first 3 (benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from torch.profiler import ProfilerActivity, profile
 
 import diffcontact as dc
 from common import machine_header
+from diffcontact.systems import projection
 from diffcontact.systems import rollout as rollout_module
 
 
@@ -35,6 +40,33 @@ def _timed(system: dc.System, z0: torch.Tensor, steps: int, pads: bool) -> float
     if z0.is_cuda:
         torch.cuda.synchronize()
     return time.perf_counter() - start
+
+
+def _projection_solves(system: dc.System, z0: torch.Tensor, steps: int, canonical: bool) -> str:
+    """The position projection's solves over one rollout: calls, most rows, and the
+    interior-point iterations per problem (mean, max)."""
+    solve, replace = projection.solve_cone_qp, projection.replace
+    calls = []
+
+    def counted(A, *args, **kwargs):
+        out = solve(A, *args, **kwargs)
+        calls.append((A.shape[-1], out[1].iterations.double()))
+        return out
+
+    projection.solve_cone_qp = counted
+    if canonical:  # (undo the projection's replace(settings, canonical=False))
+        projection.replace = lambda settings, **changes: settings
+    try:
+        system.simulate(z0, steps, cuda_graph=False, on_tunnelling="ignore")
+    finally:
+        projection.solve_cone_qp, projection.replace = solve, replace
+    if not calls:
+        return "no projection solves"
+    iterations = torch.cat([it.flatten() for _, it in calls])
+    return (
+        f"{len(calls)} solves, up to {max(r for r, _ in calls)} rows; interior-point "
+        f"iterations per problem: mean {float(iterations.mean()):.2f}, max {int(iterations.max())}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"{name:>9} | {t_first:12.3f} {t_all:12.3f} | first {t_first / first:.4f} s, "
                 f"the rest {(t_all - t_first) / max(steps - first, 1):.4f} s"
             )
+        for canonical in (False, True):
+            which = "the canonical minimiser" if canonical else "any minimiser (default)"
+            print(f"projection, {which}: {_projection_solves(system, z0, steps, canonical)}")
         rollout_module._pads_contacts = lambda device: True
         activities = [ProfilerActivity.CPU]
         if args.device == "cuda":
