@@ -111,7 +111,8 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
 
     def spy(self, contacts, capture, read_free):
         out = attempt(self, contacts, capture, read_free)
-        tries.append((read_free.rows, out if isinstance(out, str) else "done"))
+        overflow = isinstance(out, rollout_module.Overflow)
+        tries.append((read_free.rows, "rows" if overflow else "done"))
         return out
 
     monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
@@ -123,6 +124,37 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
     tries.clear()
     _static_rollout(system, z0, 20)
     assert tries == [(system._projection_rows, "done")]  # remembered: no rerun
+
+
+def test_rows_counted_after_dropped_contacts_do_not_inflate_the_padding(monkeypatch):
+    """An attempt whose contacts were too few also reports the rows its projection needed,
+    but only up to the step where a state first dropped contacts: after it the trajectory
+    is not the rollout's, and its rows would inflate the remembered padding (Rope-D400
+    reported 288 rows where 120 do). Every attempt reports at most the rows that the
+    successful one needed, and both paddings grow from the reports."""
+    system = dc.load_system("Rope-D100")
+    z0 = system.sample_initial_conditions(32, seed=4)
+    eager = system.simulate(z0, cuda_graph=False)
+    system._projection_rows = 2
+    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 1)
+    tries = []
+    attempt = rollout_module.Rollout._attempt
+
+    def spy(self, contacts, capture, read_free):
+        out = attempt(self, contacts, capture, read_free)
+        overflow = out if isinstance(out, rollout_module.Overflow) else None
+        tries.append((contacts, read_free.rows, overflow, int(read_free.needed)))
+        return out
+
+    monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
+    traj, _, _ = _static_rollout(system, z0, system.default_steps)
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
+    *failed, (contacts, rows, last, rows_needed) = tries
+    assert last is None and failed and failed[0][2].contacts > 1  # the contacts overflowed
+    assert all(report.rows <= rows_needed for _, _, report, _ in failed)
+    assert any(needed > rows_needed for *_, needed in failed)  # (what a report would be)
+    assert contacts >= max(report.contacts for _, _, report, _ in failed)
+    assert rows >= rows_needed
 
 
 def _simulate_with_grad(system, z0, steps, pads: bool, monkeypatch):

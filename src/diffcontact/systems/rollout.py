@@ -41,7 +41,14 @@ from diffcontact.threads import thread_scope
 if TYPE_CHECKING:
     from diffcontact.systems.system import System, _Context
 
-__all__ = ["GRAPH_CONTACTS", "GRAPH_MIN_STEPS", "PROJECTION_ROWS", "Rollout", "RolloutOptions"]
+__all__ = [
+    "GRAPH_CONTACTS",
+    "GRAPH_MIN_STEPS",
+    "PROJECTION_ROWS",
+    "Overflow",
+    "Rollout",
+    "RolloutOptions",
+]
 
 #: :meth:`System.simulate` with ``cuda_graph="auto"`` captures a CUDA graph for rollouts
 #: of at least this many steps (the capture costs about two eager steps)
@@ -92,6 +99,15 @@ class RolloutOptions(NamedTuple):
 
 class _NeedsGradient(Exception):
     """A captured step's result requires grad (raised before the capture goes on)."""
+
+
+class Overflow(NamedTuple):
+    """A static rollout whose padding was too small: the most active contacts of a state,
+    and the most rows a state's position projection selected up to the step where a state
+    first had more contacts than the padding (0 without a projection)."""
+
+    contacts: int
+    rows: int
 
 
 #: what a rollout returns: ``(N, steps + 1, 2, P, dim)`` states, ``(N, steps + 1, K)``
@@ -284,7 +300,7 @@ class Rollout:
         if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
             give_up(needs_gradient)
             return None
-        while True:  # (ends: each "overflow" or "rows" pads to more, up to every candidate)
+        while True:  # (ends: each overflow pads to more, up to every candidate and row)
             contacts = self.contact_padding()
             read_free = system._read_free_projection(self.z0.device, self.options.iterations)
             try:
@@ -297,25 +313,31 @@ class Rollout:
                     raise
                 give_up(f"the capture failed: {type(err).__name__}: {err}")
                 return None
-            if out == "overflow" and system._grow_contact_padding(self._most, contacts):
-                continue
-            elif out == "rows" and system._grow_projection_rows(read_free):
-                continue
-            elif isinstance(out, str):  # (padded to every candidate and row: cannot happen)
-                raise RuntimeError(f"simulate {system.name}: the static rollout overflowed ({out})")
-            else:
+            if not isinstance(out, Overflow):
                 return out
+            # both paddings grow from one attempt (an attempt that dropped contacts still
+            # tells how many rows its projection needed: fewer wasted attempts)
+            grew = system._grow_contact_padding(out.contacts, contacts)
+            grew = system._grow_projection_rows(read_free, out.rows) or grew
+            if not grew:  # (padded to every candidate and row: cannot happen)
+                raise RuntimeError(f"simulate {system.name}: the static rollout overflowed {out}")
 
-    def _attempt(self, contacts: int, capture: bool, read_free: ReadFree | None) -> Result | str:
+    def _attempt(
+        self, contacts: int, capture: bool, read_free: ReadFree | None
+    ) -> Result | Overflow:
         """One try of :meth:`graphed` with the contacts padded to ``contacts`` and the
-        position projection (if on) run ``read_free``: :data:`Result`, or ``"overflow"``
-        (a state had more active contacts) or ``"rows"`` (a state's projection needed
-        more rows); one read of the device."""
+        position projection (if on) run ``read_free``: :data:`Result`, or an
+        :class:`Overflow` where a state had more active contacts or its projection needed
+        more rows; one read of the device."""
         system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
         model, dynamics, fraction, iterations, solver_settings = self.options
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         most = self._track(z0, contacts)
+        # the rows the projection needed while every state's contacts fitted: after a state
+        # dropped contacts the trajectory is not the rollout's, and its rows would inflate
+        # the padding (Rope-D400: 288 where 120 do)
+        rows_fitting = torch.zeros_like(most)
         z_in = z0.detach().clone()
 
         def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
@@ -326,6 +348,9 @@ class Rollout:
                     raise _NeedsGradient
                 _count(most, res.gaps)
                 z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))
+                if read_free is not None:
+                    fits = most <= contacts
+                    torch.where(fits, read_free.needed, rows_fitting, out=rows_fitting)
             return res.gaps
 
         if capture:
@@ -348,6 +373,7 @@ class Rollout:
         z_in.copy_(z0)  # (the warm-up step moved it)
         flags.zero_()
         most.zero_()
+        rows_fitting.zero_()
         if read_free is not None:
             read_free.needed.zero_()
         N = z0.shape[0]
@@ -362,13 +388,10 @@ class Rollout:
             traj[:, step + 1].copy_(z_in)
             if gaps is not None:
                 gaps[:, step + 1].copy_(g_out)
-        overflow = most > contacts
-        rows = overflow if read_free is None else read_free.overflowed
-        over_contacts, over_rows = torch.stack([overflow, rows]).tolist()
-        if over_contacts:
-            return "overflow"
-        if over_rows:
-            return "rows"
+        # (rows_fitting is read_free.needed where no state dropped contacts)
+        needed = Overflow(*torch.stack([most, rows_fitting]).tolist())
+        if needed.contacts > contacts or (read_free is not None and needed.rows > read_free.rows):
+            return needed
         return traj, gaps, flags.any()  # (read by simulate with its other checks)
 
 

@@ -1043,24 +1043,24 @@ class System:
         """Rows of a projection problem with every limit in it (each side of a two-sided one)."""
         return self.n_contacts * (2 if self._two_sided else 1)
 
-    def _grow_projection_rows(self, read_free: ReadFree | None) -> bool:
+    def _grow_projection_rows(self, read_free: ReadFree | None, needed: int | None = None) -> bool:
         """After a rollout whose projection needed more rows than ``read_free`` padded to
-        (one read of the device): remember half as many more, rounded up to a multiple
-        of 8, for this system's next rollouts. Whether it grew."""
+        (``needed``, or one read of ``read_free.needed``): remember half as many more,
+        rounded up to a multiple of 8, for this system's next rollouts. Whether it grew."""
         if read_free is None:
             return False
-        needed = int(read_free.needed)
+        needed = int(read_free.needed) if needed is None else needed
         if needed <= read_free.rows:
             return False
         grown = max(_grown(needed), self._projection_rows)
         self._projection_rows = min(self._projection_rows_all(), grown)
         return True
 
-    def _grow_contact_padding(self, most: Tensor | None, padded: int | None) -> bool:
-        """After a padded rollout in which a state had ``most`` (``()`` on the device, one
-        read) active contacts, more than the ``padded`` it was sent with: remember half as
-        many more, rounded up to a multiple of 8, up to every candidate, for this system's
-        next rollouts. Whether it grew."""
+    def _grow_contact_padding(self, most: Tensor | int | None, padded: int | None) -> bool:
+        """After a padded rollout in which a state had ``most`` (an int, or ``()`` on the
+        device: one read) active contacts, more than the ``padded`` it was sent with:
+        remember half as many more, rounded up to a multiple of 8, up to every candidate,
+        for this system's next rollouts. Whether it grew."""
         if most is None or padded is None:
             return False
         needed = int(most)
