@@ -58,7 +58,7 @@ GRAPH_MIN_STEPS = 16
 #: than 5 active at once: ``python benchmarks/run.py simulate --all-tasks --scenes 4096``,
 #: column ``max contacts``); a rollout where a state has more is run again, and the system
 #: remembers half as many more as it needed for its next rollouts
-#: (:meth:`System._grow_contact_padding`; Rope-D400's 4096 ropes needed 12)
+#: (:meth:`System._grow_contact_padding`)
 GRAPH_CONTACTS = 8
 #: the rows of each state's problem that a read-free position projection (a captured step,
 #: or a step-by-step rollout on CUDA) pads to at first (enough for Rope's rollouts:
@@ -141,17 +141,22 @@ class Rollout:
     threads: int | str | None = None
     #: the read-free projection of the last deferred :meth:`eager` call, if it ran one
     _read_free: ReadFree | None = field(default=None, init=False, repr=False)
-    #: the contacts the last padded rollout sent per state, and ``()`` on the device: the
-    #: most active contacts a state had in it
+    #: the contacts the last padded rollout sent per state; ``()`` int64 on the device:
+    #: the most active contacts a state had in it, and the most rows its read-free
+    #: projection needed up to the first step where a state had more contacts than the
+    #: padding (after it, the trajectory is not the rollout's and its rows would inflate
+    #: the padding: Rope-D400 reported 288 rows where 120 do)
     _padded: int | None = field(default=None, init=False, repr=False)
     _most: Tensor | None = field(default=None, init=False, repr=False)
+    _rows_fitting: Tensor | None = field(default=None, init=False, repr=False)
 
     def grow_padding(self) -> None:
         """After a deferred :meth:`eager` whose flag was set: if its padded contacts or its
         read-free projection's rows were too few, the system remembers more for its next
         rollouts (a read of the device each)."""
+        rows = None if self._rows_fitting is None else int(self._rows_fitting)
         self.system._grow_contact_padding(self._most, self._padded)
-        self.system._grow_projection_rows(self._read_free)
+        self.system._grow_projection_rows(self._read_free, rows)
 
     def contact_padding(self) -> int:
         """The contacts per state a padded step sends to the solve: :data:`GRAPH_CONTACTS`,
@@ -160,13 +165,21 @@ class Rollout:
         K = len(self.system.contact_names)
         return min(K, self.system._contact_padding or GRAPH_CONTACTS)
 
-    def _track(self, like: Tensor, padded: int) -> Tensor:
-        """Start tracking the most active contacts of a state in a rollout padded to
-        ``padded``: the ``()`` int64 tensor on ``like``'s device that :func:`_count`
-        updates."""
+    def _track(self, like: Tensor, padded: int, read_free: ReadFree | None) -> None:
+        """Start counting (on ``like``'s device) the most active contacts of a state and
+        the rows the projection needed, in a rollout padded to ``padded`` contacts."""
         self._padded = padded
         self._most = torch.zeros((), dtype=torch.long, device=like.device)
-        return self._most
+        self._rows_fitting = None if read_free is None else torch.zeros_like(self._most)
+
+    def _count(self, gaps: Tensor, read_free: ReadFree | None) -> None:
+        """After a step's projection (``gaps: (N, K)``, the contact resolution's): update
+        the counts of :meth:`_track` in place, without a read of the device."""
+        if gaps.shape[0]:
+            torch.maximum(self._most, (gaps < 0).sum(-1).amax(), out=self._most)
+        if read_free is not None:
+            fits = self._most <= self._padded
+            torch.where(fits, read_free.needed, self._rows_fitting, out=self._rows_fitting)
 
     def _steps(self) -> Any:
         if not self.progress:
@@ -184,8 +197,8 @@ class Rollout:
         (:func:`~diffcontact.contact.cone_qp.deferred_checks`) instead of read after each
         solve, and on CUDA each step sends every state to the contact model padded to
         :meth:`contact_padding` (a state with more active contacts sets the flag, and the
-        system pads to more next time) instead
-        of selecting the states in contact (a read of the device), and the position
+        system pads to more next time) instead of selecting the states in contact (a read
+        of the device), and the position
         projection runs read-free where :func:`_projects_read_free` says so (a state
         needing more rows sets the flag too; :meth:`grow_padding`). Without ``defer``,
         each step reads the device (the selection, the solver's flags, the projection's
@@ -196,11 +209,12 @@ class Rollout:
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
         padded = self.contact_padding() if defer and _pads_contacts(device) else None
-        most = None if padded is None else self._track(z0, padded)
         read_free = None
         if padded is not None and _projects_read_free(device):
             read_free = system._read_free_projection(device, iterations)
         self._read_free = read_free
+        if padded is not None:
+            self._track(z0, padded, read_free)
         states = [z0]
         gaps: list[Tensor] | None = [system.gaps(z0.detach()[:, 0])] if self.keep_gaps else None
         z = z0
@@ -212,9 +226,9 @@ class Rollout:
                     z1 = system._integrate(z, ctx, dynamics)
                     try:
                         res = system._resolve(z1, ctx, model, fraction, solver_settings, padded)
-                        if most is not None:
-                            _count(most, res.gaps)
                         z = system._project(res, ctx, iterations, solver_settings, read_free)
+                        if padded is not None:
+                            self._count(res.gaps, read_free)
                         if gaps is not None:
                             gaps.append(res.gaps)
                     except (ValueError, torch.linalg.LinAlgError) as err:
@@ -240,8 +254,8 @@ class Rollout:
             return self.eager()
         traj = torch.stack(states, dim=1)
         gaps_all = None if gaps is None else torch.stack(gaps, 1)
-        if most is not None:
-            overflow = most > padded
+        if padded is not None:
+            overflow = self._most > padded
         if read_free is not None:
             overflow = overflow | read_free.overflowed
         pending = (flags.any() | overflow) if defer else None
@@ -333,11 +347,7 @@ class Rollout:
         model, dynamics, fraction, iterations, solver_settings = self.options
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
-        most = self._track(z0, contacts)
-        # the rows the projection needed while every state's contacts fitted: after a state
-        # dropped contacts the trajectory is not the rollout's, and its rows would inflate
-        # the padding (Rope-D400: 288 where 120 do)
-        rows_fitting = torch.zeros_like(most)
+        self._track(z0, contacts, read_free)
         z_in = z0.detach().clone()
 
         def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
@@ -346,11 +356,8 @@ class Rollout:
                 res = system._resolve(z1, ctx, model, fraction, solver_settings, contacts)
                 if res.z.requires_grad:
                     raise _NeedsGradient
-                _count(most, res.gaps)
                 z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))
-                if read_free is not None:
-                    fits = most <= contacts
-                    torch.where(fits, read_free.needed, rows_fitting, out=rows_fitting)
+                self._count(res.gaps, read_free)
             return res.gaps
 
         if capture:
@@ -372,10 +379,10 @@ class Rollout:
 
         z_in.copy_(z0)  # (the warm-up step moved it)
         flags.zero_()
-        most.zero_()
-        rows_fitting.zero_()
+        self._most.zero_()
         if read_free is not None:
             read_free.needed.zero_()
+            self._rows_fitting.zero_()
         N = z0.shape[0]
         traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
         traj[:, 0] = z0.detach()
@@ -388,15 +395,8 @@ class Rollout:
             traj[:, step + 1].copy_(z_in)
             if gaps is not None:
                 gaps[:, step + 1].copy_(g_out)
-        # (rows_fitting is read_free.needed where no state dropped contacts)
-        needed = Overflow(*torch.stack([most, rows_fitting]).tolist())
+        rows = torch.zeros_like(self._most) if read_free is None else self._rows_fitting
+        needed = Overflow(*torch.stack([self._most, rows]).tolist())
         if needed.contacts > contacts or (read_free is not None and needed.rows > read_free.rows):
             return needed
         return traj, gaps, flags.any()  # (read by simulate with its other checks)
-
-
-def _count(most: Tensor, gaps: Tensor) -> None:
-    """``most``, ``()`` int64 on the device, becomes at least the most active contacts of
-    a state of ``gaps: (N, K)`` (in place, no read of the device)."""
-    if gaps.shape[0]:
-        torch.maximum(most, (gaps < 0).sum(-1).amax(), out=most)
