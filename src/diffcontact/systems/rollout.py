@@ -83,7 +83,10 @@ def _projects_read_free(device: torch.device) -> bool:
     of 12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
     [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``); on an H200 a Rope
     training step took 0.367 s read-free and 0.230 s reading (``python benchmarks/run.py
-    train --device cuda --tasks Rope [--read-free-projection]``, benchmarks/README.md)."""
+    train --device cuda --tasks Rope [--read-free-projection]``, benchmarks/README.md),
+    measured before the projection asked for any minimiser (150966b), when each of its
+    solves ran the interior point, which weighs more on the read-free path's extra
+    iterations: to be measured again."""
     return False
 
 
