@@ -129,9 +129,9 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
 def test_rows_counted_after_dropped_contacts_do_not_inflate_the_padding(monkeypatch):
     """An attempt whose contacts were too few also reports the rows its projection needed,
     but only up to the step where a state first dropped contacts: after it the trajectory
-    is not the rollout's, and its rows would inflate the remembered padding (Rope-D400
-    reported 288 rows where 120 do). Every attempt reports at most the rows that the
-    successful one needed, and both paddings grow from the reports."""
+    is not the rollout's, and its rows would inflate the remembered padding. Every attempt
+    reports at most the rows that the successful one needed, and both paddings grow from the
+    reports."""
     system = dc.load_system("Rope-D100")
     z0 = system.sample_initial_conditions(32, seed=4)
     eager = system.simulate(z0, cuda_graph=False)

@@ -148,7 +148,7 @@ class Rollout:
     #: the most active contacts a state had in it, and the most rows its read-free
     #: projection needed up to the first step where a state had more contacts than the
     #: padding (after it, the trajectory is not the rollout's and its rows would inflate
-    #: the padding: Rope-D400 reported 288 rows where 120 do)
+    #: the remembered padding beyond what the rollout needs)
     _padded: int | None = field(default=None, init=False, repr=False)
     _most: Tensor | None = field(default=None, init=False, repr=False)
     _rows_fitting: Tensor | None = field(default=None, init=False, repr=False)
