@@ -10,14 +10,15 @@
 #
 # 1. the CUDA tests (pytest -m cuda: captured steps, the read-free rope projection in a
 #    graph, the fused solver on CUDA);
-# 2. simulation of 4096 scenes of every task, step by step and graphed;
+# 2. simulation of 4096 scenes of every task as simulate chooses (cuda_graph="auto"), a
+#    first and a second call, then Rope's and Rope-D400's rows step by step and graphed;
 # 3. launches and synchronisations per step;
 # 4. the Rope training step with the reading and the read-free projection
 #    (diffcontact.systems.rollout._projects_read_free decides which one a step on CUDA takes);
 # 5. where a graphed step's GPU time goes;
-# 6. how Rope-D400's step-by-step time grows along its rollout (rollout_growth: 4096 ropes
-#    took 0.11 s for 3 steps and 22 s for 19 on an H200 before the projection asked the
-#    solver for any minimiser, benchmarks/README.md).
+# 6. how Rope-D400's step-by-step time grows along its rollout, selected and padded, and
+#    the interior-point iterations of its projection problems (rollout_growth;
+#    benchmarks/README.md, 2026-11-27, fourth sitting).
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
 # The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache
@@ -65,7 +66,9 @@ for dtype in (torch.float64, torch.float32):
 part_1() { part 1_pytest_cuda 240 $PY -m pytest -q -m cuda -p no:cacheprovider; }
 part_2() {
     part 2_simulate_4096 240 $PY benchmarks/run.py simulate --device cuda --all-tasks \
-        --scenes 4096 --cuda-graph both
+        --scenes 4096 --cuda-graph auto --again
+    part 2_simulate_ropes 240 $PY benchmarks/run.py simulate --device cuda --all-tasks \
+        --scenes 4096 --tasks Rope Rope-D400 --cuda-graph both --again
 }
 part_3() { part 3_launches 150 $PY benchmarks/run.py launches --device cuda; }
 part_4() {

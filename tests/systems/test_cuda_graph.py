@@ -22,14 +22,14 @@ from diffcontact.testing import count_host_reads
 pytest.importorskip("warp")
 
 
-def _static_rollout(system, z0, steps, params=None):
+def _static_rollout(system, z0, steps, params=None, strict=False):
     """``Rollout.graphed`` without the capture, with simulate's default options."""
     model, dynamics, fraction, params = system._options("CM", None, None, params)
     iterations = system._projection_iterations(None)
     ctx = system._context(z0, params, z0.shape[0])
     options = rollout_module.RolloutOptions(model, dynamics, fraction, iterations, None)
     run = rollout_module.Rollout(system, ctx, z0, steps, options, keep_gaps=True)
-    return run.graphed(capture=False)
+    return run.graphed(strict=strict, capture=False)
 
 
 @pytest.mark.parametrize("task", ["BP5", "BP5-e", "BD5", "CP3", "Gyro"])
@@ -49,11 +49,11 @@ def test_the_static_step_gives_the_step_by_step_trajectories(task):
 def test_a_state_with_more_contacts_than_the_padding_reruns_with_more_and_remembers(
     monkeypatch,
 ):
-    """With the padding cut to one contact, BP5's states with two or more at once
-    overflow: the rollout is run again padded to half as many more contacts as the most
-    a state had (rounded up to 8; not to every candidate, which Rope-D400's 799 would
-    make a 20 GB problem), with the step-by-step result, and the system remembers that
-    padding for its next rollouts."""
+    """With the padding cut to two contacts, BP5's states with three or more at once
+    overflow: the rollout goes on from the state before the step that overflowed, padded
+    to half as many more contacts as the most a state had (rounded up to 8; not to every
+    candidate, which Rope-D400's 799 would make a 20 GB problem), with the step-by-step
+    result, and the system remembers that padding for its next rollouts."""
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(64, seed=2)
     eager = system.simulate(z0, 60, cuda_graph=False)
@@ -63,22 +63,68 @@ def test_a_state_with_more_contacts_than_the_padding_reruns_with_more_and_rememb
 
     def spy(self, contacts, *args):
         out = attempt(self, contacts, *args)
-        overflow = isinstance(out, rollout_module.Overflow)
-        tries.append((contacts, "overflow" if overflow else "done"))
+        step = out.step if isinstance(out, rollout_module.Overflow) else None
+        tries.append((contacts, self.steps, step))
         return out
 
-    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 1)
+    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 2)
     monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
-    traj, _, _ = _static_rollout(system, z0, 60)
+    traj, gaps, _ = _static_rollout(system, z0, 60, strict=True)
     # (the most active contacts of a state, counted at the integrated positions before
     # the impulses, halved again and rounded up to 8)
-    grown = tries[-1][0]
-    assert tries == [(1, "overflow"), (grown, "done")] and grown % 8 == 0 and grown < K
+    (two, steps, step), (grown, rest, done) = tries
+    assert (two, steps, done) == (2, 60, None) and 1 < step < 60
+    assert rest == 60 - (step - 1)  # the steps before the overflow are not run again
+    assert grown % 8 == 0 and grown < K
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
+    torch.testing.assert_close(gaps, system.gaps(traj[..., 0, :, :]), rtol=0, atol=1e-12)
     assert system._contact_padding == grown
     tries.clear()
     _static_rollout(system, z0, 60)
-    assert tries == [(grown, "done")]  # remembered: no rerun
+    assert tries == [(grown, 60, None)]  # remembered: no rerun
+
+
+def test_the_rest_of_an_overflowed_rollout_goes_step_by_step_where_too_short(monkeypatch):
+    """Not ``strict`` (``cuda_graph="auto"``): the remaining steps after an overflow go
+    step by step (deferred) where they are fewer than GRAPH_MIN_STEPS, or the projection's
+    rows grew past GRAPH_MAX_ROWS; an overflow at the first step then gives up the graph
+    (None: simulate goes step by step)."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(64, seed=2)
+    eager = system.simulate(z0, 60, cuda_graph=False)
+    runs = []
+    step_by_step = rollout_module.Rollout.eager
+
+    def spy(self, defer=False):
+        runs.append((self.steps, defer))
+        return step_by_step(self, defer)
+
+    monkeypatch.setattr(rollout_module, "GRAPH_CONTACTS", 2)
+    monkeypatch.setattr(rollout_module, "GRAPH_MIN_STEPS", 61)
+    monkeypatch.setattr(rollout_module.Rollout, "eager", spy)
+    traj, gaps, failed = _static_rollout(system, z0, 60)
+    assert not bool(failed) and len(runs) == 1
+    ((rest, defer),) = runs
+    assert defer and 1 < rest < 60
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-8)
+    torch.testing.assert_close(gaps, system.gaps(traj[..., 0, :, :]), rtol=0, atol=1e-12)
+
+
+def test_long_ropes_go_step_by_step_when_auto():
+    """``cuda_graph="auto"`` does not graph a rollout whose read-free projection pads to
+    more than GRAPH_MAX_ROWS rows (each captured step projects every state at that size);
+    ``True`` still does."""
+    system = dc.load_system("Rope-D100")
+    z0 = system.sample_initial_conditions(4, seed=1)
+    options = rollout_module.RolloutOptions(
+        *system._options("CM", None, None, None)[:2], 0.0, system._projection_iterations(None), None
+    )
+    run = rollout_module.Rollout(system, system._context(z0, None, 4), z0, 20, options)
+    assert run._graph_pays()
+    system._projection_rows = rollout_module.GRAPH_MAX_ROWS + 8
+    assert not run._graph_pays()
+    no_projection = run.options._replace(iterations=0)
+    assert rollout_module.Rollout(system, run.ctx, z0, 20, no_projection)._graph_pays()
 
 
 def test_the_static_rollout_reads_the_device_once():

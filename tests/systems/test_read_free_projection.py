@@ -78,13 +78,16 @@ def test_the_structure_known_without_a_read_is_the_matrices(task):
     assert system._two_sided == (widths is not None and bool(torch.isfinite(widths).any()))
 
 
-def _static_rollout(system, z0, steps):
-    """``Rollout.graphed`` without the capture, with simulate's default options."""
+def _static_rollout(system, z0, steps, strict=False):
+    """``Rollout.graphed`` without the capture, with simulate's default options
+    (``strict``: as ``cuda_graph=True``, the rest of a rollout after an overflow is graphed
+    too)."""
     model, dynamics, _, params = system._options("CM", None, None, None)
     iterations = system._projection_iterations(None)  # (the penetration target is then off)
     ctx = system._context(z0, params, z0.shape[0])
     options = rollout_module.RolloutOptions(model, dynamics, 0.0, iterations, None)
-    return rollout_module.Rollout(system, ctx, z0, steps, options).graphed(capture=False)
+    run = rollout_module.Rollout(system, ctx, z0, steps, options)
+    return run.graphed(strict=strict, capture=False)
 
 
 def test_the_static_rope_step_gives_the_step_by_step_trajectories():
@@ -116,7 +119,7 @@ def test_too_few_rows_rerun_the_static_rollout_and_are_remembered(monkeypatch):
         return out
 
     monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
-    traj, _, _ = _static_rollout(system, z0, 20)
+    traj, _, _ = _static_rollout(system, z0, 20, strict=True)
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
     assert tries[0] == (2, "rows") and tries[-1][1] == "done"
     assert all(a[0] < b[0] for a, b in itertools.pairwise(tries))
@@ -147,7 +150,7 @@ def test_rows_counted_after_dropped_contacts_do_not_inflate_the_padding(monkeypa
         return out
 
     monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
-    traj, _, _ = _static_rollout(system, z0, system.default_steps)
+    traj, _, _ = _static_rollout(system, z0, system.default_steps, strict=True)
     torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
     *failed, (contacts, rows, last, rows_needed) = tries
     assert last is None and failed and failed[0][2].contacts > 1  # the contacts overflowed

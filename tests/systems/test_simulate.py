@@ -409,3 +409,15 @@ def test_a_disk_reaching_a_corner_follows_the_reference_solver():
         for backend in ("warp", "torch")
     ]
     torch.testing.assert_close(runs[0], runs[1], rtol=0, atol=1e-9)
+
+
+def test_bodies_run_one_at_a_time_on_the_cpu_and_at_once_on_cuda():
+    """The per-device choice of ``system._per_body``: BD5's disks split into a batch of
+    bodies on the CPU; on CUDA they run over all points at once (the same values:
+    ``test_bodies_one_at_a_time_equal_all_points_at_once``)."""
+    from diffcontact.systems import system as system_module
+
+    system = dc.load_system("BD5")
+    assert system._static_on(torch.device("cpu"))[2] is not None
+    assert system_module._per_body(torch.device("cpu"))
+    assert not system_module._per_body(torch.device("cuda"))

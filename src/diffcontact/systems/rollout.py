@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
@@ -43,6 +43,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "GRAPH_CONTACTS",
+    "GRAPH_MAX_ROWS",
     "GRAPH_MIN_STEPS",
     "PROJECTION_ROWS",
     "Overflow",
@@ -66,6 +67,15 @@ GRAPH_CONTACTS = 8
 #: again, and the system remembers the larger count for its next rollouts
 #: (:meth:`System._grow_projection_rows`)
 PROJECTION_ROWS = 16
+#: ``cuda_graph="auto"`` goes step by step once the read-free projection of a captured step
+#: would pad each state's problem to more rows than this: a captured step projects every
+#: state with every iteration at the padded size, where a step-by-step one selects the
+#: states and rows it needs. Measured on an H200 with 4096 ropes, a second call of
+#: ``python benchmarks/run.py simulate --device cuda --all-tasks --tasks Rope Rope-D400
+#: --scenes 4096 --cuda-graph both --again`` (benchmarks/README.md): Rope at 16 rows, 0.28 s
+#: graphed against 0.35 s step by step; Rope-D400 at 136 rows, 5.17 s against 1.89 s. Where
+#: between the two the graph stops paying is not measured
+GRAPH_MAX_ROWS = 32
 
 
 def _pads_contacts(device: torch.device) -> bool:
@@ -82,11 +92,9 @@ def _projects_read_free(device: torch.device) -> bool:
     all its iterations, and a Rope training step dispatches 24,473 torch operations instead
     of 12,824 to save 23 of its 26 reads (``python benchmarks/run.py launches --tasks Rope
     [--read-free-projection]``, columns ``CUDA path`` and ``CUDA ops``); on an H200 a Rope
-    training step took 0.367 s read-free and 0.230 s reading (``python benchmarks/run.py
-    train --device cuda --tasks Rope [--read-free-projection]``, benchmarks/README.md),
-    measured before the projection asked for any minimiser (150966b), when each of its
-    solves ran the interior point, which weighs more on the read-free path's extra
-    iterations: to be measured again."""
+    training step took 0.376 s read-free and 0.221 s reading (``python benchmarks/run.py
+    train --device cuda --tasks Rope [--read-free-projection]``, benchmarks/README.md,
+    2026-11-27, fourth sitting: after the projection asked for any minimiser)."""
     return False
 
 
@@ -104,18 +112,23 @@ class _NeedsGradient(Exception):
     """A captured step's result requires grad (raised before the capture goes on)."""
 
 
-class Overflow(NamedTuple):
-    """A static rollout whose padding was too small: the most active contacts of a state,
-    and the most rows a state's position projection selected up to the step where a state
-    first had more contacts than the padding (0 without a projection)."""
-
-    contacts: int
-    rows: int
-
-
 #: what a rollout returns: ``(N, steps + 1, 2, P, dim)`` states, ``(N, steps + 1, K)``
 #: gaps (or ``None``) and the deferred checks' ``()`` bool flag (or ``None``)
 Result = tuple[Tensor, Tensor | None, Tensor | None]
+
+
+class Overflow(NamedTuple):
+    """A static rollout whose padding was too small: the most active contacts of a state,
+    the most rows a state's position projection selected up to the step where a state
+    first had more contacts than the padding (0 without a projection), the first step
+    (1-based) where a state had more contacts or rows than the padding (its states before
+    that step are the rollout's), and the attempt's :data:`Result` (its trajectory valid up
+    to ``step - 1``)."""
+
+    contacts: int
+    rows: int
+    step: int
+    partial: Result
 
 
 @dataclass
@@ -152,11 +165,20 @@ class Rollout:
     _padded: int | None = field(default=None, init=False, repr=False)
     _most: Tensor | None = field(default=None, init=False, repr=False)
     _rows_fitting: Tensor | None = field(default=None, init=False, repr=False)
+    #: ``()`` int64 on the device: the steps counted, and the first (1-based) where a state
+    #: had more active contacts than the padding or needed more rows (0: none)
+    _step: Tensor | None = field(default=None, init=False, repr=False)
+    _first_overflow: Tensor | None = field(default=None, init=False, repr=False)
+    #: the rollout of the remaining steps that :meth:`graphed` went on with after an
+    #: overflow (:meth:`_go_on`), if any
+    _rest: Rollout | None = field(default=None, init=False, repr=False)
 
     def grow_padding(self) -> None:
         """After a deferred :meth:`eager` whose flag was set: if its padded contacts or its
         read-free projection's rows were too few, the system remembers more for its next
         rollouts (a read of the device each)."""
+        if self._rest is not None:
+            self._rest.grow_padding()
         rows = None if self._rows_fitting is None else int(self._rows_fitting)
         self.system._grow_contact_padding(self._most, self._padded)
         self.system._grow_projection_rows(self._read_free, rows)
@@ -174,15 +196,29 @@ class Rollout:
         self._padded = padded
         self._most = torch.zeros((), dtype=torch.long, device=like.device)
         self._rows_fitting = None if read_free is None else torch.zeros_like(self._most)
+        self._step = torch.zeros_like(self._most)
+        self._first_overflow = torch.zeros_like(self._most)
+
+    def _restart_count(self, read_free: ReadFree | None) -> None:
+        """Zero the counts of :meth:`_track` in place (a captured graph keeps using them)."""
+        for count in (self._most, self._step, self._first_overflow):
+            count.zero_()
+        if read_free is not None:
+            read_free.needed.zero_()
+            self._rows_fitting.zero_()
 
     def _count(self, gaps: Tensor, read_free: ReadFree | None) -> None:
         """After a step's projection (``gaps: (N, K)``, the contact resolution's): update
         the counts of :meth:`_track` in place, without a read of the device."""
         if gaps.shape[0]:
             torch.maximum(self._most, (gaps < 0).sum(-1).amax(), out=self._most)
+        over = self._most > self._padded
         if read_free is not None:
-            fits = self._most <= self._padded
-            torch.where(fits, read_free.needed, self._rows_fitting, out=self._rows_fitting)
+            torch.where(over, self._rows_fitting, read_free.needed, out=self._rows_fitting)
+            over = over | read_free.overflowed
+        self._step.add_(1)
+        first = over & (self._first_overflow == 0)
+        torch.where(first, self._step, self._first_overflow, out=self._first_overflow)
 
     def _steps(self) -> Any:
         if not self.progress:
@@ -281,26 +317,39 @@ class Rollout:
             reasons.append(f"the cone-QP backend is {settings.backend!r}, not 'warp'")
         if cuda_graph is True and reasons:
             raise ValueError("simulate: cuda_graph=True, but " + "; ".join(reasons))
-        return not reasons and (cuda_graph is True or self.steps >= GRAPH_MIN_STEPS)
+        return not reasons and (cuda_graph is True or self._graph_pays())
+
+    def _graph_pays(self) -> bool:
+        """``cuda_graph="auto"``'s rule where a graph can be used: at least
+        :data:`GRAPH_MIN_STEPS` steps, and a read-free projection (if on) padded to at most
+        :data:`GRAPH_MAX_ROWS` rows (the rows the system remembers)."""
+        system = self.system
+        rows = min(system._projection_rows, system._projection_rows_all())
+        wide = bool(self.options.iterations) and rows > GRAPH_MAX_ROWS
+        return self.steps >= GRAPH_MIN_STEPS and not wide
 
     def graphed(self, strict: bool = False, capture: bool = True) -> Result | None:
         """The rollout as replays of one step captured in a CUDA graph.
 
         The step is the eager one with static shapes and no read of the device: every state
         goes to the contact model with its active candidates padded to
-        :meth:`contact_padding` (``System._resolve``'s ``static_contacts``; a state with
-        more active contacts sets a flag, and the rollout is run again with the padding
-        grown, which the system remembers), the position projection (if on) runs read-free
-        with the rows the system remembers (a state needing more sets a flag, and the
-        rollout is run again with more), and the fused solver's error flags are gathered on
-        the device (:func:`~diffcontact.contact.cone_qp.deferred_checks`); all are read once
-        after the last step. A replay launches the step's hundreds of kernels at once, where
-        the eager step pays the host's time for each. Returns what :meth:`eager` does with
-        ``defer`` (the flag: a solve failed, and the caller reruns step by step, which names
-        the states and the cause), or None where the graph cannot be used (the step needs
-        gradients, or the capture failed; a ``RuntimeWarning`` says why unless ``strict``,
-        which raises). ``capture=False`` runs the same static, read-free steps without a
-        graph (on any device; for tests)."""
+        :meth:`contact_padding` (``System._resolve``'s ``static_contacts``), the position
+        projection (if on) runs read-free with the rows the system remembers, and the fused
+        solver's error flags are gathered on the device
+        (:func:`~diffcontact.contact.cone_qp.deferred_checks`); all are read once after the
+        last step. A state with more active contacts or projection rows than the padding
+        records the step where that first happened; both paddings grow (the system
+        remembers them), and the rollout goes on from the state before that step with the
+        remaining steps (:meth:`_go_on`: graphed again, or step by step where the rest is
+        too short for a capture to pay or the rows grew past :data:`GRAPH_MAX_ROWS` and not
+        ``strict``); an overflow at the first step runs the rollout again. A replay launches
+        the step's hundreds of kernels at once, where the eager step pays the host's time
+        for each. Returns what :meth:`eager` does with ``defer`` (the flag: a solve failed,
+        and the caller reruns step by step, which names the states and the cause), or None
+        where the graph cannot be used (the step needs gradients, or the capture failed; a
+        ``RuntimeWarning`` says why unless ``strict``, which raises; or, not ``strict``,
+        the rows grew past :data:`GRAPH_MAX_ROWS` at the first step). ``capture=False``
+        runs the same static, read-free steps without a graph (on any device; for tests)."""
         system = self.system
         needs_gradient = "the rollout needs gradients, which a graph replay does not record"
 
@@ -338,6 +387,31 @@ class Rollout:
             grew = system._grow_projection_rows(read_free, out.rows) or grew
             if not grew:  # (padded to every candidate and row: cannot happen)
                 raise RuntimeError(f"simulate {system.name}: the static rollout overflowed {out}")
+            if out.step > 1:
+                return self._go_on(out, strict, capture)
+            if not (strict or self._graph_pays()):
+                return None  # (the projection's rows grew past GRAPH_MAX_ROWS)
+
+    def _go_on(self, out: Overflow, strict: bool, capture: bool) -> Result:
+        """The rollout after an attempt of :meth:`graphed` that overflowed at step
+        ``out.step`` > 1: its states before that step are kept, and a rollout of the
+        remaining steps from the last of them, with the grown padding, adds the rest (graphed
+        where ``strict`` or :meth:`_graph_pays`, else step by step, deferred), so that the steps
+        before the overflow are not run again. The deferred flag is the two parts' (the
+        attempt's own may come from its states after the overflow; then ``simulate`` runs
+        the whole rollout again step by step, as for any set flag)."""
+        kept = out.step  # states 0 .. step - 1
+        traj, gaps, flags = out.partial
+        rest = replace(self, z0=traj[:, kept - 1], steps=self.steps - (kept - 1), progress=False)
+        self._rest = rest
+        result = rest.graphed(strict, capture) if strict or rest._graph_pays() else None
+        if result is None:
+            result = rest.eager(defer=True)
+        traj_rest, gaps_rest, flags_rest = result
+        traj = torch.cat([traj[:, :kept], traj_rest[:, 1:]], dim=1)
+        if gaps is not None:
+            gaps = torch.cat([gaps[:, :kept], gaps_rest[:, 1:]], dim=1)
+        return traj, gaps, flags | flags_rest
 
     def _attempt(
         self, contacts: int, capture: bool, read_free: ReadFree | None
@@ -382,10 +456,7 @@ class Rollout:
 
         z_in.copy_(z0)  # (the warm-up step moved it)
         flags.zero_()
-        self._most.zero_()
-        if read_free is not None:
-            read_free.needed.zero_()
-            self._rows_fitting.zero_()
+        self._restart_count(read_free)
         N = z0.shape[0]
         traj = torch.empty((N, steps + 1, *z0.shape[1:]), dtype=z0.dtype, device=device)
         traj[:, 0] = z0.detach()
@@ -399,7 +470,7 @@ class Rollout:
             if gaps is not None:
                 gaps[:, step + 1].copy_(g_out)
         rows = torch.zeros_like(self._most) if read_free is None else self._rows_fitting
-        needed = Overflow(*torch.stack([self._most, rows]).tolist())
-        if needed.contacts > contacts or (read_free is not None and needed.rows > read_free.rows):
-            return needed
+        most, rows, step = torch.stack([self._most, rows, self._first_overflow]).tolist()
+        if step:
+            return Overflow(most, rows, step, (traj, gaps, flags.any()))
         return traj, gaps, flags.any()  # (read by simulate with its other checks)

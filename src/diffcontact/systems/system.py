@@ -172,6 +172,17 @@ def _grown(needed: int) -> int:
     return max(needed + 1, -(-3 * needed // 2 // 8) * 8)
 
 
+def _per_body(device: torch.device) -> bool:
+    """Whether bodies constrained each on its own (BD5's disks) run the constrained dynamics
+    and the contact's ``Mhat^-1`` as a batch of bodies (``EqualityConstraints.split``) on
+    ``device``, instead of over all points at once: on the CPU, where it is faster
+    (docs/architecture.md), not on CUDA, where its many smaller matrix products made 4096
+    BD5 scenes x 100 graphed steps slower on an H200 (``python benchmarks/run.py simulate
+    --device cuda --all-tasks --scenes 4096``, before and after this choice:
+    benchmarks/README.md, 2026-11-27, fourth sitting). Both give the same trajectories."""
+    return device.type != "cuda"
+
+
 def load_system(spec: Any, **overrides: Any) -> System:
     """A :class:`System` from a built-in task name, a ``.yaml``/``.json`` path or a dict.
 
@@ -332,6 +343,8 @@ class System:
         # the contacts per state a padded step sends to the solve, once a rollout needed
         # more than GRAPH_CONTACTS (None: GRAPH_CONTACTS; Rollout.contact_padding)
         self._contact_padding: int | None = None
+        # whether the last simulate call replayed a CUDA graph (for benchmarks and tests)
+        self._last_rollout_graphed = False
 
     # ------------------------------------------------------------------ builders
     def _build_circles(self, cfg: BouncingMassesConfig | BouncingDisksConfig) -> None:
@@ -520,13 +533,14 @@ class System:
         self, device: torch.device
     ) -> tuple[Any, EqualityConstraints | None, EqualityConstraints | None]:
         """The geometry, the constraints and the constraints of one body (if they act on
-        each body alone: :meth:`EqualityConstraints.split`) on ``device``."""
+        each body alone, :meth:`EqualityConstraints.split`, and :func:`_per_body` says so
+        for ``device``) on ``device``."""
         key = str(device)
         if key not in self._device_cache:
             geometry = self.geometry.to(device)
             constraints = None if self.constraints is None else self.constraints.to(device)
             groups = None
-            if constraints is not None and self.second_moments is not None:
+            if constraints is not None and self.second_moments is not None and _per_body(device):
                 groups = constraints.split(self.dim + 1)
             self._device_cache[key] = (geometry, constraints, groups)
         return self._device_cache[key]
@@ -1257,9 +1271,12 @@ class System:
                 :class:`~diffcontact.systems.projection.ReadFree`). ``"auto"``
                 (default): where the states are on CUDA, the cone-QP backend is Warp,
                 the rollout has at least
-                :data:`~diffcontact.systems.rollout.GRAPH_MIN_STEPS` steps and nothing in
-                it requires a gradient, else step by step (a capture that fails warns
-                and goes step by step); ``True``: insist (``ValueError`` where it
+                :data:`~diffcontact.systems.rollout.GRAPH_MIN_STEPS` steps, the position
+                projection (if on) needs at most
+                :data:`~diffcontact.systems.rollout.GRAPH_MAX_ROWS` rows per state (long
+                ropes go step by step, where the projection selects what it needs) and
+                nothing in it requires a gradient, else step by step (a capture that
+                fails warns and goes step by step); ``True``: insist (``ValueError`` where it
                 cannot); ``False``: never. Results equal the step-by-step ones to
                 rounding (with the projection, to its tolerance). A failed solve or a
                 non-finite state reruns the rollout step by step, which raises the
@@ -1300,6 +1317,7 @@ class System:
         options = RolloutOptions(model, dynamics, fraction, iterations, solver_settings)
         run = Rollout(self, ctx, z0, steps, options, keep_gaps, progress, threads)
         result = run.graphed(strict=cuda_graph is True) if run.graph_wanted(cuda_graph) else None
+        self._last_rollout_graphed = result is not None
         if result is None:
             result = run.eager(defer=True)
         traj, gaps, pending = result
