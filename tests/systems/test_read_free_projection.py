@@ -223,3 +223,28 @@ def test_the_rope_limits_widths_are_made_on_the_ropes_device(monkeypatch):
     mixed = ContactGeometry((*rope.parts, OneSided()))
     widths = mixed.gap_widths()
     assert widths.device.type == "meta" and widths.shape == (rope.n_candidates + 3,)
+
+
+@pytest.mark.parametrize("task", ["Rope", "Rope-D100"])
+def test_point_masses_scale_the_rows_once_with_the_general_products_result(task):
+    """With point masses the projection scales the sparse rows by sqrt(M^-1) and forms one
+    dense matrix (A = J_s J_s^T, step M^-1/2 J_s^T lambda); the general path (J M^-1 J^T,
+    M^-1 J^T lambda with the dense mass matrix) gives the same positions and gradients (a
+    read-free projection takes ``diagonal`` from its caller, which picks the path)."""
+    system, traj = _violating_states(task, 16, 10)
+    x0 = traj[:, -1, 0]
+    M_inv0 = system.inverse_mass_matrix() * torch.linspace(0.5, 2.0, x0.shape[-2])
+    results = []
+    for diagonal in (True, False):
+        x = x0.clone().requires_grad_(True)
+        M_inv = M_inv0.clone().requires_grad_(True)
+        needed = torch.zeros((), dtype=torch.long)
+        read_free = ReadFree(64, needed, diagonal, system._two_sided)
+        got = project_positions(x, system.geometry, M_inv, 10, read_free=read_free)
+        loss = (got.sin() * torch.linspace(-1, 1, got.numel()).view(got.shape)).sum()
+        grad_x, grad_M = torch.autograd.grad(loss, [x, M_inv])
+        # (the diagonal path reads only M^-1's diagonal: compare the gradient there)
+        results.append((got.detach(), grad_x, grad_M.diagonal()))
+    assert float((results[0][0] - x0).abs().max()) > 1e-4  # it moved
+    for fast, general in zip(*results, strict=True):
+        torch.testing.assert_close(fast, general, rtol=1e-9, atol=1e-12)

@@ -114,7 +114,7 @@ def assemble_jacobian(jac: SparseJacobian, n_points: int) -> Tensor:
     *lead, d, m, dim = values.shape
     index = jac.points[..., None, :, None].expand(*lead, d, m, dim)
     out = values.new_zeros(*lead, d, n_points, dim)
-    return out.scatter_add(-2, index, values)
+    return out.scatter_add_(-2, index, values)  # (in place: no copy of the zeros)
 
 
 def take_rows(jac: SparseJacobian, idx: Tensor) -> SparseJacobian:

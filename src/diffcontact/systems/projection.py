@@ -165,7 +165,7 @@ def _metric_norms(
     n = x.shape[0]
     jac = _gaps_and_rows(geometry, x)[1] if rows is None else rows
     v = jac.values[..., 0, :, :].detach()  # (n, K, m, dim)
-    gram = (v.unsqueeze(-2) * v.unsqueeze(-3)).sum(-1)  # (n, K, m, m)
+    gram = v @ v.transpose(-1, -2)  # (n, K, m, m): v_a . v_b
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
     if M_inv.dim() == 2:
         w = M_inv.to(v)[pa, pb]
@@ -316,9 +316,24 @@ def project_positions(
         sign = torch.where(idx < K, 1.0, -1.0).to(values)[:, :, None, None, None]
         keep = mask[:, :, None, None, None]
         values = torch.where(keep, sign * values, torch.zeros_like(values))
+        root = None
+        if diagonal and phi0 is None:
+            # point masses: the rows scaled by sqrt(M^-1), J_s = J M^-1/2, so that A = J_s
+            # J_s^T and the step M^-1 J^T lambda = M^-1/2 J_s^T lambda need one dense
+            # matrix, not J and J M^-1 (scaled on the few sparse entries, not the dense rows)
+            root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
+            points = taken.points  # (n, R, m)
+            if root.dim() == 1:
+                root_entries = root[points]
+            else:
+                root_entries = root.gather(-1, points.reshape(n, -1)).view(points.shape)
+            values = values * root_entries[:, :, None, :, None]
         J = assemble_jacobian(SparseJacobian(taken.points, values), P).reshape(n, R, D)
         gap = torch.where(mask, gap, torch.zeros_like(gap))
-        if constraints is not None and phi0 is not None:
+        if root is not None:
+            base = None
+            JM = J  # (J_s)
+        elif constraints is not None and phi0 is not None:
             # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1 J_E^T)^-1 r
             # takes Phi back to its value at x_pred
             J_E = constraints.jacobian(x_i)  # (n, E, D)
@@ -344,6 +359,8 @@ def project_positions(
         lam = torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
         dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
         dx = (dx if base is None else dx + base).reshape(n, P, dim)
+        if root is not None:
+            dx = dx * root.unsqueeze(-1)
         with torch.no_grad():  # backtracking: the step length with the least violation
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
