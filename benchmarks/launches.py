@@ -1,6 +1,7 @@
 """Benchmark: how much work a step launches, not how long it takes.
 
     python benchmarks/run.py launches [--device cpu|cuda] [--tasks BP5 CP3 Rope] [--quick]
+        [--potential-dtype float32|float64]
 
 For one simulation step (``System.simulate`` of ``--scenes`` BP5 scenes, averaged over 10
 steps) and one training step of CM-CD-CLNN per task (batch 200 chunks of 5 states, as
@@ -115,12 +116,15 @@ def simulate_row(scenes: int, device: str) -> dict:
     return measure(lambda: system.simulate(z0, steps=SIM_STEPS), device, SIM_STEPS)
 
 
-def train_row(task: str, device: str, batch: int) -> dict:
+def train_row(task: str, device: str, batch: int, potential_dtype: str | None = None) -> dict:
     from diffcontact.learning.models.physical import LearnedModel
     from diffcontact.learning.training.module import rollout_loss
 
     chunks = make_chunks(task, batch).to(device)
-    model = LearnedModel(dc.load_system(task).config, model="CM-CD-CLNN").to(device)
+    # float64 parameters, as ``diffcontact train`` keeps them (its default dtype)
+    model = LearnedModel(
+        dc.load_system(task).config, model="CM-CD-CLNN", potential_dtype=potential_dtype
+    ).to(device, torch.float64)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
 
     def forward_backward() -> None:
@@ -143,6 +147,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=int, default=1024, help="BP5 scenes of the simulate row")
     ap.add_argument("--tasks", nargs="+", default=None, help="training rows (default BP5 CP3 Rope)")
     ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
+    ap.add_argument(
+        "--potential-dtype",
+        choices=("float32", "float64"),
+        default=None,
+        help="the potential MLP's dtype in the training rows (LearnedModel's potential_dtype)",
+    )
     args = ap.parse_args(argv)
     choose_read_free_projection(args.read_free_projection)
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -168,7 +178,10 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(head))
     rows = [(f"simulate {SIM_TASK} x{scenes} /step", lambda: simulate_row(scenes, args.device))]
     rows += [
-        (f"train {task} b{batch} /step", lambda t=task: train_row(t, args.device, batch))
+        (
+            f"train {task} b{batch} /step",
+            lambda t=task: train_row(t, args.device, batch, args.potential_dtype),
+        )
         for task in tasks
     ]
     for name, fn in rows:

@@ -343,3 +343,43 @@ def test_potential_gradient_written_out_equals_autograd(compute_dtype):
     plain = potential_gradient(net, x)
     assert not plain.requires_grad
     torch.testing.assert_close(plain, mine.detach())
+
+
+def test_a_rollout_casts_the_float32_potential_once():
+    """potential_dtype="float32" in a float64 model: a rollout holds the network's
+    parameters cast to float32 once (PotentialMLP.for_rollout), not at each of its grad V
+    evaluations (4 RK4 stages per step), with the module's values and gradients."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    model = LearnedModel("BP5", hidden=(16, 16), potential_dtype="float32").double()
+    z0 = _states_before_contact("BP5", 2, 3)
+    net = model.potential
+    ptrs = {p.data_ptr() for p in net.parameters()}
+
+    class CountCasts(TorchDispatchMode):
+        casts = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func is torch.ops.aten._to_copy.default and args[0].data_ptr() in ptrs:
+                CountCasts.casts += 1
+            return func(*args, **(kwargs or {}))
+
+    with CountCasts():
+        out = model.simulate(z0, 3)
+    assert CountCasts.casts == len(ptrs)  # once each, not per evaluation
+    # the cast potential's values and gradients are the module's
+    once = net.for_rollout()
+    assert once is not net
+    x = z0[:, 0].clone().requires_grad_(True)
+    for f in (lambda p: p(x), lambda p: p.gradient(x)):
+        got, want = f(once), f(net)
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+        grads = [torch.autograd.grad(g.sin().sum(), [x, *net.parameters()]) for g in (got, want)]
+        for a, b in zip(*grads, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert out.dtype == torch.float64
+    # in float64 (no compute dtype), and already in float32: the module itself
+    plain = LearnedModel("BP5", hidden=(8,)).double().potential
+    assert plain.for_rollout() is plain
+    f32 = LearnedModel("BP5", hidden=(8,), potential_dtype="float32").potential
+    assert f32.for_rollout() is f32

@@ -94,6 +94,58 @@ def _default_heterogeneous(system: System) -> bool:
     return system.config.contact_parameters == "per_contact"
 
 
+class _MLPWeights:
+    """The potential MLP's arithmetic on given weight tensors: ``hidden`` pairs ``(W_l,
+    b_l)`` and the output row ``w`` (no bias), computed in ``compute_dtype`` (``None``:
+    ``x``'s). :class:`PotentialMLP` computes with its parameters through it, and
+    :meth:`PotentialMLP.for_rollout` with its parameters cast once."""
+
+    def __init__(
+        self,
+        hidden: Sequence[tuple[Tensor, Tensor | None]],
+        out: Tensor,
+        compute_dtype: torch.dtype | None,
+    ) -> None:
+        self.hidden_layers = list(hidden)
+        self.out = out
+        self.compute_dtype = compute_dtype
+
+    def hidden(
+        self, x: Tensor, dtype: torch.dtype | None = None
+    ) -> tuple[Tensor, list[tuple[Tensor, Tensor]]]:
+        """The last hidden activations ``(..., H)`` and, per hidden layer, its weight (in
+        the compute dtype) and pre-activation ``a_l``; ``dtype`` as in
+        :meth:`PotentialMLP.features`."""
+        h = x.flatten(-2)
+        dtype = dtype or self.compute_dtype
+        if dtype is not None:
+            h = h.to(dtype)
+        trace = []
+        for w, b in self.hidden_layers:
+            if w.dtype != h.dtype or w.device != h.device:
+                w, b = w.to(h), None if b is None else b.to(h)
+            a = F.linear(h, w, b)
+            h = F.softplus(a)
+            trace.append((w, a))
+        return h, trace
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """``V(x)``, ``(..., P, dim) -> (...)`` in ``x``'s dtype."""
+        h = self.hidden(x)[0]
+        return F.linear(h, self.out.to(h)).squeeze(-1).to(x.dtype)
+
+    def gradient(self, x: Tensor) -> Tensor:
+        """``grad_x V(x)`` (:meth:`PotentialMLP.gradient`)."""
+        h, trace = self.hidden(x)
+        weights = [w for w, _ in trace]
+        slopes = [torch.sigmoid(a) for _, a in trace]
+        g = slopes[-1] * self.out.to(h).squeeze(0)
+        for w_l, s_l in zip(weights[:0:-1], slopes[-2::-1], strict=True):
+            g = (g @ w_l) * s_l
+        g = g @ weights[0]
+        return g.to(x.dtype).unflatten(-1, x.shape[-2:])
+
+
 class PotentialMLP(nn.Module):
     """``V(x)``: an MLP on flattened positions, ``(..., P, dim) -> (...)``.
 
@@ -130,24 +182,25 @@ class PotentialMLP(nn.Module):
             nn.Linear(widths[i], widths[i + 1], bias=i < n - 1) for i in range(n)
         )
 
-    def _hidden(
-        self, x: Tensor, dtype: torch.dtype | None = None
-    ) -> tuple[Tensor, list[tuple[Tensor, Tensor]]]:
-        """The last hidden activations ``(..., H)`` and, per hidden layer, its weight (in
-        the compute dtype) and pre-activation ``a_l``; ``dtype`` as in :meth:`features`."""
-        h = x.flatten(-2)
-        dtype = dtype or self.compute_dtype
-        if dtype is not None:
-            h = h.to(dtype)
-        trace = []
-        for layer in self.layers[:-1]:
-            w, b = layer.weight, layer.bias
-            if w.dtype != h.dtype or w.device != h.device:
-                w, b = w.to(h), None if b is None else b.to(h)
-            a = F.linear(h, w, b)
-            h = F.softplus(a)
-            trace.append((w, a))
-        return h, trace
+    def _weights(self) -> _MLPWeights:
+        hidden = [(layer.weight, layer.bias) for layer in self.layers[:-1]]
+        return _MLPWeights(hidden, self.layers[-1].weight, self.compute_dtype)
+
+    def for_rollout(self) -> PotentialMLP | _MLPWeights:
+        """This potential for one rollout: with ``compute_dtype`` set and parameters in
+        another dtype, a callable (``V(x)``, :meth:`gradient`) holding the parameters cast
+        to ``compute_dtype`` once, with their gradients, instead of at every evaluation
+        (a training step evaluates ``grad V`` at every RK4 stage; the same values and
+        gradients); else this module."""
+        dtype = self.compute_dtype
+        if dtype is None or all(p.dtype == dtype for p in self.parameters()):
+            return self
+
+        def cast(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.to(dtype)
+
+        hidden = [(cast(layer.weight), cast(layer.bias)) for layer in self.layers[:-1]]
+        return _MLPWeights(hidden, cast(self.layers[-1].weight), dtype)
 
     def features(self, x: Tensor, dtype: torch.dtype | None = None) -> Tensor:
         """``phi(x)``: the last hidden layer's activations, ``(..., P, dim) -> (..., H)``.
@@ -156,14 +209,10 @@ class PotentialMLP(nn.Module):
         is linear in ``w`` (what :mod:`~diffcontact.learning.training.refit` uses).
         ``dtype``: the dtype to compute in (``None``: ``compute_dtype``, else ``x``'s).
         """
-        return self._hidden(x, dtype)[0]
+        return self._weights().hidden(x, dtype)[0]
 
     def forward(self, x: Tensor) -> Tensor:
-        h = self.features(x)
-        w = self.layers[-1].weight
-        if w.dtype != h.dtype or w.device != h.device:
-            w = w.to(h)
-        return F.linear(h, w).squeeze(-1).to(x.dtype)
+        return self._weights()(x)
 
     def gradient(self, x: Tensor) -> Tensor:
         """``grad_x V(x)``, ``(..., P, dim) -> (..., P, dim)``, by the chain rule written out.
@@ -179,14 +228,7 @@ class PotentialMLP(nn.Module):
         :func:`~diffcontact.mechanics.potential_gradient` uses this method when a
         potential has it.
         """
-        h, trace = self._hidden(x)
-        weights = [w for w, _ in trace]
-        slopes = [torch.sigmoid(a) for _, a in trace]
-        g = slopes[-1] * self.layers[-1].weight.to(h).squeeze(0)
-        for w_l, s_l in zip(weights[:0:-1], slopes[-2::-1], strict=True):
-            g = (g @ w_l) * s_l
-        g = g @ weights[0]
-        return g.to(x.dtype).unflatten(-1, x.shape[-2:])
+        return self._weights().gradient(x)
 
 
 def _initial_second_moments(cfg: Any, shape: tuple[int, int]) -> Tensor:
@@ -552,8 +594,14 @@ class LearnedModel(nn.Module):
             gravity=zero,
             stiffness=None if base.stiffness is None else zero,
             eps=base.eps if eps is None else eps,
-            potential=self.potential,
+            potential=self._rollout_potential(),
         )
+
+    def _rollout_potential(self) -> Any:
+        """The potential for one rollout: :meth:`PotentialMLP.for_rollout` where the
+        potential has it (another module, e.g. the refit's, as it is)."""
+        for_rollout = getattr(self.potential, "for_rollout", None)
+        return self.potential if for_rollout is None else for_rollout()
 
     def _check_options(self, contact_model: str | None, eps: Any, dynamics: str | None) -> None:
         if contact_model is not None and contact_model != self.contact_model:
