@@ -248,3 +248,33 @@ def test_point_masses_scale_the_rows_once_with_the_general_products_result(task)
     assert float((results[0][0] - x0).abs().max()) > 1e-4  # it moved
     for fast, general in zip(*results, strict=True):
         torch.testing.assert_close(fast, general, rtol=1e-9, atol=1e-12)
+
+
+def test_an_overflowed_attempt_reports_no_more_rows_than_the_rollout_needs(monkeypatch):
+    """Each attempt that overflowed its rows reports the rows its states needed up to and
+    including the step that overflowed (after it, its states are not the rollout's), never
+    more than a rollout padded to every row needs; the rollout goes on from the step before
+    each overflow and gives the step-by-step trajectory."""
+    system = dc.load_system("Rope-D100")
+    z0 = system.sample_initial_conditions(32, seed=4)
+    eager = system.simulate(z0, cuda_graph=False)
+    reports = []
+    attempt = rollout_module.Rollout._attempt
+
+    def spy(self, contacts, capture, read_free):
+        out = attempt(self, contacts, capture, read_free)
+        reports.append(out if isinstance(out, rollout_module.Overflow) else int(read_free.needed))
+        return out
+
+    monkeypatch.setattr(rollout_module.Rollout, "_attempt", spy)
+    system._contact_padding = len(system.contact_names)  # (only the rows overflow)
+    system._projection_rows = system._projection_rows_all()
+    _static_rollout(system, z0, system.default_steps, strict=True)
+    (needed,) = reports
+    reports.clear()
+    system._projection_rows = 2
+    traj, _, _ = _static_rollout(system, z0, system.default_steps, strict=True)
+    torch.testing.assert_close(traj, eager, rtol=0, atol=1e-12)
+    *overflows, _ = reports
+    assert len(overflows) >= 2 and all(1 <= o.rows <= needed for o in overflows)
+    assert sorted(o.step for o in overflows) != [1] * len(overflows)  # it went on

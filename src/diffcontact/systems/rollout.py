@@ -119,8 +119,8 @@ Result = tuple[Tensor, Tensor | None, Tensor | None]
 
 class Overflow(NamedTuple):
     """A static rollout whose padding was too small: the most active contacts of a state,
-    the most rows a state's position projection selected up to the step where a state
-    first had more contacts than the padding (0 without a projection), the first step
+    the most rows a state's position projection selected while the contacts fitted, up to
+    the first step that overflowed (0 without a projection), the first step
     (1-based) where a state had more contacts or rows than the padding (its states before
     that step are the rollout's), and the attempt's :data:`Result` (its trajectory valid up
     to ``step - 1``)."""
@@ -159,9 +159,10 @@ class Rollout:
     _read_free: ReadFree | None = field(default=None, init=False, repr=False)
     #: the contacts the last padded rollout sent per state; ``()`` int64 on the device:
     #: the most active contacts a state had in it, and the most rows its read-free
-    #: projection needed up to the first step where a state had more contacts than the
-    #: padding (after it, the trajectory is not the rollout's and its rows would inflate
-    #: the remembered padding beyond what the rollout needs)
+    #: projection needed while the contacts fit, up to the first step where a state had
+    #: more contacts or rows than the padding (after it, the trajectory is not the
+    #: rollout's and its rows would inflate the remembered padding beyond what the
+    #: rollout needs)
     _padded: int | None = field(default=None, init=False, repr=False)
     _most: Tensor | None = field(default=None, init=False, repr=False)
     _rows_fitting: Tensor | None = field(default=None, init=False, repr=False)
@@ -214,7 +215,10 @@ class Rollout:
             torch.maximum(self._most, (gaps < 0).sum(-1).amax(), out=self._most)
         over = self._most > self._padded
         if read_free is not None:
-            torch.where(over, self._rows_fitting, read_free.needed, out=self._rows_fitting)
+            # the rows needed while the contacts fit, up to the first step that overflowed
+            # (after it, the states are not the rollout's)
+            frozen = over | (self._first_overflow != 0)
+            torch.where(frozen, self._rows_fitting, read_free.needed, out=self._rows_fitting)
             over = over | read_free.overflowed
         self._step.add_(1)
         first = over & (self._first_overflow == 0)
@@ -386,7 +390,9 @@ class Rollout:
             grew = system._grow_contact_padding(out.contacts, contacts)
             grew = system._grow_projection_rows(read_free, out.rows) or grew
             if not grew:  # (padded to every candidate and row: cannot happen)
-                raise RuntimeError(f"simulate {system.name}: the static rollout overflowed {out}")
+                raise RuntimeError(
+                    f"simulate {system.name}: the static rollout overflowed {tuple(out[:3])}"
+                )
             if out.step > 1:
                 return self._go_on(out, strict, capture)
             if not (strict or self._graph_pays()):
