@@ -278,3 +278,38 @@ def test_an_overflowed_attempt_reports_no_more_rows_than_the_rollout_needs(monke
     *overflows, _ = reports
     assert len(overflows) >= 2 and all(1 <= o.rows <= needed for o in overflows)
     assert sorted(o.step for o in overflows) != [1] * len(overflows)  # it went on
+
+
+@pytest.mark.parametrize("task", ["Rope", "Rope-D100"])
+def test_the_sparse_gram_gives_the_dense_rows_positions_and_gradients(task, monkeypatch):
+    """With point masses on the CPU the projection forms A = J_s J_s^T and the step J_s^T
+    lambda from the rows' entries (``geometry.sparse_gram``, a Warp kernel); the dense rows
+    (without Warp, or with the torch backend) give the same positions and gradients, with
+    per-point masses and reading or read-free."""
+    from diffcontact.systems import projection
+
+    system, traj = _violating_states(task, 16, 10)
+    x0 = traj[:, -1, 0]
+    M_inv0 = system.inverse_mass_matrix() * torch.linspace(0.5, 2.0, x0.shape[-2])
+    calls = []
+    sparse_gram = projection.sparse_gram
+    monkeypatch.setattr(projection, "sparse_gram", lambda *a: calls.append(1) or sparse_gram(*a))
+    available = projection.sparse_gram_available
+    for read_free in (None, 64):
+        results = []
+        for sparse in (True, False):
+            monkeypatch.setattr(
+                projection, "sparse_gram_available", available if sparse else lambda *a: False
+            )
+            x = x0.clone().requires_grad_(True)
+            M_inv = M_inv0.clone().requires_grad_(True)
+            rf = None if read_free is None else _read_free(read_free, system)
+            got = project_positions(x, system.geometry, M_inv, 10, read_free=rf)
+            loss = (got.sin() * torch.linspace(-1, 1, got.numel()).view(got.shape)).sum()
+            grad_x, grad_M = torch.autograd.grad(loss, [x, M_inv])
+            results.append((got.detach(), grad_x, grad_M.diagonal()))
+            assert bool(calls) == sparse
+            calls.clear()
+        assert float((results[0][0] - x0).abs().max()) > 1e-4  # it moved
+        for fast, dense in zip(*results, strict=True):
+            torch.testing.assert_close(fast, dense, rtol=1e-9, atol=1e-12)

@@ -191,7 +191,8 @@ def test_gradient_through_the_projection_with_equality_constraints():
 @pytest.mark.parametrize("task", ["Rope", "BD5", "CP3"])
 def test_metric_norms_of_the_sparse_rows_equal_the_dense_ones(task):
     """The projection's distance scale ||J_k||_{M^-1}, computed from the sparse rows, equals
-    the dense product for diagonal (rope), block (disks) and per-state mass matrices."""
+    the dense product for diagonal (rope), block (disks) and per-state mass matrices; for
+    point masses also by the diagonal's shortcut (``diagonal=True``)."""
     from diffcontact.systems.projection import _metric_norms
 
     system = dc.load_system(task)
@@ -206,6 +207,9 @@ def test_metric_norms_of_the_sparse_rows_equal_the_dense_ones(task):
         big = torch.kron(Mi, torch.eye(dim, dtype=F64))  # (n, P dim, P dim)
         dense = torch.einsum("nkd,nde,nke->nk", J, big, J).sqrt()
         torch.testing.assert_close(_metric_norms(ctx.geometry, x, M_inv), dense, rtol=1e-12, atol=0)
+        if task == "Rope":
+            got = _metric_norms(ctx.geometry, x, M_inv, diagonal=True)
+            torch.testing.assert_close(got, dense, rtol=1e-12, atol=0)
 
 
 def test_the_projection_takes_any_minimiser_with_the_canonical_ones_positions(monkeypatch):

@@ -364,14 +364,16 @@ class ContactGeometry(GeometryBase):
 
 
 def _cat_rows(jacs: list[SparseJacobian]) -> SparseJacobian:
-    """Sparse rows of several parts, part after part, entries padded to the largest ``m``."""
+    """Sparse rows of several parts, part after part, entries padded to the largest ``m``
+    (a padded entry: zero values at the row's last point, so that a row's points stay
+    those it touches; ``sparse_gram`` skips rows whose point ranges do not overlap)."""
     m = max(j.points.shape[-1] for j in jacs)
     batch = broadcast_shapes(*(j.points.shape[:-2] for j in jacs))
-    points = [
-        torch.nn.functional.pad(j.points, (0, m - j.points.shape[-1])).expand(
-            *batch, j.points.shape[-2], m
-        )
-        for j in jacs
-    ]
+    points = []
+    for j in jacs:
+        p = j.points
+        if p.shape[-1] < m:
+            p = torch.cat([p, p[..., -1:].expand(*p.shape[:-1], m - p.shape[-1])], -1)
+        points.append(p.expand(*batch, p.shape[-2], m))
     values = [torch.nn.functional.pad(j.values, (0, 0, 0, m - j.points.shape[-1])) for j in jacs]
     return SparseJacobian(torch.cat(points, -2), torch.cat(values, -4))

@@ -51,6 +51,13 @@ differentiable; with the projection on, ``System`` drops the penetration target
 (it would add a velocity for a violation the projection already removed, which
 pumped energy into a hanging rope).
 
+With point masses (the ropes) each iteration needs only ``J_s = J M^-1/2``: ``A = J_s
+J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp both come from the
+rows' few entries (:func:`~diffcontact.geometry.sparse_gram.sparse_gram`, and a scatter
+for ``J_s^T lambda``), without the dense ``(n, R, P dim)`` rows, whose fill and product
+were the projection's largest costs on long ropes; elsewhere (CUDA, or the torch
+backend) from the dense rows. The same positions and gradients to rounding.
+
 Choosing the states to project, each iteration's rows and the early stop reads the
 device (a synchronisation on CUDA, which a CUDA graph cannot capture). With
 :class:`ReadFree` nothing is read: every state and every iteration take part, the
@@ -71,7 +78,14 @@ from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
 from diffcontact.fastops import spd_solve
-from diffcontact.geometry.base import GeometryBase, SparseJacobian, assemble_jacobian, take_rows
+from diffcontact.geometry.base import (
+    GeometryBase,
+    SparseJacobian,
+    assemble_jacobian,
+    jacobian_rmatvec,
+    take_rows,
+)
+from diffcontact.geometry.sparse_gram import sparse_gram, sparse_gram_available
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
 __all__ = ["ReadFree", "project_positions"]
@@ -151,11 +165,15 @@ def _gaps_and_rows(geometry: Any, x: Tensor) -> tuple[Tensor, SparseJacobian]:
 
 
 def _metric_norms(
-    geometry: Any, x: Tensor, M_inv: Tensor, rows: SparseJacobian | None = None
+    geometry: Any,
+    x: Tensor,
+    M_inv: Tensor,
+    rows: SparseJacobian | None = None,
+    diagonal: bool = False,
 ) -> Tensor:
     """``(n, K)``: ``||J_k||_{M^-1}`` of every candidate's normal row at ``x: (n, P, dim)``
     (``rows``: those of :func:`_gaps_and_rows` at ``x`` if the caller has them; their
-    values are detached here).
+    values are detached here; ``diagonal``: ``M_inv`` is diagonal, point masses).
 
     From the sparse rows (``m`` entries of point ``p_a`` and value ``v_a``):
     ``J_k M^-1 J_k^T = sum_a sum_b M^-1[p_a, p_b] (v_a . v_b)`` (``M^-1 = kron(M_inv,
@@ -167,7 +185,15 @@ def _metric_norms(
     v = jac.values[..., 0, :, :].detach()  # (n, K, m, dim)
     gram = v @ v.transpose(-1, -2)  # (n, K, m, m): v_a . v_b
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
-    if M_inv.dim() == 2:
+    if diagonal:  # M^-1[p_a, p_b] = w[p_a] where p_a == p_b, else 0: no (P, P) lookups
+        w = M_inv.diagonal(dim1=-2, dim2=-1).to(v)  # (P,) or (n, P)
+        points = jac.points.expand(n, *jac.points.shape[-2:])
+        if w.dim() == 1:
+            w_a = w[points]
+        else:
+            w_a = w.gather(-1, points.reshape(n, -1)).view(points.shape)
+        w = torch.where(pa == pb, w_a.unsqueeze(-1), 0.0)
+    elif M_inv.dim() == 2:
         w = M_inv.to(v)[pa, pb]
     else:
         w = M_inv.to(v)[torch.arange(n, device=x.device).view(n, 1, 1, 1), pa, pb]
@@ -261,7 +287,7 @@ def project_positions(
     with torch.no_grad():
         # distances are compared in the mass metric: gap_k / ||J_k||_{M^-1} is the distance
         # (in sqrt(mass) * length) from the linearised limit, whatever the gap's unit
-        scale = _metric_norms(geometry, x_pred, Minv_b, rows_i).clamp_min(1e-300)
+        scale = _metric_norms(geometry, x_pred, Minv_b, rows_i, bool(diagonal)).clamp_min(1e-300)
         scale_rows = torch.cat([scale, scale], -1) if two_sided else scale
         steps = _step_lengths(x.dtype, x.device)
         mask_rows = torch.zeros_like(scale_rows, dtype=torch.bool)
@@ -274,6 +300,8 @@ def project_positions(
     # spares the fused solver's interior point at the many kinks of these problems (rows
     # just corrected sit at gap 0 with lambda 0)
     any_minimiser = replace(settings or SolverSettings(), canonical=False)
+    # point masses on the CPU with Warp: A = J_s J_s^T and J_s^T lambda from the rows' entries
+    sparse = bool(diagonal) and phi0 is None and sparse_gram_available(settings, x.dtype, x.device)
     x_i = x_pred
     dist = None  # after the first iteration: the line search's distances at x_i
     going = None  # read-free: () bool, whether the early stop would still iterate
@@ -310,7 +338,7 @@ def project_positions(
         R = idx.shape[-1]
         gap = gaps_i.gather(-1, idx)  # (n, R)
         # each row's sign (the other side of a two-sided limit) and mask, applied to its
-        # few sparse entries before the dense (n, R, P * dim) rows are assembled
+        # few sparse entries (before any dense (n, R, P * dim) rows are assembled)
         taken = take_rows(rows_i, cand)
         values = taken.values[:, :, :1]  # (n, R, 1, m, dim): the normal rows
         sign = torch.where(idx < K, 1.0, -1.0).to(values)[:, :, None, None, None]
@@ -319,8 +347,8 @@ def project_positions(
         root = None
         if diagonal and phi0 is None:
             # point masses: the rows scaled by sqrt(M^-1), J_s = J M^-1/2, so that A = J_s
-            # J_s^T and the step M^-1 J^T lambda = M^-1/2 J_s^T lambda need one dense
-            # matrix, not J and J M^-1 (scaled on the few sparse entries, not the dense rows)
+            # J_s^T and the step M^-1 J^T lambda = M^-1/2 J_s^T lambda need only J_s, not J
+            # and J M^-1 (scaled on the few sparse entries, not on dense rows)
             root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
             points = taken.points  # (n, R, m)
             if root.dim() == 1:
@@ -328,25 +356,29 @@ def project_positions(
             else:
                 root_entries = root.gather(-1, points.reshape(n, -1)).view(points.shape)
             values = values * root_entries[:, :, None, :, None]
-        J = assemble_jacobian(SparseJacobian(taken.points, values), P).reshape(n, R, D)
         gap = torch.where(mask, gap, torch.zeros_like(gap))
-        if root is not None:
-            base = None
-            JM = J  # (J_s)
-        elif constraints is not None and phi0 is not None:
-            # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1 J_E^T)^-1 r
-            # takes Phi back to its value at x_pred
-            J_E = constraints.jacobian(x_i)  # (n, E, D)
-            Mh = Mhat_inv(Minv_b, J_E)
-            r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
-            B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
-            base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
-            JM = J @ Mh  # (n, R, D)
+        base = None
+        if root is not None and sparse:
+            # A = J_s J_s^T from the rows' few entries (sparse_gram): no dense rows
+            J = JM = None
+            A = sparse_gram(taken.points, values[:, :, 0])
         else:
-            base = None
-            JM = minv_rows(J)
-        A = JM @ J.transpose(-1, -2)
-        A = 0.5 * (A + A.transpose(-1, -2))
+            J = assemble_jacobian(SparseJacobian(taken.points, values), P).reshape(n, R, D)
+            if root is not None:
+                JM = J  # (J_s)
+            elif constraints is not None and phi0 is not None:
+                # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1
+                # J_E^T)^-1 r takes Phi back to its value at x_pred
+                J_E = constraints.jacobian(x_i)  # (n, E, D)
+                Mh = Mhat_inv(Minv_b, J_E)
+                r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
+                B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
+                base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
+                JM = J @ Mh  # (n, R, D)
+            else:
+                JM = minv_rows(J)
+            A = JM @ J.transpose(-1, -2)
+            A = 0.5 * (A + A.transpose(-1, -2))
         rhs = gap if base is None else gap + (J @ base.unsqueeze(-1)).squeeze(-1)
         rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
         lam, status = solve_cone_qp(
@@ -357,8 +389,11 @@ def project_positions(
         # below keeps only steps that reduce the violation); an unbounded one does not
         usable = ~status.unbounded & torch.isfinite(lam).all(-1)
         lam = torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
-        dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
-        dx = (dx if base is None else dx + base).reshape(n, P, dim)
+        if JM is None:  # J_s^T lambda from the entries
+            dx = jacobian_rmatvec(SparseJacobian(taken.points, values), lam.unsqueeze(-1), P)
+        else:
+            dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
+            dx = (dx if base is None else dx + base).reshape(n, P, dim)
         if root is not None:
             dx = dx * root.unsqueeze(-1)
         with torch.no_grad():  # backtracking: the step length with the least violation
