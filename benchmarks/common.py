@@ -63,6 +63,22 @@ READ_FREE_HELP = (
 )
 
 
+SPARSE_GRAM_CUDA_HELP = (
+    "on CUDA, let the rope's position projection take J J^T from the rows' entries "
+    "(diffcontact.geometry.sparse_gram, a Warp kernel) instead of the dense rows, as it "
+    "does on the CPU (sparse_gram.DEVICES; not the default on CUDA until timed there)"
+)
+
+
+def choose_sparse_gram_cuda(on: bool) -> None:
+    """With ``on``, the position projection uses ``sparse_gram`` on CUDA as well, for the
+    rest of the process (``diffcontact.geometry.sparse_gram.DEVICES``)."""
+    if on:
+        from diffcontact.geometry import sparse_gram
+
+        sparse_gram.DEVICES.add("cuda")
+
+
 def choose_read_free_projection(on: bool) -> None:
     """With ``on``, step-by-step rollouts that pad their contacts (on CUDA) run the position
     projection read-free for the rest of the process (the choice

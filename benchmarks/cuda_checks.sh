@@ -4,7 +4,7 @@
 #
 #   bash benchmarks/cuda_checks.sh [OUT_DIR [PART ...]]   (needs a CUDA GPU)
 #
-# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-6) pick the parts to run and their
+# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-7) pick the parts to run and their
 # order (default all, in order), e.g. "0 2 4" and then "3 1 5" in two calls where one call
 # may not take them all.
 #
@@ -18,7 +18,10 @@
 # 5. where a graphed step's GPU time goes;
 # 6. how Rope-D400's step-by-step time grows along its rollout, selected and padded, and
 #    the interior-point iterations of its projection problems (rollout_growth;
-#    benchmarks/README.md, 2026-11-27, fourth sitting).
+#    benchmarks/README.md, 2026-11-27, fourth sitting);
+# 7. the ropes' rows of part 2 and the Rope training step of part 4 with the projection's
+#    J J^T from the rows' entries (--sparse-gram-cuda; the CPU's default since the fifth
+#    sitting of 2026-11-27, not yet CUDA's), to compare with those parts.
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
 # The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache
@@ -26,10 +29,10 @@
 set -u
 OUT=${1:-runs/cuda-checks}
 shift $(($# > 0 ? 1 : 0))
-PARTS=${*:-0 1 2 3 4 5 6}
+PARTS=${*:-0 1 2 3 4 5 6 7}
 for number in $PARTS; do
-    if [[ $number != [0-6] ]]; then
-        echo "cuda_checks.sh: unknown part $number (parts are 0-6)" >&2
+    if [[ $number != [0-7] ]]; then
+        echo "cuda_checks.sh: unknown part $number (parts are 0-7)" >&2
         exit 2
     fi
 done
@@ -83,6 +86,14 @@ part_5() {
 part_6() {
     part 6_rollout_growth 200 $PY benchmarks/run.py rollout_growth --device cuda --task Rope-D400 \
         --scenes 4096 --first 3
+}
+part_7() {
+    part 7_simulate_ropes_sparse 240 $PY benchmarks/run.py simulate --device cuda --all-tasks \
+        --scenes 4096 --tasks Rope Rope-D400 --cuda-graph both --again --sparse-gram-cuda
+    part 7_train_rope_sparse 200 $PY benchmarks/run.py train --device cuda --tasks Rope \
+        --against none --reps 3 --sparse-gram-cuda
+    part 7_train_rope_sparse_read_free 200 $PY benchmarks/run.py train --device cuda \
+        --tasks Rope --against none --reps 3 --sparse-gram-cuda --read-free-projection
 }
 for number in $PARTS; do "part_$number"; done
 echo "cuda_checks.sh: done in $(($(date +%s) - start))s; outputs in $OUT"

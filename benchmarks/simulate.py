@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 import diffcontact as dc
-from common import machine_header, sync
+from common import SPARSE_GRAM_CUDA_HELP, choose_sparse_gram_cuda, machine_header, sync
 
 DEFAULT_CASES = [("BP5", 1024, 100), ("Rope-D400", 1024, 19)]
 QUICK_CASES = [("BP5", 256, 20), ("Rope-D400", 128, 5)]
@@ -268,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also time a second, identical call on the same system (column 'again s')",
     )
+    ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
         "--compare",
         choices=("mujoco",),
@@ -285,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
+    choose_sparse_gram_cuda(args.sparse_gram_cuda)
     if args.compare == "mujoco":
         return main_compare(args, dtype)
     if args.scenes is not None and args.scenes < 1:
@@ -299,6 +301,8 @@ def main(argv: list[str] | None = None) -> int:
         cases = [case for case in cases if case[0] in args.tasks]
 
     print("ground-truth simulation: System.simulate (RK4 + detection + two-phase impulse)")
+    if args.sparse_gram_cuda:
+        print("the projection's J J^T from the rows' entries on CUDA too (--sparse-gram-cuda)")
     for line in machine_header(args.device, dtype):
         print(line)
     head = (

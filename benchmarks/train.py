@@ -47,7 +47,14 @@ from pathlib import Path
 import torch
 
 import diffcontact as dc
-from common import READ_FREE_HELP, choose_read_free_projection, machine_header, sync
+from common import (
+    READ_FREE_HELP,
+    SPARSE_GRAM_CUDA_HELP,
+    choose_read_free_projection,
+    choose_sparse_gram_cuda,
+    machine_header,
+    sync,
+)
 
 # 2026-11-23, the last commit before issue 11's solver and training-step work (the fused
 # solver, fast paths, batch-invariant polish): the "previous release" of the ratio column
@@ -241,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
         "version only, the data keep the task's",
     )  # fmt: skip
     ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
+    ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
         "--rounds", type=int, default=1, metavar="N",
         help="time each row N times, the versions in turn, and print medians (of the times, "
@@ -262,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     args.threads = torch.get_num_threads()
     choose_read_free_projection(args.read_free_projection)
+    choose_sparse_gram_cuda(args.sparse_gram_cuda)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
     if args.compare_dtypes:
@@ -296,6 +305,8 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
         mlp += f", position_projection {args.position_projection} (this version)"
     if args.read_free_projection:
         mlp += ", read-free projection (this version)"
+    if args.sparse_gram_cuda:
+        mlp += ", sparse J J^T on CUDA (this version)"
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states{mlp}")
     for line in machine_header(args.device, dtype):
         print(line)

@@ -83,3 +83,30 @@ def test_sparse_gram_on_cuda_equals_the_cpu():
         out.append((A.cpu(), grad.cpu()))
     for cpu, cuda in zip(*out, strict=True):
         torch.testing.assert_close(cuda, cpu, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("read_free", [False, True])
+def test_the_projection_with_the_sparse_gram_on_cuda_equals_the_cpu(read_free, monkeypatch):
+    """What ``--sparse-gram-cuda`` switches on: the projection on CUDA with ``sparse_gram``
+    (reading, and read-free as in a captured step) gives the CPU's positions."""
+    from diffcontact.geometry import sparse_gram as module
+    from diffcontact.systems.projection import ReadFree, project_positions
+
+    monkeypatch.setattr(module, "DEVICES", {"cpu", "cuda"})
+    system = dc.load_system("Rope-D100")
+    z0 = system.sample_initial_conditions(8, seed=3)
+    traj = system.simulate(z0, 10, position_projection=0, on_tunnelling="ignore")
+    x = traj[:, -1, 0]
+    M_inv = system.inverse_mass_matrix()
+    out = []
+    for device in ("cpu", "cuda"):
+        rf = None
+        if read_free:
+            needed = torch.zeros((), dtype=torch.long, device=device)
+            rf = ReadFree(64, needed, system._point_masses, system._two_sided)
+        geometry = system.geometry.to(device)
+        out.append(project_positions(x.to(device), geometry, M_inv.to(device), 10, read_free=rf))
+    assert float((out[0] - x).abs().max()) > 1e-4  # it moved
+    torch.testing.assert_close(out[1].cpu(), out[0], rtol=1e-9, atol=1e-11)

@@ -28,15 +28,20 @@ from diffcontact.contact.fused import resolve_backend
 
 from .base import SparseJacobian, assemble_jacobian
 
-__all__ = ["dense_gram", "sparse_gram", "sparse_gram_available"]
+__all__ = ["DEVICES", "dense_gram", "sparse_gram", "sparse_gram_available"]
+
+DEVICES = {"cpu"}
+"""The device types where the position projection uses :func:`sparse_gram`. Not CUDA yet:
+the kernels run there (``tests/geometry/test_sparse_gram.py``, ``pytest -m cuda``), but
+no GPU has timed them against the dense products; ``benchmarks/run.py simulate|train
+--sparse-gram-cuda`` adds ``"cuda"`` for a run (``benchmarks/cuda_checks.sh``, part 7)."""
 
 
 def sparse_gram_available(settings: SolverSettings | None, dtype: torch.dtype, device) -> bool:
-    """Whether :func:`sparse_gram` runs its Warp kernel for tensors of ``dtype`` on
+    """Whether the projection uses :func:`sparse_gram` for tensors of ``dtype`` on
     ``device``: where the solver's backend (``settings.backend``, the environment variable
-    ``DIFFCONTACT_SOLVER``) resolves to Warp, on the CPU. On CUDA the projection keeps its
-    dense products until a GPU has measured the kernel there."""
-    if torch.device(device).type != "cpu":
+    ``DIFFCONTACT_SOLVER``) resolves to Warp, on a device type of :data:`DEVICES`."""
+    if torch.device(device).type not in DEVICES:
         return False
     backend = (settings or SolverSettings()).backend
     return resolve_backend(backend, dtype, torch.device(device)) == "warp"
