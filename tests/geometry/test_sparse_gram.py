@@ -92,9 +92,11 @@ def test_the_projection_with_the_sparse_gram_on_cuda_equals_the_cpu(read_free, m
     """What ``--sparse-gram-cuda`` switches on: the projection on CUDA with ``sparse_gram``
     (reading, and read-free as in a captured step) gives the CPU's positions."""
     from diffcontact.geometry import sparse_gram as module
+    from diffcontact.systems import projection
     from diffcontact.systems.projection import ReadFree, project_positions
 
     monkeypatch.setattr(module, "DEVICES", {"cpu", "cuda"})
+    monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 0)  # the kernel at this small size
     system = dc.load_system("Rope-D100")
     z0 = system.sample_initial_conditions(8, seed=3)
     traj = system.simulate(z0, 10, position_projection=0, on_tunnelling="ignore")

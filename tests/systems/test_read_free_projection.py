@@ -283,11 +283,12 @@ def test_an_overflowed_attempt_reports_no_more_rows_than_the_rollout_needs(monke
 @pytest.mark.parametrize("task", ["Rope", "Rope-D100"])
 def test_the_sparse_gram_gives_the_dense_rows_positions_and_gradients(task, monkeypatch):
     """With point masses on the CPU the projection forms A = J_s J_s^T and the step J_s^T
-    lambda from the rows' entries (``geometry.sparse_gram``, a Warp kernel); the dense rows
-    (without Warp, or with the torch backend) give the same positions and gradients, with
-    per-point masses and reading or read-free."""
+    lambda from the rows' entries (``geometry.sparse_gram``, a Warp kernel; here at every
+    size); the dense rows (small problems, no Warp, or the torch backend) give the same
+    positions and gradients, with per-point masses and reading or read-free."""
     from diffcontact.systems import projection
 
+    monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 0)
     system, traj = _violating_states(task, 16, 10)
     x0 = traj[:, -1, 0]
     M_inv0 = system.inverse_mass_matrix() * torch.linspace(0.5, 2.0, x0.shape[-2])
@@ -313,3 +314,23 @@ def test_the_sparse_gram_gives_the_dense_rows_positions_and_gradients(task, monk
         assert float((results[0][0] - x0).abs().max()) > 1e-4  # it moved
         for fast, dense in zip(*results, strict=True):
             torch.testing.assert_close(fast, dense, rtol=1e-9, atol=1e-12)
+
+
+def test_the_sparse_gram_is_taken_only_where_the_dense_rows_are_large(monkeypatch):
+    """``MIN_DENSE_SIZE`` decides by the size of the dense rows, ``n R P dim``: with it at
+    20,000, 64 ten-point ropes (Rope: 53 states x 5 rows x 20) keep the dense rows and 64
+    fifty-point ropes (Rope-D100: 64 x 13 x 100) take the kernel."""
+    from diffcontact.systems import projection
+
+    monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 20_000)
+    calls = []
+    sparse_gram = projection.sparse_gram
+    monkeypatch.setattr(projection, "sparse_gram", lambda *a: calls.append(a) or sparse_gram(*a))
+    for task, used in (("Rope", False), ("Rope-D100", True)):
+        system, traj = _violating_states(task, 64, 10)
+        project_positions(traj[:, -1, 0], system.geometry, system.inverse_mass_matrix(), 10)
+        assert bool(calls) == used, task
+        for points, _ in calls:
+            n, R, _ = points.shape
+            assert n * R * traj.shape[-2] * traj.shape[-1] >= projection.MIN_DENSE_SIZE
+        calls.clear()

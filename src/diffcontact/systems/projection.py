@@ -52,11 +52,13 @@ differentiable; with the projection on, ``System`` drops the penetration target
 pumped energy into a hanging rope).
 
 With point masses (the ropes) each iteration needs only ``J_s = J M^-1/2``: ``A = J_s
-J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp both come from the
-rows' few entries (:func:`~diffcontact.geometry.sparse_gram.sparse_gram`, and a scatter
-for ``J_s^T lambda``), without the dense ``(n, R, P dim)`` rows, whose fill and product
-were the projection's largest costs on long ropes; elsewhere (CUDA, or the torch
-backend) from the dense rows. The same positions and gradients to rounding.
+J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp, where the dense
+``(n, R, P dim)`` rows would be large (:data:`~diffcontact.geometry.sparse_gram.
+MIN_DENSE_SIZE`: long ropes, whose dense rows' fill and product were the projection's
+largest costs), both come from the rows' few entries
+(:func:`~diffcontact.geometry.sparse_gram.sparse_gram`, and a scatter for ``J_s^T
+lambda``); elsewhere (small problems, CUDA, or the torch backend) from the dense rows.
+The same positions and gradients to rounding.
 
 Choosing the states to project, each iteration's rows and the early stop reads the
 device (a synchronisation on CUDA, which a CUDA graph cannot capture). With
@@ -85,7 +87,7 @@ from diffcontact.geometry.base import (
     jacobian_rmatvec,
     take_rows,
 )
-from diffcontact.geometry.sparse_gram import sparse_gram, sparse_gram_available
+from diffcontact.geometry.sparse_gram import MIN_DENSE_SIZE, sparse_gram, sparse_gram_available
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
 __all__ = ["ReadFree", "project_positions"]
@@ -358,7 +360,7 @@ def project_positions(
             values = values * root_entries[:, :, None, :, None]
         gap = torch.where(mask, gap, torch.zeros_like(gap))
         base = None
-        if root is not None and sparse:
+        if root is not None and sparse and n * R * D >= MIN_DENSE_SIZE:
             # A = J_s J_s^T from the rows' few entries (sparse_gram): no dense rows
             J = JM = None
             A = sparse_gram(taken.points, values[:, :, 0])
