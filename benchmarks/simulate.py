@@ -1,7 +1,7 @@
 """Benchmark: ground-truth simulation, wall time of System.simulate.
 
     python benchmarks/run.py simulate [--quick] [--device cpu|cuda] [--dtype float64|float32]
-        [--cuda-graph auto|on|off|both] [--again]
+        [--cuda-graph auto|on|off|both] [--again] [--grad]
     python benchmarks/run.py simulate --compare mujoco [--quick] [--threads N]
 
 Simulates N trajectories of each task from its own initial-condition distribution and
@@ -45,10 +45,13 @@ def time_case(
     dtype: torch.dtype,
     cuda_graph="auto",
     again: bool = False,
+    grad: bool = False,
 ) -> dict:
-    """Time one call of ``System.simulate`` on a fresh system (after a small warm-up), and
-    with ``again`` a second, identical call on the same system (which then knows the
-    contact padding and projection rows its rollouts need on CUDA)."""
+    """Time one call of ``System.simulate`` on a fresh system (after a small warm-up), with
+    ``again`` a second, identical call on the same system (which then knows the contact
+    padding and projection rows its rollouts need on CUDA), and with ``grad`` one more
+    call from ``z0`` with ``requires_grad`` and the backward pass of the sum of the final
+    positions (the cost of a gradient through the rollout)."""
     system = dc.load_system(task)
     z0 = system.sample_initial_conditions(n, seed=0).to(device=device, dtype=dtype)
     system.simulate(z0[: min(n, 8)], steps=2)  # warm-up (device caches, allocator)
@@ -62,6 +65,15 @@ def time_case(
             sync(device)
             walls.append(time.perf_counter() - t0)
         graphed.append(graph_used(system, caught))
+    grad_s = None
+    if grad:
+        z = z0.clone().requires_grad_(True)
+        t0 = time.perf_counter()
+        system.simulate(z, steps=steps, cuda_graph=cuda_graph)[:, -1, 0].sum().backward()
+        sync(device)
+        grad_s = time.perf_counter() - t0
+        if not bool(torch.isfinite(z.grad).all()):
+            raise RuntimeError(f"{task}: the gradient of the final positions is not finite")
     wall = walls[0]
     active = system.gaps(traj[:, 1:, 0].reshape(-1, *traj.shape[-2:])) < 0
     contacts = active.any(-1)
@@ -77,6 +89,7 @@ def time_case(
         "graph": graphed[0],
         "again_s": walls[1] if again else None,
         "again_graph": graphed[1] if again else None,
+        "grad_s": grad_s,
     }
 
 
@@ -268,6 +281,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also time a second, identical call on the same system (column 'again s')",
     )
+    ap.add_argument(
+        "--grad",
+        action="store_true",
+        help="also time a call with the backward pass of the final positions (column "
+        "'+grad s': simulate and backward)",
+    )
     ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
         "--compare",
@@ -311,13 +330,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.again:
         head += f" | {'again s':>8} {'graph':>5}"
+    if args.grad:
+        head += f" | {'+grad s':>8}"
     print(head)
     print("-" * len(head))
     modes = {"auto": ["auto"], "on": [True], "off": [False], "both": [False, True]}
     for task, n, steps in cases:
         for mode in modes[args.cuda_graph]:
             try:
-                r = time_case(task, n, steps, args.device, dtype, mode, args.again)
+                r = time_case(task, n, steps, args.device, dtype, mode, args.again, args.grad)
             except ValueError as err:  # cuda_graph=True where it cannot be used
                 print(f"{task:>10} {n:>6} {steps:>6} {'on':>5} | {err}", flush=True)
                 continue
@@ -329,6 +350,8 @@ def main(argv: list[str] | None = None) -> int:
             )
             if args.again:
                 row += f" | {r['again_s']:>8.2f} {'yes' if r['again_graph'] else 'no':>5}"
+            if args.grad:
+                row += f" | {r['grad_s']:>8.2f}"
             print(row, flush=True)
     print(
         "graph: the rollout replayed one step captured in a CUDA graph "
@@ -338,6 +361,12 @@ def main(argv: list[str] | None = None) -> int:
             ". again s: a second, identical call on the same system (its contact padding "
             "and projection rows then known)"
             if args.again
+            else ""
+        )
+        + (
+            ". +grad s: a call from z0 with requires_grad, and the backward pass of the sum of "
+            "the final positions (a CUDA graph is not used with gradients)"
+            if args.grad
             else ""
         )
     )
