@@ -97,6 +97,7 @@ def test_the_projection_with_the_sparse_gram_on_cuda_equals_the_cpu(read_free, m
 
     monkeypatch.setattr(module, "DEVICES", {"cpu", "cuda"})
     monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 0)  # the kernel at this small size
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)
     system = dc.load_system("Rope-D100")
     z0 = system.sample_initial_conditions(8, seed=3)
     traj = system.simulate(z0, 10, position_projection=0, on_tunnelling="ignore")

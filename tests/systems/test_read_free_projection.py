@@ -90,7 +90,8 @@ def _static_rollout(system, z0, steps, strict=False):
     return run.graphed(strict=strict, capture=False)
 
 
-def test_the_static_rope_step_gives_the_step_by_step_trajectories():
+def test_the_static_rope_step_gives_the_step_by_step_trajectories(monkeypatch):
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (torch's solver reads)
     system = dc.load_system("Rope")
     z0 = system.sample_initial_conditions(32, seed=4)
     eager = system.simulate(z0, 20, cuda_graph=False)
@@ -177,6 +178,7 @@ def test_the_cuda_step_by_step_path_projects_without_reads(monkeypatch):
     (``rollout._projects_read_free``): the reading rollout's trajectory and
     gradient, and a fixed number of reads per call (the reading one reads in every
     iteration of every step)."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (torch's solver reads)
     system = dc.load_system("Rope")
     z0 = system.sample_initial_conditions(16, seed=5)
     want, grad_want = _simulate_with_grad(system, z0, 20, False, monkeypatch)
@@ -255,6 +257,7 @@ def test_an_overflowed_attempt_reports_no_more_rows_than_the_rollout_needs(monke
     including the step that overflowed (after it, its states are not the rollout's), never
     more than a rollout padded to every row needs; the rollout goes on from the step before
     each overflow and gives the step-by-step trajectory."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (torch's solver reads)
     system = dc.load_system("Rope-D100")
     z0 = system.sample_initial_conditions(32, seed=4)
     eager = system.simulate(z0, cuda_graph=False)
@@ -289,6 +292,7 @@ def test_the_sparse_gram_gives_the_dense_rows_positions_and_gradients(task, monk
     from diffcontact.systems import projection
 
     monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 0)
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (torch: the dense rows)
     system, traj = _violating_states(task, 16, 10)
     x0 = traj[:, -1, 0]
     M_inv0 = system.inverse_mass_matrix() * torch.linspace(0.5, 2.0, x0.shape[-2])
@@ -323,6 +327,7 @@ def test_the_sparse_gram_is_taken_only_where_the_dense_rows_are_large(monkeypatc
     from diffcontact.systems import projection
 
     monkeypatch.setattr(projection, "MIN_DENSE_SIZE", 20_000)
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (torch: the dense rows)
     calls = []
     sparse_gram = projection.sparse_gram
     monkeypatch.setattr(projection, "sparse_gram", lambda *a: calls.append(a) or sparse_gram(*a))

@@ -218,6 +218,7 @@ def test_the_projection_takes_any_minimiser_with_the_canonical_ones_positions(mo
     solver's interior point at the kinks its problems are full of: the same trajectories
     as with the canonical minimiser, to 1e-10, and fewer interior-point iterations."""
     pytest.importorskip("warp")
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (a property of the fused solver)
     from diffcontact.systems import projection
 
     system = dc.load_system("Rope-D100")
