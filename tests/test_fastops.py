@@ -197,3 +197,24 @@ def test_written_out_spd_solve_gradients_match_finite_differences_and_lapack():
     assert torch.autograd.gradgradcheck(
         lambda a, b: _unrolled_spd_solve(0.5 * (a + a.mT), b), (A, B)
     )
+
+
+def test_lu_factor_ex_of_a_batch_of_large_matrices_on_several_threads():
+    """torch 2.13's CPU LU (oneMKL) returned wrong factors for batches of matrices of about
+    150 rows or more on several threads (pivots of 0); ``fastops.lu_factor_ex`` factorises
+    those on one thread and puts the thread count back."""
+    from diffcontact.fastops import lu_factor_ex
+
+    gen = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 193, 193, dtype=torch.float64, generator=gen)
+    B = torch.randn(3, 193, 2, dtype=torch.float64, generator=gen)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        LU, piv, info = lu_factor_ex(A)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert int(piv.min()) >= 1 and not bool(info.any())
+    X = torch.linalg.lu_solve(LU, piv, B)
+    torch.testing.assert_close(A @ X, B, rtol=0, atol=1e-9)

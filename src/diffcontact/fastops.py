@@ -116,6 +116,34 @@ def shared(T: Tensor) -> Tensor:
     return T
 
 
+# torch 2.13's CPU LU factorisation (oneMKL) returns garbage for a batch of two or more
+# matrices of about 150 rows or more when torch runs on several threads: pivots of 0 and
+# "Intel oneMKL ERROR: Parameter 6 was incorrect on entry to DLASWP", and wrong factors
+# (found 2026-11-27 with the torch reference solver's polish of 193-row rope projection
+# problems; every batch of 3 random 193 x 193 matrices on 2 threads, none on 1). From this
+# size lu_factor_ex() factorises on one thread.
+_LU_ONE_THREAD_FROM = 128
+
+
+def lu_factor_ex(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``torch.linalg.lu_factor_ex(M)`` (``LU, pivots, info``) for ``M: (..., n, n)``; a CPU
+    batch of large matrices is factorised on one torch thread (:data:`_LU_ONE_THREAD_FROM`:
+    the multi-threaded path of torch 2.13's LAPACK returned wrong factors there)."""
+    threads = torch.get_num_threads()
+    if (
+        M.device.type == "cpu"
+        and threads > 1
+        and M.shape[-1] >= _LU_ONE_THREAD_FROM
+        and math.prod(M.shape[:-2]) > 1
+    ):
+        torch.set_num_threads(1)
+        try:
+            return torch.linalg.lu_factor_ex(M)
+        finally:
+            torch.set_num_threads(threads)
+    return torch.linalg.lu_factor_ex(M)
+
+
 def cholesky_solve(B: Tensor, L: Tensor) -> Tensor:
     """``torch.cholesky_solve(B, L)``: ``X`` with ``L L^T X = B`` for lower-triangular ``L:
     (..., n, n)`` and ``B: (..., n, k)``. On CUDA two batched triangular solves (which a CUDA

@@ -88,6 +88,7 @@ from diffcontact.contact import fused
 from diffcontact.contact.closed_form import separating_guess, single_contact_minimiser
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
+from diffcontact.fastops import lu_factor_ex
 from diffcontact.shapes import broadcast_shapes
 
 
@@ -603,7 +604,7 @@ def _polish(f: Tensor, data, settings: SolverSettings):
     target = min(settings.polish_tol, settings.tol)  # ``tol`` is what is accepted
     flat = None
     for step in range(settings.polish_steps + 1):
-        LU, piv, _ = torch.linalg.lu_factor_ex(_jacobian(A, P, rho, reg))
+        LU, piv, _ = lu_factor_ex(_jacobian(A, P, rho, reg))
         if step == settings.polish_steps or bool((res <= target).all()):
             break
         delta = -torch.linalg.lu_solve(LU, piv, F.unsqueeze(-1)).squeeze(-1)

@@ -88,6 +88,7 @@ from diffcontact.contact.cone_qp import (
 )
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.interior_point import add_block_diag
+from diffcontact.fastops import lu_factor_ex
 from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
@@ -227,7 +228,7 @@ def _newton(f, data, d: int, steps: int, target: float):
         if not bool(todo.any()):
             break
         J = _jacobian(A, P, _shift_blocks(mu, t_hat, d), rho, reg)
-        LU, piv, _ = torch.linalg.lu_factor_ex(J)
+        LU, piv, _ = lu_factor_ex(J)
         delta = -torch.linalg.lu_solve(LU, piv, H.unsqueeze(-1)).squeeze(-1)
         delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
         improved = torch.zeros_like(todo)
@@ -350,7 +351,7 @@ class _CoulombFunction(torch.autograd.Function):
         M = _shift_blocks(mu_m, t_hat, d)
         J = _jacobian(A_m, P, M, rho, ctx.kkt_reg * a_s)
         g = torch.where(act_c, grad_f.to(f.dtype), 0)
-        LU, piv, _ = torch.linalg.lu_factor_ex(J)
+        LU, piv, _ = lu_factor_ex(J)
         v = torch.linalg.lu_solve(LU, piv, g.unsqueeze(-1), adjoint=True).squeeze(-1)
         v = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
         q = _blockwise(P.transpose(-1, -2), v.unsqueeze(-1)).squeeze(-1)  # P^T v

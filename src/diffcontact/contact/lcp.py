@@ -124,6 +124,7 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.models import ContactParams
+from diffcontact.fastops import lu_factor_ex
 from diffcontact.shapes import broadcast_shapes
 
 __all__ = [
@@ -284,7 +285,7 @@ def _refine(M: Tensor, q: Tensor, active: Tensor, in_S: Tensor):
     eye = torch.eye(n, dtype=q.dtype, device=q.device)
     pair = in_S[:, :, None] & in_S[:, None, :]
     Mt = torch.where(pair, M, 0) + torch.where(in_S, 0.0, 1.0).to(q.dtype)[:, :, None] * eye
-    LU, piv, info = torch.linalg.lu_factor_ex(Mt)
+    LU, piv, info = lu_factor_ex(Mt)
     rhs = torch.where(in_S, -q, 0)
     z = torch.linalg.lu_solve(LU, piv, rhs.unsqueeze(-1)).squeeze(-1)
     z = torch.where(in_S & torch.isfinite(z), z, 0).clamp_min(0)
