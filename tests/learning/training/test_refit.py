@@ -92,7 +92,10 @@ def test_refit_lowers_the_validation_error_and_keeps_only_improvements(cp3_data)
     assert again.val_mse <= report.val_mse
 
 
-def test_refit_run_writes_the_files(cp3_data, tmp_path):
+def test_refit_run_writes_the_files(cp3_data, tmp_path, monkeypatch):
+    # the second refit below must find a step that lowers the validation MSE: it does with
+    # the default (Warp) solver; the torch reference's rounding leaves it without one
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)
     run = tmp_path / "run"
     train(cp3_data, run, epochs=2, refit=1, threads=1, **SMALL)
     report = json.loads((run / "refit.json").read_text())
