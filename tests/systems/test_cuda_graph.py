@@ -127,10 +127,11 @@ def test_long_ropes_go_step_by_step_when_auto():
     assert rollout_module.Rollout(system, run.ctx, z0, 20, no_projection)._graph_pays()
 
 
-def test_the_static_rollout_reads_the_device_once():
+def test_the_static_rollout_reads_the_device_once(monkeypatch):
     """No read inside a step (a graph could not capture one): the overflow flag, the
     deferred solver flags and the finiteness of the trajectory are read after the last
     step."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (a property of the fused solver)
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(32, seed=1)
     _static_rollout(system, z0, 2)
@@ -139,10 +140,11 @@ def test_the_static_rollout_reads_the_device_once():
     assert reads[0] <= 5
 
 
-def test_a_failed_solve_is_flagged_for_the_step_by_step_rerun():
+def test_a_failed_solve_is_flagged_for_the_step_by_step_rerun(monkeypatch):
     """A solve that fails inside the static rollout (CP3 under gravity 1e6 blows up) raises
     nothing there; its flag comes back for simulate to read, which then reruns step by
     step and names the states."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (a property of the fused solver)
     from diffcontact.contact import ConeQPError
 
     system = dc.load_system("CP3")

@@ -289,11 +289,12 @@ def test_a_failed_contact_solve_names_the_states_and_the_cause():
     assert states and all(0 <= s < 8 for s in states)
 
 
-def test_a_step_reads_the_device_once():
+def test_a_step_reads_the_device_once(monkeypatch):
     """Per step on the CPU: one read selects the states in contact (how many, and their
     largest contact count); the fused solver's flags are gathered on the device and read
     with the other checks once per call. More would each be a synchronisation per step on
     CUDA (where the selection is replaced by padding: test_padded_steps_...)."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (a property of the fused solver)
     pytest.importorskip("warp")
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(64, seed=1)
@@ -308,6 +309,7 @@ def test_padded_steps_read_nothing_and_give_the_same_values_and_gradients(task, 
     """The step-by-step rollout as it runs on CUDA (every state padded to GRAPH_CONTACTS,
     no selection), forced on the CPU: no read per step, and the trajectories and the
     gradients of the selected rollout."""
+    monkeypatch.delenv("DIFFCONTACT_SOLVER", raising=False)  # (a property of the fused solver)
     pytest.importorskip("warp")
     from diffcontact.systems import rollout as rollout_module
 
