@@ -19,6 +19,9 @@ torch runs a batched ``cholesky_solve`` on CUDA through MAGMA, which fails insid
 ("operation not permitted when stream is capturing"), and ``torch.linalg.solve`` reads the
 device to check for singular matrices. :func:`cholesky_solve` runs two batched triangular
 solves (cuBLAS) there instead; :func:`spd_solve` factorises without a check.
+
+And one workaround: :func:`lu_factor_ex` factorises a CPU batch of large matrices on one
+thread, where torch 2.13's multi-threaded LU returned wrong factors.
 """
 
 from __future__ import annotations
