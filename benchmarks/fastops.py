@@ -18,7 +18,12 @@ the hot paths differentiate), for float64 and float32, with the ratio plain / fa
   ``spd_solve`` runs on the CPU for many small ones (``fastops._unrolled_spd_solve``), by
   the number of 3 x 3 systems: 256 to 2000 (where ``_UNROLL_BATCH`` sets the switch:
   BD5's training batch is 200 states x 5 bodies) and 20480 (4096 simulated BD5 scenes x 5
-  bodies), and 2 x 2; backward to both operands.
+  bodies), and 2 x 2; backward to both operands;
+- the Gram matrix ``J J^T`` of rope-limit rows (three adjacent points each) from the dense
+  rows (``geometry.sparse_gram.dense_gram``) vs the Warp kernel from their entries
+  (``sparse_gram``), for states x rows x points from a 10-point rope's training batch to
+  Rope-D400's simulation: the sizes behind ``sparse_gram.MIN_DENSE_SIZE``; backward to
+  the entries' values (CPU, with Warp installed; float64).
 
 Medians over repetitions after a warm-up call.
 """
@@ -26,6 +31,7 @@ Medians over repetitions after a warm-up call.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 
 import torch
 
@@ -34,6 +40,8 @@ from diffcontact.fastops import _unrolled_spd_solve, dot_last, left_matmul
 
 SUM_SHAPES = ((1024, 10, 2), (1024, 30, 3), (64, 10, 2))
 MATMUL_SHAPES = (((15, 15), (200, 15, 15, 2), True), ((15, 15), (200, 15, 2), False))
+# (states, rows, points) of the Gram rows
+GRAM_SHAPES = ((120, 8, 10), (1024, 5, 10), (1024, 8, 20), (128, 20, 50), (128, 78, 200))
 SOLVE_SHAPES = ((256, 3, 3), (512, 3, 3), (1000, 3, 3), (2000, 3, 3), (20480, 3, 3), (1000, 2, 2))
 HEAD = (
     f"{'shape':>26} {'dtype':>8} | {'plain us':>9} {'fastops us':>10} {'ratio':>6} | "
@@ -107,6 +115,28 @@ def _solve_row(shape: tuple, dtype: torch.dtype, device: str, reps: int) -> str:
     return _line(f"solve {shape}", dtype, fw, bw)
 
 
+def _gram_row(shape: tuple, device: str, reps: int) -> str:
+    from diffcontact.geometry.sparse_gram import dense_gram, sparse_gram
+
+    n, R, P = shape
+    g = torch.Generator().manual_seed(0)
+    first = torch.randint(0, P - 2, (n, R, 1), generator=g)
+    points = (first + torch.arange(3)).to(device)
+    values = torch.randn(n, R, 3, 2, generator=g, dtype=torch.float64).to(device)
+    W = torch.randn(n, R, R, generator=g, dtype=torch.float64).to(device)
+    v = values.clone().requires_grad_()
+    fw = [
+        _time(lambda: dense_gram(points, values, P), device, reps),
+        _time(lambda: sparse_gram(points, values), device, reps),
+    ]
+    bw = [
+        _time(lambda: (dense_gram(points, v, P) * W).sum().backward(), device, reps),
+        _time(lambda: (sparse_gram(points, v) * W).sum().backward(), device, reps),
+    ]
+    size = n * R * P * 2
+    return _line(f"gram {shape} {size}", torch.float64, fw, bw)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="run.py fastops", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -131,9 +161,13 @@ def main(argv: list[str] | None = None) -> int:
     for shape in SOLVE_SHAPES:
         for dtype in dtypes:
             print(_solve_row(shape, dtype, args.device, max(3, reps // 10)))
+    if args.device == "cpu" and importlib.util.find_spec("warp") is not None:
+        for shape in GRAM_SHAPES:
+            print(_gram_row(shape, args.device, max(3, reps // 10)))
     print(
-        "plain: (v * v).sum(-1), resp. G @ X, resp. cholesky_ex + cholesky_solve; fastops: "
-        "dot_last(v, v), resp. left_matmul(G, X), resp. the written-out solve. ratio: plain time / "
+        "plain: (v * v).sum(-1), resp. G @ X, resp. cholesky_ex + cholesky_solve, resp. "
+        "dense_gram; fastops: dot_last(v, v), resp. left_matmul(G, X), resp. the written-out "
+        "solve, resp. sparse_gram. gram (states, rows, points) n R P dim. ratio: plain time / "
         "fastops time (> 1: fastops faster)"
     )
     return 0

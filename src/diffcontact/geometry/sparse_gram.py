@@ -6,7 +6,8 @@ point masses). Each row of a rope limit touches two or three points, but the den
 ``(n, R, P dim)`` grow with the rope: for a 200-point rope with 78 selected rows, 128
 states, their zeros alone are 32 MB per iteration, and the dense product ``J J^T`` and the
 fill of those zeros were the projection's largest costs on the CPU (``torch.profiler`` on
-``System("Rope-D400").simulate``). From the entries,
+``System("Rope-D400").simulate``; ``python benchmarks/run.py fastops`` times both ways).
+From the entries,
 
     A[s, i, j] = sum_a sum_b [points[s, i, a] == points[s, j, b]] values[s, i, a] . values[s, j, b]
 
@@ -33,11 +34,12 @@ __all__ = ["DEVICES", "MIN_DENSE_SIZE", "dense_gram", "sparse_gram", "sparse_gra
 MIN_DENSE_SIZE = 1 << 17
 """The projection takes :func:`sparse_gram` only where the dense rows would hold at least
 this many numbers (``n R P dim``): below, their few products cost less than the kernels'
-launches (0.1-0.2 ms per call). Measured on the 2-core CPU, float64, one thread, forward /
-forward and backward, sparse against dense: 120 states x 8 rows x 10 points 0.21 / 0.65
-ms against 0.14 / 0.64 ms (19,200 numbers); 1024 x 5 x 10 0.57 / 2.34 against 0.36 / 1.41
-(102,400); 1024 x 8 x 20 1.50 / 4.42 against 1.75 / 7.96 (327,680); 128 x 20 x 50 0.73 /
-2.47 against 1.33 / 6.04 (256,000); 128 x 78 x 200 5.6 / 19.1 against 34.5 / 107.2."""
+launches. ``python benchmarks/run.py fastops --threads 1`` (its ``gram`` rows; 2-core CPU,
+float64), dense against sparse, forward / forward and backward, microseconds: 120 states x
+8 rows x 10 points (19,200 numbers) 137 / 648 against 346 / 852; 1024 x 5 x 10 (102,400)
+513 / 2330 against 826 / 2480; 1024 x 8 x 20 (327,680) 1227 / 6541 against 1171 / 2900;
+128 x 20 x 50 (256,000) 652 / 4039 against 368 / 1316; 128 x 78 x 200 25,484 / 110,139
+against 3180 / 11,425."""
 
 DEVICES = {"cpu"}
 """The device types where the position projection uses :func:`sparse_gram`. Not CUDA yet:
