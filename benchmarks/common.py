@@ -64,10 +64,24 @@ READ_FREE_HELP = (
 
 
 SPARSE_GRAM_CUDA_HELP = (
-    "on CUDA, let the rope's position projection take J J^T from the rows' entries "
-    "(diffcontact.geometry.sparse_gram, a Warp kernel) instead of the dense rows, as it "
-    "does on the CPU (sparse_gram.DEVICES; not the default on CUDA until timed there)"
+    "on CUDA, let the rope's position projection and contact impulse take J J^T from the "
+    "rows' entries (diffcontact.geometry.sparse_gram, a Warp kernel) instead of the dense "
+    "rows, as they do on the CPU (sparse_gram.DEVICES; not the default on CUDA until "
+    "timed there)"
 )
+
+
+def choose_contact_rows(mode: str) -> None:
+    """For the rest of the process: the contact impulse of point masses from the dense
+    ``J_C`` (``"dense"``), from the rows' sparse entries wherever the structure allows
+    (``"sparse"``), or by the library's size rule (``"auto"``)."""
+    from diffcontact.systems import system
+
+    if mode == "dense":
+        system.SPARSE_CONTACT_COLUMNS = 1 << 62
+    elif mode == "sparse":
+        system.SPARSE_CONTACT_COLUMNS = 0
+        system.MIN_DENSE_SIZE = 0
 
 
 def choose_sparse_gram_cuda(on: bool) -> None:

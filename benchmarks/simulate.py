@@ -30,11 +30,23 @@ import numpy as np
 import torch
 
 import diffcontact as dc
-from common import SPARSE_GRAM_CUDA_HELP, choose_sparse_gram_cuda, machine_header, sync
+from common import (
+    SPARSE_GRAM_CUDA_HELP,
+    choose_contact_rows,
+    choose_sparse_gram_cuda,
+    machine_header,
+    sync,
+)
 
 DEFAULT_CASES = [("BP5", 1024, 100), ("Rope-D400", 1024, 19)]
 QUICK_CASES = [("BP5", 256, 20), ("Rope-D400", 128, 5)]
-EXTRA_CASES = [("BD5", 1024, 100), ("CP3", 1024, 100), ("Gyro", 1024, 100), ("Rope", 1024, 19)]
+EXTRA_CASES = [
+    ("BD5", 1024, 100),
+    ("CP3", 1024, 100),
+    ("Gyro", 1024, 100),
+    ("Rope", 1024, 19),
+    ("Rope-D200", 1024, 19),
+]
 
 
 def time_case(
@@ -289,6 +301,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
+        "--contact-rows",
+        choices=("auto", "dense", "sparse"),
+        default="auto",
+        help="the contact impulse of point masses from the dense J_C or from the rows' "
+        "sparse entries (diffcontact.geometry.sparse_contact); auto (default): the "
+        "library's rule (systems.system.SPARSE_CONTACT_COLUMNS, sparse_gram.MIN_DENSE_SIZE)",
+    )
+    ap.add_argument(
         "--compare",
         choices=("mujoco",),
         default=None,
@@ -306,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
+    choose_contact_rows(args.contact_rows)
     if args.compare == "mujoco":
         return main_compare(args, dtype)
     if args.scenes is not None and args.scenes < 1:
@@ -322,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     print("ground-truth simulation: System.simulate (RK4 + detection + two-phase impulse)")
     if args.sparse_gram_cuda:
         print("the projection's J J^T from the rows' entries on CUDA too (--sparse-gram-cuda)")
+    if args.contact_rows != "auto":
+        print(f"the contact impulse of point masses from the {args.contact_rows} rows")
     for line in machine_header(args.device, dtype):
         print(line)
     head = (

@@ -1,7 +1,9 @@
 """Contact layer: the batched friction-cone QP, the two-phase impulse, contact models.
 
 - :func:`solve_cone_qp`: the batched, differentiable friction-cone QP;
-- :func:`two_phase_impulse`: the paper's compression / restitution impulse;
+- :func:`two_phase_impulse`: the paper's compression / restitution impulse, on the dense
+  ``J_C`` or a :class:`ContactOperator` of it (:class:`DenseContact`, or a long rope's
+  sparse rows);
 - :func:`solve_coulomb`, :func:`coulomb_two_phase_impulse`: the same with exact
   Coulomb friction (De Saxcé's NCP), contact model ``"Coulomb"``;
 - contact models (:class:`ContactModel` protocol, :class:`PoissonTwoPhase` as
@@ -31,6 +33,8 @@ _EXPORTS: dict[str, str] = {
     "SolverStatus": "diffcontact.contact.cone_qp",
     "solve_cone_qp": "diffcontact.contact.cone_qp",
     "ImpulseResult": "diffcontact.contact.impulse",
+    "ContactOperator": "diffcontact.contact.operator",
+    "DenseContact": "diffcontact.contact.operator",
     "penetration_target": "diffcontact.contact.impulse",
     "two_phase_impulse": "diffcontact.contact.impulse",
     "CoulombSettings": "diffcontact.contact.coulomb",
@@ -56,9 +60,11 @@ __all__ = [
     "CMr",
     "ConeQPError",
     "ContactModel",
+    "ContactOperator",
     "ContactParams",
     "ContactState",
     "CoulombSettings",
+    "DenseContact",
     "ExactCoulomb",
     "ImpulseResult",
     "LCPError",

@@ -24,7 +24,8 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-from diffcontact.fastops import cholesky_solve, spd_solve, times_matrix
+from diffcontact.contact.operator import ContactOperator, as_operator
+from diffcontact.fastops import cholesky_solve, spd_solve
 
 
 @dataclass
@@ -43,7 +44,7 @@ class ImpulseResult:
 
 
 def penetration_target(
-    J_C: Tensor,
+    J_C: Tensor | ContactOperator,
     depth: Tensor,
     active: Tensor,
     dt: float,
@@ -68,7 +69,8 @@ def penetration_target(
     the dependent part as ``pinv`` does. No host synchronisation.
 
     Args:
-        J_C: (..., K*d, D) contact Jacobian (padded rows may be zero).
+        J_C: (..., K*d, D) contact Jacobian (padded rows may be zero), or a
+            :class:`~diffcontact.contact.operator.ContactOperator` of it.
         depth: (..., K) penetration depths (>= 0 where active).
         active: (..., K) bool.
         dt: time step.
@@ -79,22 +81,25 @@ def penetration_target(
     Returns:
         v_C_star: (..., K*d).
     """
+    op = as_operator(J_C, None)
     with torch.no_grad():
         depth = torch.where(active, depth.clamp_min(0), 0)
-        v_d = torch.zeros(*depth.shape, d, dtype=J_C.dtype, device=J_C.device)
+        v_d = depth.new_zeros(*depth.shape, d)
         v_d[..., 0] = fraction * depth / dt
         v_d = v_d.flatten(-2)
-        v_star = _pinv_apply(J_C, v_d)
+        v_star = _pinv_apply(op, v_d)
         if J_E is not None and J_E.shape[-2] > 0:
             JJt = J_E @ J_E.transpose(-1, -2)
             corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
             v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
-        return (J_C @ v_star.unsqueeze(-1)).squeeze(-1)
+        return op.contact_velocity(v_star)
 
 
-def _pinv_apply(J: Tensor, v: Tensor) -> Tensor:
-    """``pinv(J) v`` for ``J: (..., m, D)``, ``v: (..., m)`` (see :func:`penetration_target`)."""
-    G = J @ J.transpose(-1, -2)  # (..., m, m)
+def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
+    """``pinv(J) v`` for ``J: (..., m, D)`` (or an operator of it), ``v: (..., m)`` (see
+    :func:`penetration_target`)."""
+    op = as_operator(J, None)
+    G = op.gram()  # (..., m, m)
     diag = G.diagonal(dim1=-2, dim2=-1)
     finfo = torch.finfo(G.dtype)
     scale = diag.amax(-1, keepdim=True).clamp_min(finfo.tiny)  # (..., 1)
@@ -109,12 +114,12 @@ def _pinv_apply(J: Tensor, v: Tensor) -> Tensor:
     L_damped, _ = torch.linalg.cholesky_ex(damped)  # positive definite (NaN in: NaN out)
     L = torch.where(dependent[..., None, None], L_damped, L)
     y = cholesky_solve(v.unsqueeze(-1), L)
-    return (J.transpose(-1, -2) @ y).squeeze(-1)
+    return op.generalized_impulse(y.squeeze(-1))
 
 
 def two_phase_impulse(
-    J_C: Tensor,
-    Mhat_inv: Tensor,
+    J_C: Tensor | ContactOperator,
+    Mhat_inv: Tensor | None,
     v: Tensor,
     mu: Tensor,
     cor: Tensor,
@@ -128,8 +133,11 @@ def two_phase_impulse(
     """Resolve all active contacts of a batch of states at once.
 
     Args:
-        J_C: (..., K*d, D) contact Jacobian of the (padded) contacts.
-        Mhat_inv: (..., D, D) constrained inverse inertia (S.12).
+        J_C: (..., K*d, D) contact Jacobian of the (padded) contacts, or a
+            :class:`~diffcontact.contact.operator.ContactOperator` of ``J_C`` and
+            ``Mhat^-1`` (e.g. the sparse rows of a long rope).
+        Mhat_inv: (..., D, D) constrained inverse inertia (S.12); ``None`` with an
+            operator.
         v: (..., D) pre-impact velocities.
         mu: (..., K) friction coefficients.
         cor: (..., K) Poisson coefficients of restitution in [0, 1].
@@ -143,14 +151,13 @@ def two_phase_impulse(
     Returns:
         An :class:`ImpulseResult`.
     """
-    JM = times_matrix(J_C, Mhat_inv)  # (one product where Mhat_inv is one matrix broadcast)
-    A = JM @ J_C.transpose(-1, -2)
-    A = 0.5 * (A + A.transpose(-1, -2))
+    op = as_operator(J_C, Mhat_inv)
+    A = op.delassus()  # symmetric
     A_qp = A
     if eps is not None:
         eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
         A_qp = A + torch.as_tensor(eps, dtype=A.dtype, device=A.device)[..., None, None] * eye
-    v_C = (J_C @ v.unsqueeze(-1)).squeeze(-1)
+    v_C = op.contact_velocity(v)
     f_c = solve_cone_qp(A_qp, v_C, mu, d, None, active, settings=settings)
     v_C_c = v_C + (A @ f_c.unsqueeze(-1)).squeeze(-1)
     lower = (cor * f_c[..., ::d]).clamp_min(0)
@@ -161,5 +168,5 @@ def two_phase_impulse(
     f_c_k = f_c.detach().reshape(*f_c.shape[:-1], -1, d)
     guess = (cor.detach().unsqueeze(-1) * f_c_k).flatten(-2)
     f_r = solve_cone_qp(A_qp, target, mu, d, lower, active, settings=settings, warm_start=guess)
-    v_plus = v + (JM.transpose(-1, -2) @ (f_c + f_r).unsqueeze(-1)).squeeze(-1)
+    v_plus = v + op.velocity_change(f_c + f_r)
     return ImpulseResult(v_plus, f_c, f_r)

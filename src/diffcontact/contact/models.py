@@ -37,6 +37,7 @@ from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings
 from diffcontact.contact.impulse import ImpulseResult, two_phase_impulse
+from diffcontact.contact.operator import ContactOperator
 
 __all__ = ["CM", "CMr", "ContactModel", "ContactParams", "ContactState", "PoissonTwoPhase"]
 
@@ -96,6 +97,13 @@ class ContactModel(Protocol):
 
     A model whose class sets ``needs_contact_state = True`` is also given
     ``state=``:class:`ContactState` (a keyword argument only those models get).
+
+    A model whose class sets ``accepts_contact_operator = True`` may be given, in place of
+    the dense ``J_C``, a :class:`~diffcontact.contact.operator.ContactOperator` (its
+    products with ``J_C`` and ``Mhat^-1``) with ``Mhat_inv=None``: the simulator does so
+    where the dense rows would be large and mostly zeros (a long rope's,
+    :class:`~diffcontact.geometry.sparse_contact.SparseContact`). Other models always
+    get the dense tensors.
     """
 
     def resolve(
@@ -113,8 +121,10 @@ class ContactModel(Protocol):
         """Impulses and post-impact velocities of the active contacts.
 
         Args:
-            J_C: ``(n, K*d, D)`` contact Jacobian, padded rows exactly zero.
-            Mhat_inv: ``(n, D, D)`` constrained inverse inertia (S.12).
+            J_C: ``(n, K*d, D)`` contact Jacobian, padded rows exactly zero (or a
+                ``ContactOperator``, for models that accept one).
+            Mhat_inv: ``(n, D, D)`` constrained inverse inertia (S.12) (``None`` with
+                an operator).
             v: ``(n, D)`` pre-impact velocities.
             params: :class:`ContactParams` of the ``K`` (padded) contacts.
             active: ``(n, K)`` bool, the real contacts; padded ones must get
@@ -144,7 +154,12 @@ class PoissonTwoPhase:
             that may require grad); ``None`` takes it from the contact
             parameters (``PhysicalParams.eps``, one per trajectory if you like),
             which default to 0.01.
+
+    It accepts a :class:`~diffcontact.contact.operator.ContactOperator` in place of the
+    dense ``J_C`` (``accepts_contact_operator``).
     """
+
+    accepts_contact_operator = True
 
     def __init__(self, regularized: bool = False, eps: float | Tensor | None = None) -> None:
         if eps is not None and not regularized:
@@ -161,8 +176,8 @@ class PoissonTwoPhase:
 
     def resolve(
         self,
-        J_C: Tensor,
-        Mhat_inv: Tensor,
+        J_C: Tensor | ContactOperator,
+        Mhat_inv: Tensor | None,
         v: Tensor,
         params: ContactParams,
         active: Tensor,

@@ -42,7 +42,9 @@ float64), dense against sparse, forward / forward and backward, microseconds: 12
 against 3180 / 11,425."""
 
 DEVICES = {"cpu"}
-"""The device types where the position projection uses :func:`sparse_gram`. Not CUDA yet:
+"""The device types where the position projection (and the contact impulse of long ropes,
+:class:`~diffcontact.geometry.sparse_contact.SparseContact`) use :func:`sparse_gram`. Not
+CUDA yet:
 the kernels run there (``tests/geometry/test_sparse_gram.py``, ``pytest -m cuda``), but
 no GPU has timed them against the dense products; ``benchmarks/run.py simulate|train
 --sparse-gram-cuda`` adds ``"cuda"`` for a run (``benchmarks/cuda_checks.sh``, part 7)."""

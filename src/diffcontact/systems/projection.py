@@ -401,11 +401,12 @@ def project_positions(
         with torch.no_grad():  # backtracking: the step length with the least violation
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
-            merit = (-trial_dist).clamp_min(0).amax(-1)
+            # the largest violation, max(0, -min dist): one pass over the rows, not three
+            merit = trial_dist.amin(-1).neg().clamp_min(0)  # (S, n)
             choice = merit.argmin(0)  # (n,)
             best = steps[choice]
             # limits that a trial step crossed join the next iteration's problem
-            mask_rows = mask_rows | (trial_dist < 0).any(0)
+            mask_rows = mask_rows | (trial_dist.amin(0) < 0)
             # the distances at the chosen step: the next iteration's convergence test
             dist = trial_dist.gather(0, choice.view(1, n, 1).expand(1, *trial_dist.shape[1:]))[0]
         x_next = x_i + best[:, None, None] * dx

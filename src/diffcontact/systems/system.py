@@ -49,6 +49,9 @@ from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
 from diffcontact.geometry import RimPlane, circles_2d, jacobian_matvec, rope_limits
+from diffcontact.geometry.base import SparseJacobian
+from diffcontact.geometry.sparse_contact import SparseContact
+from diffcontact.geometry.sparse_gram import MIN_DENSE_SIZE, sparse_gram_available
 from diffcontact.mechanics import (
     INTEGRATORS,
     EqualityConstraints,
@@ -90,6 +93,17 @@ TUNNELLING_FRACTION = 1.0
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
 0.75 for BP5's smallest body, 0.46 for BD5)."""
 ON_TUNNELLING = ("warn", "raise", "ignore")
+SPARSE_CONTACT_COLUMNS = 200
+"""The contact impulse of point masses takes its products from the rows' sparse entries
+(:class:`~diffcontact.geometry.sparse_contact.SparseContact`) only where a dense row of
+``J_C`` has at least this many columns (``P dim``: a rope of 100 points or more), on top
+of the size rule of :data:`~diffcontact.geometry.sparse_gram.MIN_DENSE_SIZE`: shorter rows
+are few numbers, and their dense products cost less than the kernel's launches.
+``python benchmarks/run.py simulate --all-tasks --tasks BP5 Rope Rope-D200 Rope-D400
+--threads 1 --contact-rows dense`` (then ``sparse``; 2-core CPU, 1024 scenes, two runs
+each, seconds): BP5 (10 columns) 0.34-0.41 dense against 0.47-0.75 sparse; Rope (20)
+0.64-0.75 against 0.66-0.72; Rope-D200 (200) 6.36-7.19 against 5.48-5.97; Rope-D400
+(400) 21.3-21.7 against 15.2-16.2."""
 
 
 def list_tasks() -> list[str]:
@@ -209,7 +223,9 @@ class ContactResult:
         active: ``(n, Ka)`` bool, the real (active) entries.
         f_c: ``(n, Ka, d)`` compression impulses (contact space; zero where padded).
         f_r: ``(n, Ka, d)`` restitution impulses.
-        J_C: ``(n, Ka*d, D)`` contact Jacobian (padded rows zero).
+        J_C: ``(n, Ka*d, D)`` contact Jacobian (padded rows zero). (Inside a rollout,
+            where a long rope's impulse took the rows' sparse entries, ``None``;
+            :meth:`System.resolve_contacts` always returns it.)
         v_C_star: ``(n, Ka*d)`` penetration-compensation target (zeros when off).
     """
 
@@ -220,7 +236,7 @@ class ContactResult:
     active: Tensor
     f_c: Tensor
     f_r: Tensor
-    J_C: Tensor
+    J_C: Tensor | None
     v_C_star: Tensor
 
 
@@ -880,6 +896,7 @@ class System:
         fraction: float,
         settings: SolverSettings | None = None,
         static_contacts: int | None = None,
+        dense_rows: bool = False,
     ) -> ContactResult:
         """The contact resolution of a step: the states with an active contact, padded to
         the largest active count (one read of the device). With ``static_contacts``:
@@ -887,7 +904,9 @@ class System:
         without an active contact as all-padded problems, which get zero impulses; active
         contacts beyond it are dropped, which the caller must detect), so that the shapes
         do not depend on the data and the device is never read
-        (:meth:`~diffcontact.systems.rollout.Rollout.graphed`)."""
+        (:meth:`~diffcontact.systems.rollout.Rollout.graphed`). The result's ``J_C`` is
+        ``None`` where the impulse took the rows' sparse entries (:meth:`_sparse_contact`),
+        unless ``dense_rows``."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         P, dim, d = self.n_points, self.dim, self.d
         D = P * dim
@@ -919,24 +938,26 @@ class System:
         idx = order[:, :Ka]  # active candidates first, in candidate order
         mask = act.gather(-1, idx)  # (n, Ka)
         xs, vs = x[b], v[b]
-        J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
-        J = torch.where(mask[:, :, None, None, None], J, torch.zeros_like(J)).reshape(n, Ka * d, D)
         M_inv = ctx.select(ctx.M_inv, 2, b)
-        if ctx.groups is not None:  # constraints on each body alone: Mhat^-1 per body
-            J_E = ctx.groups.jacobian(xs.unflatten(-2, (-1, ctx.groups.num_points)))
-            Mh = block_diagonal(Mhat_inv(ctx.select(ctx.M_inv_groups, 3, b), J_E))
-            J_E = block_diagonal(J_E)  # (n, E, D), the rows in the constraints' order
-        elif ctx.constraints is not None:
-            J_E = ctx.constraints.jacobian(xs)  # (n, E, D)
-            Mh = Mhat_inv(M_inv, J_E)
+        J: Tensor | None = None
+        if self._sparse_contact(model, ctx, n * Ka * d * D, settings, dense_rows):
+            # point masses, large rows: the impulse's products from the rows' entries
+            rows = ctx.geometry.jacobian_sparse(xs, idx)  # (n, Ka, m), (n, Ka, d, m, dim)
+            values = torch.where(mask[:, :, None, None, None], rows.values, 0.0)
+            points = rows.points.expand(*values.shape[:2], rows.points.shape[-1])
+            op: Any = SparseContact(SparseJacobian(points, values), M_inv.diagonal(0, -2, -1))
+            J_E = Mh = None
         else:
-            J_E = None
-            Mh = kron_identity(M_inv, dim).expand(n, D, D)
+            J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
+            J = torch.where(mask[:, :, None, None, None], J, torch.zeros_like(J))
+            J = J.reshape(n, Ka * d, D)
+            J_E, Mh = self._constrained_inverse_inertia(ctx, xs, M_inv, b)
+            op = J
         if fraction > 0:
             depth = -gaps[b].gather(-1, idx)
-            v_star = penetration_target(J, depth, mask, self.dt, d, fraction, J_E)
+            v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E)
         else:
-            v_star = J.new_zeros(n, Ka * d)
+            v_star = vs.new_zeros(n, Ka * d)
 
         def pick(t: Tensor) -> Tensor:  # (n, Ka): each field batched or not on its own
             return t[b].gather(-1, idx) if t.dim() == 2 else t[idx]
@@ -948,7 +969,7 @@ class System:
             extra["state"] = ContactState(xs, gaps[b].gather(-1, idx), idx, b, ctx.geometry)
         try:
             res = model.resolve(
-                J,
+                op,
                 Mh,
                 vs.reshape(n, D),
                 contact_params,
@@ -978,6 +999,50 @@ class System:
             J_C=J,
             v_C_star=v_star,
         )
+
+    def _sparse_contact(
+        self,
+        model: ContactModel,
+        ctx: _Context,
+        size: int,
+        settings: SolverSettings | None,
+        dense_rows: bool,
+    ) -> bool:
+        """Whether a step's contact impulse takes its products from the rows' sparse
+        entries (:class:`~diffcontact.geometry.sparse_contact.SparseContact`) instead of the
+        dense ``J_C`` of ``size`` numbers: for a model that accepts an operator, point
+        masses without equality constraints (a diagonal ``Mhat^-1``), rows of at least
+        :data:`SPARSE_CONTACT_COLUMNS` columns, where the projection would take the sparse
+        Gram matrix too (Warp, :data:`~diffcontact.geometry.sparse_gram.DEVICES`, rows of
+        at least :data:`~diffcontact.geometry.sparse_gram.MIN_DENSE_SIZE` numbers), unless
+        the caller wants the dense rows back."""
+        return (
+            not dense_rows
+            and self.n_points * self.dim >= SPARSE_CONTACT_COLUMNS
+            and size >= MIN_DENSE_SIZE
+            and self._point_masses
+            and ctx.groups is None
+            and (ctx.constraints is None or ctx.constraints.num_equations == 0)
+            and getattr(model, "accepts_contact_operator", False)
+            and sparse_gram_available(settings, ctx.dtype, ctx.device)
+        )
+
+    @staticmethod
+    def _constrained_inverse_inertia(
+        ctx: _Context, xs: Tensor, M_inv: Tensor, b: Tensor
+    ) -> tuple[Tensor | None, Tensor]:
+        """``J_E: (n, E, D)`` (``None`` without constraints) and ``Mhat^-1: (n, D, D)``
+        (S.12) at the positions ``xs: (n, P, dim)`` of the states ``b``."""
+        n, _, dim = xs.shape
+        if ctx.groups is not None:  # constraints on each body alone: Mhat^-1 per body
+            J_E = ctx.groups.jacobian(xs.unflatten(-2, (-1, ctx.groups.num_points)))
+            Mh = block_diagonal(Mhat_inv(ctx.select(ctx.M_inv_groups, 3, b), J_E))
+            return block_diagonal(J_E), Mh  # J_E: the rows in the constraints' order
+        if ctx.constraints is not None:
+            J_E = ctx.constraints.jacobian(xs)  # (n, E, D)
+            return J_E, Mhat_inv(M_inv, J_E)
+        D = xs.shape[-2] * dim
+        return None, kron_identity(M_inv, dim).expand(n, D, D)
 
     @staticmethod
     def _inner_settings(settings: SolverSettings | None) -> SolverSettings:
@@ -1174,7 +1239,7 @@ class System:
             contact_model, None, penetration_fraction, params, eps
         )
         ctx = self._context(z, params, z.shape[0])
-        return self._resolve(z, ctx, model, fraction, solver_settings)
+        return self._resolve(z, ctx, model, fraction, solver_settings, dense_rows=True)
 
     def step(
         self,
