@@ -20,8 +20,9 @@
 #    the interior-point iterations of its projection problems (rollout_growth;
 #    benchmarks/README.md, 2026-11-27, fourth sitting);
 # 7. the ropes' rows of part 2 and the Rope training step of part 4 with the projection's
-#    J J^T from the rows' entries (--sparse-gram-cuda; the CPU's default since the fifth
-#    sitting of 2026-11-27, not yet CUDA's), to compare with those parts.
+#    J J^T (and, for Rope-D400, the contact impulse's products) from the rows' entries
+#    (--sparse-gram-cuda; the CPU's default since the fifth and sixth sittings of
+#    2026-11-27, not yet CUDA's), to compare with those parts.
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
 # The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache

@@ -91,6 +91,25 @@ def test_impulse_and_penetration_target_equal_the_dense_ones():
         assert float(want.f_c.abs().max()) > 0  # the limits push
 
 
+@pytest.mark.parametrize("model", ["LCP", "Coulomb"])
+def test_the_other_built_in_models_take_the_operator_too(model):
+    """LCP (one phase, Lemke) and exact Coulomb (two phases) from the sparse rows equal
+    their impulses from the dense ``J_C``."""
+    from diffcontact.contact import ContactParams, create_contact_model
+
+    _, z, active, sparse, dense, _ = _rope_contacts(n=8, seed=1)
+    n, K = active.shape
+    v = z[:, 1].reshape(n, -1) - sparse.generalized_impulse(active.to(F64))
+    params = ContactParams(torch.zeros(n, K, dtype=F64), torch.full((n, K), 0.4, dtype=F64))
+    contact_model = create_contact_model(model)
+    assert contact_model.accepts_contact_operator
+    got = contact_model.resolve(sparse, None, v, params, active, 1)
+    want = contact_model.resolve(dense.J_C, dense.Mhat_inv, v, params, active, 1)
+    for a, b in zip((got.v_plus, got.f_c, got.f_r), (want.v_plus, want.f_c, want.f_r), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+    assert float(want.f_c.abs().max()) > 0
+
+
 def test_gradients_match_finite_differences_and_the_dense_ones():
     """Gradients of the impulse in the rows' values and the inverse masses (learned masses):
     against finite differences, and against the dense route's."""
@@ -200,3 +219,23 @@ def test_the_route_follows_the_size_and_the_structure(monkeypatch):
         system, spy = dc.load_system(task), _Spy()
         system.simulate(system.sample_initial_conditions(8, seed=0), 40, contact_model=spy)
         assert spy.seen and set(spy.seen) == {want}, (task, spy.seen)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_sparse_maps_on_cuda_equal_the_cpu():
+    """What ``--sparse-gram-cuda`` switches on for the impulse: every map on CUDA."""
+    _, z, active, sparse, _, _ = _rope_contacts()
+    n = z.shape[0]
+    v = z[:, 1].reshape(n, -1)
+    f = torch.randn(n, active.shape[1], dtype=F64, generator=torch.Generator().manual_seed(6))
+    rows = SparseJacobian(sparse.rows.points.cuda(), sparse.rows.values.cuda())
+    on_cuda = SparseContact(rows, sparse.inverse_mass.cuda())
+    for name, args in [
+        ("contact_velocity", (v,)),
+        ("velocity_change", (f,)),
+        ("delassus", ()),
+        ("gram", ()),
+    ]:
+        got = getattr(on_cuda, name)(*(a.cuda() for a in args))
+        torch.testing.assert_close(got.cpu(), getattr(sparse, name)(*args), **TOL, msg=name)

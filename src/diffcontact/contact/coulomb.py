@@ -88,6 +88,7 @@ from diffcontact.contact.cone_qp import (
 )
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.interior_point import add_block_diag
+from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
 from diffcontact.shapes import broadcast_shapes
 
@@ -480,8 +481,8 @@ def _merge(a: SolverStatus, b: SolverStatus) -> SolverStatus:
 
 
 def coulomb_two_phase_impulse(
-    J_C: Tensor,
-    Mhat_inv: Tensor,
+    J_C: Tensor | ContactOperator,
+    Mhat_inv: Tensor | None,
     v: Tensor,
     mu: Tensor,
     cor: Tensor,
@@ -501,7 +502,9 @@ def coulomb_two_phase_impulse(
     contact); each phase solved by :func:`solve_coulomb` instead of the cone QP.
 
     Args:
-        J_C: (..., K*d, D); Mhat_inv: (..., D, D); v: (..., D); mu, cor: (..., K);
+        J_C: (..., K*d, D), or a :class:`~diffcontact.contact.ContactOperator` of ``J_C``
+        and ``Mhat^-1`` (then ``Mhat_inv=None``); Mhat_inv: (..., D, D); v: (..., D);
+        mu, cor: (..., K);
         active: (..., K) bool; d: contact-space dimension;
         v_C_star: (..., K*d) or None; settings: the cone QP's settings;
         coulomb: :class:`CoulombSettings`.
@@ -514,10 +517,9 @@ def coulomb_two_phase_impulse(
             ``"raise"``; its ``status`` (shaped like the batch) says which.
     """
     coulomb = coulomb or CoulombSettings()
-    JM = J_C @ Mhat_inv
-    A = JM @ J_C.transpose(-1, -2)
-    A = 0.5 * (A + A.transpose(-1, -2))
-    v_C = (J_C @ v.unsqueeze(-1)).squeeze(-1)
+    op = as_operator(J_C, Mhat_inv)
+    A = op.delassus()  # symmetric
+    v_C = op.contact_velocity(v)
     f_c, st_c = solve_coulomb(A, v_C, mu, d, None, active, settings=settings, coulomb=coulomb)
     v_C_c = v_C + (A @ f_c.unsqueeze(-1)).squeeze(-1)
     lower = (cor * f_c[..., ::d]).clamp_min(0)
@@ -544,7 +546,7 @@ def coulomb_two_phase_impulse(
             raise ConeQPError(message + "; CoulombSettings(on_failure='warn') keeps the last "
                               "fixed-point iterate instead", status)  # fmt: skip
         warnings.warn(message + "; kept their last fixed-point iterate", RuntimeWarning, 2)
-    v_plus = v + (JM.transpose(-1, -2) @ (f_c + f_r).unsqueeze(-1)).squeeze(-1)
+    v_plus = v + op.velocity_change(f_c + f_r)
     return ImpulseResult(v_plus, f_c, f_r)
 
 
@@ -553,7 +555,12 @@ class ExactCoulomb:
 
     Args:
         max_iter, newton_steps, tol, on_failure: :class:`CoulombSettings`.
+
+    It accepts a :class:`~diffcontact.contact.ContactOperator` in place of the dense
+    ``J_C`` (``accepts_contact_operator``).
     """
+
+    accepts_contact_operator = True
 
     def __init__(
         self,
@@ -569,8 +576,8 @@ class ExactCoulomb:
 
     def resolve(
         self,
-        J_C: Tensor,
-        Mhat_inv: Tensor,
+        J_C: Tensor | ContactOperator,
+        Mhat_inv: Tensor | None,
         v: Tensor,
         params,
         active: Tensor,

@@ -124,6 +124,7 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
 from diffcontact.contact.impulse import ImpulseResult
 from diffcontact.contact.models import ContactParams
+from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
 from diffcontact.shapes import broadcast_shapes
 
@@ -491,8 +492,8 @@ def lcp_matrices(
 
 
 def lcp_impulse(
-    J_C: Tensor,
-    Mhat_inv: Tensor,
+    J_C: Tensor | ContactOperator,
+    Mhat_inv: Tensor | None,
     v: Tensor,
     mu: Tensor,
     cor: Tensor,
@@ -509,8 +510,10 @@ def lcp_impulse(
     """Resolve all active contacts of a batch of states with the Newton LCP.
 
     Args:
-        J_C: (..., K*d, D) contact Jacobian, padded rows zero.
-        Mhat_inv: (..., D, D) constrained inverse inertia (S.12).
+        J_C: (..., K*d, D) contact Jacobian, padded rows zero, or a
+            :class:`~diffcontact.contact.ContactOperator` of ``J_C`` and ``Mhat^-1``.
+        Mhat_inv: (..., D, D) constrained inverse inertia (S.12); ``None`` with an
+            operator.
         v: (..., D) pre-impact velocities.
         mu: (..., K) friction coefficients >= 0 (unused when ``d = 1``).
         cor: (..., K) Newton's coefficients of restitution in [0, 1].
@@ -526,18 +529,17 @@ def lcp_impulse(
     """
     if d not in (1, 2, 3):
         raise ValueError(f"lcp_impulse: d must be 1, 2 or 3, got {d!r}")
-    batch = J_C.shape[:-2]
-    C = J_C.shape[-2]
+    op = as_operator(J_C, Mhat_inv)
+    v_C = op.contact_velocity(v)
+    batch = v_C.shape[:-1]
+    C = v_C.shape[-1]
     K = C // d
     if C % d or active.shape[-1] != K or mu.shape[-1] != K or cor.shape[-1] != K:
         raise ValueError(
             f"lcp_impulse: J_C has {C} rows, not K*d for the K = {active.shape[-1]} contacts "
             f"of active (mu: {tuple(mu.shape)}, cor: {tuple(cor.shape)}) and d = {d}"
         )
-    JM = J_C @ Mhat_inv
-    A = JM @ J_C.transpose(-1, -2)
-    A = 0.5 * (A + A.transpose(-1, -2))
-    v_C = (J_C @ v.unsqueeze(-1)).squeeze(-1)
+    A = op.delassus()  # symmetric
     act = active.expand(*batch, K)
     v_k = v_C.reshape(*batch, K, d)
     v_n = v_k[..., 0]
@@ -575,7 +577,7 @@ def lcp_impulse(
     )
     f = (b / a)[:, None] * (z @ G.T)
     f = torch.where(act_c, f, 0).reshape(*batch, C)
-    v_plus = v + (JM.transpose(-1, -2) @ f.unsqueeze(-1)).squeeze(-1)
+    v_plus = v + op.velocity_change(f)
     result = ImpulseResult(v_plus, f, torch.zeros_like(f))
     status = SolverStatus(*(x.reshape(batch) for x in (
         status.converged, status.unbounded, status.iterations, status.residual
@@ -606,7 +608,12 @@ class NewtonLCP:
         max_pivots: cap on Lemke pivots per problem (default ``10 n + 50`` for ``n``
             LCP variables).
         tol: pivot / tie tolerance (default 1e-10 in the float64 solve).
+
+    It accepts a :class:`~diffcontact.contact.ContactOperator` in place of the dense
+    ``J_C`` (``accepts_contact_operator``).
     """
+
+    accepts_contact_operator = True
 
     def __init__(
         self,
@@ -636,8 +643,8 @@ class NewtonLCP:
 
     def resolve(
         self,
-        J_C: Tensor,
-        Mhat_inv: Tensor,
+        J_C: Tensor | ContactOperator,
+        Mhat_inv: Tensor | None,
         v: Tensor,
         params: ContactParams,
         active: Tensor,
