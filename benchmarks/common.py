@@ -71,6 +71,14 @@ SPARSE_GRAM_CUDA_HELP = (
 )
 
 
+CONTACT_ROWS_HELP = (
+    "the contact impulse of point masses from the dense J_C or from the rows' sparse "
+    "entries (diffcontact.geometry.sparse_contact), wherever the structure allows; auto "
+    "(default): the library's rule (systems.system.SPARSE_CONTACT_COLUMNS, "
+    "sparse_gram.MIN_DENSE_SIZE)"
+)
+
+
 def choose_contact_rows(mode: str) -> None:
     """For the rest of the process: the contact impulse of point masses from the dense
     ``J_C`` (``"dense"``), from the rows' sparse entries wherever the structure allows

@@ -31,6 +31,7 @@ import torch
 
 import diffcontact as dc
 from common import (
+    CONTACT_ROWS_HELP,
     SPARSE_GRAM_CUDA_HELP,
     choose_contact_rows,
     choose_sparse_gram_cuda,
@@ -304,9 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         "--contact-rows",
         choices=("auto", "dense", "sparse"),
         default="auto",
-        help="the contact impulse of point masses from the dense J_C or from the rows' "
-        "sparse entries (diffcontact.geometry.sparse_contact); auto (default): the "
-        "library's rule (systems.system.SPARSE_CONTACT_COLUMNS, sparse_gram.MIN_DENSE_SIZE)",
+        help=CONTACT_ROWS_HELP,
     )
     ap.add_argument(
         "--compare",

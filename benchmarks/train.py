@@ -48,8 +48,10 @@ import torch
 
 import diffcontact as dc
 from common import (
+    CONTACT_ROWS_HELP,
     READ_FREE_HELP,
     SPARSE_GRAM_CUDA_HELP,
+    choose_contact_rows,
     choose_read_free_projection,
     choose_sparse_gram_cuda,
     machine_header,
@@ -250,6 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
     ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
+        "--contact-rows", choices=("auto", "dense", "sparse"), default="auto",
+        help=CONTACT_ROWS_HELP + " (this version)",
+    )  # fmt: skip
+    ap.add_argument(
         "--rounds", type=int, default=1, metavar="N",
         help="time each row N times, the versions in turn, and print medians (of the times, "
         "and of each round's ratios)",
@@ -271,6 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     args.threads = torch.get_num_threads()
     choose_read_free_projection(args.read_free_projection)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
+    choose_contact_rows(args.contact_rows)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)
     if args.compare_dtypes:
@@ -307,6 +314,8 @@ def _table(tasks, args: argparse.Namespace, dtype: torch.dtype, previous: Path |
         mlp += ", read-free projection (this version)"
     if args.sparse_gram_cuda:
         mlp += ", sparse J J^T on CUDA (this version)"
+    if args.contact_rows != "auto":
+        mlp += f", the contact impulse from the {args.contact_rows} rows (this version)"
     print(f"training step: {args.model}, batch {args.batch_size} chunks of {CHUNK} states{mlp}")
     for line in machine_header(args.device, dtype):
         print(line)
