@@ -945,7 +945,9 @@ class System:
             rows = ctx.geometry.jacobian_sparse(xs, idx)  # (n, Ka, m), (n, Ka, d, m, dim)
             values = torch.where(mask[:, :, None, None, None], rows.values, 0.0)
             points = rows.points.expand(*values.shape[:2], rows.points.shape[-1])
-            op: Any = SparseContact(SparseJacobian(points, values), M_inv.diagonal(0, -2, -1))
+            op: Tensor | SparseContact = SparseContact(
+                SparseJacobian(points, values), M_inv.diagonal(0, -2, -1)
+            )
             J_E = Mh = None
         else:
             J = ctx.geometry.jacobian(xs, idx)  # (n, Ka, d, P, dim)
