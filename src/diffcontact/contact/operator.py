@@ -19,8 +19,8 @@ constraints (a diagonal ``Mhat^-1``): there
 the rows' few entries, without the ``(n, K*d, D)`` zeros.
 
 The simulator passes an operator (as ``J_C``, with ``Mhat_inv=None``) only to contact
-models whose class sets ``accepts_contact_operator = True`` (the built-in CM and CMr);
-every other model gets the dense ``J_C`` and ``Mhat_inv`` as before.
+models whose class sets ``accepts_contact_operator = True`` (the four built in: CM, CMr,
+LCP and Coulomb); every other model gets the dense ``J_C`` and ``Mhat_inv`` as before.
 """
 
 from __future__ import annotations

@@ -2,8 +2,10 @@
 
 A rope limit's row touches two or three of the rope's points. With ``K`` active limits
 (``d`` rows each) on a 200-point rope, the dense ``J_C: (n, K*d, 400)`` is almost all
-zeros, and ``A = J_C Mhat^-1 J_C^T`` from it was the largest product of a long rope's
-step (``torch.profiler`` on ``System("Rope-D400").simulate``). With point masses and no
+zeros, and its fill and products (``A = J_C Mhat^-1 J_C^T``, ``Mhat^-1 J_C^T f``, and
+their backward passes) cost a long rope's rollout a third more time than the entries do
+(``python benchmarks/run.py simulate --all-tasks --tasks Rope-D400 --contact-rows
+dense``, then ``sparse``; ``systems.system.SPARSE_CONTACT_COLUMNS``). With point masses and no
 equality constraints, ``Mhat^-1 = M^-1`` is diagonal (``w``, one inverse mass per point)
 and every map the contact impulse needs comes from the entries
 (:class:`~diffcontact.contact.operator.ContactOperator`):
