@@ -23,7 +23,13 @@ the hot paths differentiate), for float64 and float32, with the ratio plain / fa
   rows (``geometry.sparse_gram.dense_gram``) vs the Warp kernel from their entries
   (``sparse_gram``), for states x rows x points from a 10-point rope's training batch to
   Rope-D400's simulation: the sizes behind ``sparse_gram.MIN_DENSE_SIZE``; backward to
-  the entries' values (CPU, with Warp installed; float64).
+  the entries' values (CPU, with Warp installed; float64);
+- the penetration target without equality constraints, ``J pinv(J) v``: through the
+  pseudo-inverse (``J @ contact.impulse._pinv_apply(J, v)``, what ``penetration_target``
+  ran until 2026-11-27) vs the projection onto ``J``'s range from ``J J^T`` alone
+  (``_range_projection``: ``v`` where the rows are independent), for states x rows x
+  columns of BP5's contact batches (one state in eight with dependent rows); forward
+  only (no gradient flows through the target).
 
 Medians over repetitions after a warm-up call.
 """
@@ -42,6 +48,8 @@ SUM_SHAPES = ((1024, 10, 2), (1024, 30, 3), (64, 10, 2))
 MATMUL_SHAPES = (((15, 15), (200, 15, 15, 2), True), ((15, 15), (200, 15, 2), False))
 # (states, rows, points) of the Gram rows
 GRAM_SHAPES = ((120, 8, 10), (1024, 5, 10), (1024, 8, 20), (128, 20, 50), (128, 78, 200))
+# (states, rows, columns) of penetration-target problems
+RANGE_SHAPES = ((256, 2, 10), (256, 6, 10), (1024, 10, 10))
 SOLVE_SHAPES = ((256, 3, 3), (512, 3, 3), (1000, 3, 3), (2000, 3, 3), (20480, 3, 3), (1000, 2, 2))
 HEAD = (
     f"{'shape':>26} {'dtype':>8} | {'plain us':>9} {'fastops us':>10} {'ratio':>6} | "
@@ -137,6 +145,28 @@ def _gram_row(shape: tuple, device: str, reps: int) -> str:
     return _line(f"gram {shape} {size}", torch.float64, fw, bw)
 
 
+def _range_row(shape: tuple, dtype: torch.dtype, device: str, reps: int) -> str:
+    from diffcontact.contact.impulse import _pinv_apply, _range_projection
+    from diffcontact.contact.operator import DenseContact
+
+    n, m, D = shape
+    g = torch.Generator().manual_seed(0)
+    J = torch.randn(n, m, D, generator=g, dtype=dtype)
+    if m > 2:  # one state in eight: more rows than its two coordinates (a body in a corner)
+        J[::8] = (
+            torch.randn(n, m, 2, generator=g, dtype=dtype)[::8]
+            @ torch.randn(n, 2, D, generator=g, dtype=dtype)[::8]
+        )
+    J, v = J.to(device), torch.randn(n, m, generator=g, dtype=dtype).to(device)
+    op = DenseContact(J, None)
+    fw = [
+        _time(lambda: (J @ _pinv_apply(J, v).unsqueeze(-1)).squeeze(-1), device, reps),
+        _time(lambda: _range_projection(op, v), device, reps),
+    ]
+    nan = float("nan")
+    return _line(f"J pinv(J) v {shape}", dtype, fw, [nan, nan])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="run.py fastops", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -161,14 +191,18 @@ def main(argv: list[str] | None = None) -> int:
     for shape in SOLVE_SHAPES:
         for dtype in dtypes:
             print(_solve_row(shape, dtype, args.device, max(3, reps // 10)))
+    for shape in RANGE_SHAPES:
+        for dtype in dtypes:
+            print(_range_row(shape, dtype, args.device, max(3, reps // 10)))
     if args.device == "cpu" and importlib.util.find_spec("warp") is not None:
         for shape in GRAM_SHAPES:
             print(_gram_row(shape, args.device, max(3, reps // 10)))
     print(
         "plain: (v * v).sum(-1), resp. G @ X, resp. cholesky_ex + cholesky_solve, resp. "
-        "dense_gram; fastops: dot_last(v, v), resp. left_matmul(G, X), resp. the written-out "
-        "solve, resp. sparse_gram. gram (states, rows, points) n R P dim. ratio: plain time / "
-        "fastops time (> 1: fastops faster)"
+        "J @ _pinv_apply(J, v), resp. dense_gram; fastops: dot_last(v, v), resp. "
+        "left_matmul(G, X), resp. the written-out solve, resp. _range_projection, resp. "
+        "sparse_gram. gram (states, rows, points) n R P dim. ratio: plain time / fastops "
+        "time (> 1: fastops faster)"
     )
     return 0
 

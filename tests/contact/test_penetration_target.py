@@ -52,3 +52,55 @@ def test_penetration_target_float32():
     want = penetration_target(J.double(), depth.double(), active, 0.01, 2)
     assert got.dtype == torch.float32
     torch.testing.assert_close(got.double(), want, rtol=1e-3, atol=1e-3)
+
+
+def _corner_batch(n=24, seed=3):
+    """Contact rows of ``n`` states, every third with dependent rows (four rows on two
+    coordinates: a point mass in a corner), padded contacts in some."""
+    gen = torch.Generator().manual_seed(seed)
+    J = torch.randn(n, 4, 6, generator=gen, dtype=F64)
+    J[::3] = torch.randn(n // 3, 4, 2, generator=gen, dtype=F64) @ torch.randn(
+        n // 3, 2, 6, generator=gen, dtype=F64
+    )
+    depth = torch.rand(n, 2, generator=gen, dtype=F64)
+    active = torch.ones(n, 2, dtype=torch.bool)
+    active[1::4, 1] = False
+    J[1::4, 2:] = 0
+    return J, depth, active
+
+
+def test_without_constraints_the_target_is_the_desired_velocity_where_rows_are_independent():
+    """``J pinv(J) v_d = v_d`` for full row rank: exactly ``v_d`` (normal components
+    ``fraction depth / dt``, tangential zero), and ``J pinv(J) v_d`` on the range where
+    rows are dependent, with the operator as with the tensor."""
+    from diffcontact.contact import DenseContact
+
+    J, depth, active = _corner_batch()
+    dt, fraction = 0.01, 0.25
+    got = penetration_target(J, depth, active, dt, 2, fraction)
+    v_d = torch.zeros(J.shape[0], 2, 2, dtype=F64)
+    v_d[..., 0] = torch.where(active, fraction * depth / dt, 0)
+    v_d = v_d.flatten(-2)
+    independent = torch.ones(J.shape[0], dtype=torch.bool)
+    independent[::3] = False
+    assert torch.equal(got[independent], v_d[independent])
+    want = (J @ _pinv(J, v_d).unsqueeze(-1)).squeeze(-1)  # the projection onto the range
+    scale = float(want.abs().max())
+    torch.testing.assert_close(got[~independent], want[~independent], rtol=0, atol=1e-6 * scale)
+    assert not torch.allclose(want[~independent], v_d[~independent])  # a real projection
+    via_op = penetration_target(DenseContact(J, None), depth, active, dt, 2, fraction)
+    assert torch.equal(via_op, got)
+
+
+def test_a_states_target_does_not_depend_on_its_batch():
+    """Alone and in the batch: the same numbers (independent rows: exactly the desired
+    velocity); a NaN stays in its state."""
+    J, depth, active = _corner_batch()
+    full = penetration_target(J, depth, active, 0.01, 2)
+    for i in (0, 1, 2, 3):
+        alone = penetration_target(J[i : i + 1], depth[i : i + 1], active[i : i + 1], 0.01, 2)
+        torch.testing.assert_close(alone, full[i : i + 1], rtol=0, atol=1e-14)
+    nan = J.clone()
+    nan[5, 0, 0] = float("nan")
+    out = penetration_target(nan, depth, active, 0.01, 2)
+    assert not torch.isfinite(out[5]).all() and torch.isfinite(out[torch.arange(24) != 5]).all()

@@ -68,6 +68,13 @@ def penetration_target(
     it agrees with ``pinv`` to ``sqrt(eps)`` relative on the range of ``J_C`` and ignores
     the dependent part as ``pinv`` does. No host synchronisation.
 
+    Without equality constraints the target is ``J_C pinv(J_C) v``, the projection of ``v``
+    onto the range of ``J_C``: ``v`` itself where ``J_C`` has full row rank, which most
+    states have. Those states get ``v`` exactly; states with dependent rows get
+    ``G (G + lambda I)^-1 v`` with ``G = J_C J_C^T``, without a product with ``J_C``.
+    No host synchronisation; a state's target does not depend on the other states of
+    its batch.
+
     Args:
         J_C: (..., K*d, D) contact Jacobian (padded rows may be zero), or a
             :class:`~diffcontact.contact.operator.ContactOperator` of it.
@@ -87,19 +94,19 @@ def penetration_target(
         v_d = depth.new_zeros(*depth.shape, d)
         v_d[..., 0] = fraction * depth / dt
         v_d = v_d.flatten(-2)
+        if J_E is None or J_E.shape[-2] == 0:
+            return _range_projection(op, v_d)
         v_star = _pinv_apply(op, v_d)
-        if J_E is not None and J_E.shape[-2] > 0:
-            JJt = J_E @ J_E.transpose(-1, -2)
-            corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
-            v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
+        JJt = J_E @ J_E.transpose(-1, -2)
+        corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
+        v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
         return op.contact_velocity(v_star)
 
 
-def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
-    """``pinv(J) v`` for ``J: (..., m, D)`` (or an operator of it), ``v: (..., m)`` (see
-    :func:`penetration_target`)."""
-    op = as_operator(J, None)
-    G = op.gram()  # (..., m, m)
+def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Of ``G = J J^T: (..., m, m)``: the Cholesky factor ``L`` of ``G`` (a unit pivot
+    for each zero row of ``J``), whether ``J``'s rows are (nearly) dependent ``(...)``,
+    and the damping ``lambda: (..., 1)`` of :func:`penetration_target`."""
     diag = G.diagonal(dim1=-2, dim2=-1)
     finfo = torch.finfo(G.dtype)
     scale = diag.amax(-1, keepdim=True).clamp_min(finfo.tiny)  # (..., 1)
@@ -107,14 +114,38 @@ def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
     exact = G + torch.diag_embed(torch.where(padded, scale, 0))
     L, info = torch.linalg.cholesky_ex(exact)
     pivots = L.diagonal(dim1=-2, dim2=-1).square()
-    dependent = (info != 0) | (pivots < finfo.eps**0.5 * scale).any(-1)
-    damped = G + (finfo.eps**0.5 * scale).unsqueeze(-1) * torch.eye(
-        G.shape[-1], dtype=G.dtype, device=G.device
-    )
-    L_damped, _ = torch.linalg.cholesky_ex(damped)  # positive definite (NaN in: NaN out)
-    L = torch.where(dependent[..., None, None], L_damped, L)
+    damping = finfo.eps**0.5 * scale
+    dependent = (info != 0) | (pivots < damping).any(-1)
+    return L, dependent, damping
+
+
+def _damped_cholesky(G: Tensor, damping: Tensor) -> Tensor:
+    """The Cholesky factor of ``G + lambda I`` (positive definite; NaN in: NaN out)."""
+    eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
+    return torch.linalg.cholesky_ex(G + damping.unsqueeze(-1) * eye)[0]
+
+
+def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
+    """``pinv(J) v`` for ``J: (..., m, D)`` (or an operator of it), ``v: (..., m)`` (see
+    :func:`penetration_target`)."""
+    op = as_operator(J, None)
+    G = op.gram()
+    L, dependent, damping = _gram_cholesky(G)
+    L = torch.where(dependent[..., None, None], _damped_cholesky(G, damping), L)
     y = cholesky_solve(v.unsqueeze(-1), L)
     return op.generalized_impulse(y.squeeze(-1))
+
+
+def _range_projection(op: ContactOperator, v: Tensor) -> Tensor:
+    """``J pinv(J) v`` for ``v: (..., m)``: ``v`` where ``J`` has full row rank, the damped
+    pseudo-inverse's ``J J^T (J J^T + lambda I)^-1 v`` where its rows are dependent (see
+    :func:`penetration_target`), from ``G = J J^T`` alone. Every state is solved and the
+    dependent ones selected: no read of the device (a step reads it once, to select the
+    states in contact)."""
+    G = op.gram()
+    _, dependent, damping = _gram_cholesky(G)
+    y = cholesky_solve(v.unsqueeze(-1), _damped_cholesky(G, damping))
+    return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), v)
 
 
 def two_phase_impulse(
