@@ -104,3 +104,18 @@ def test_a_states_target_does_not_depend_on_its_batch():
     nan[5, 0, 0] = float("nan")
     out = penetration_target(nan, depth, active, 0.01, 2)
     assert not torch.isfinite(out[5]).all() and torch.isfinite(out[torch.arange(24) != 5]).all()
+
+
+def test_an_active_contact_with_a_zero_row_gets_no_target():
+    """A degenerate active contact whose Jacobian rows are zero: ``J pinv(J) v`` is zero
+    there (the range of ``J`` does not reach it), the other rows keep their target."""
+    J, depth, active = _corner_batch()
+    J[2, 2:] = 0.0  # state 2 (independent rows): contact 1, active, has zero rows
+    dt, fraction = 0.01, 0.5
+    got = penetration_target(J, depth, active, dt, 2, fraction)
+    v_d = torch.zeros(J.shape[0], 2, 2, dtype=F64)
+    v_d[..., 0] = fraction * depth / dt
+    v_d = v_d.flatten(-2)
+    want = (J[2] @ _pinv(J[2], v_d[2])).squeeze(-1)
+    assert float(v_d[2, 2]) > 0 and float(got[2, 2]) == 0.0
+    torch.testing.assert_close(got[2], want, rtol=1e-12, atol=1e-12)

@@ -103,10 +103,11 @@ def penetration_target(
         return op.contact_velocity(v_star)
 
 
-def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Of ``G = J J^T: (..., m, m)``: the Cholesky factor ``L`` of ``G`` (a unit pivot
     for each zero row of ``J``), whether ``J``'s rows are (nearly) dependent ``(...)``,
-    and the damping ``lambda: (..., 1)`` of :func:`penetration_target`."""
+    the damping ``lambda: (..., 1)`` of :func:`penetration_target`, and which rows of
+    ``J`` are zero ``(..., m)``."""
     diag = G.diagonal(dim1=-2, dim2=-1)
     finfo = torch.finfo(G.dtype)
     scale = diag.amax(-1, keepdim=True).clamp_min(finfo.tiny)  # (..., 1)
@@ -116,7 +117,7 @@ def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     pivots = L.diagonal(dim1=-2, dim2=-1).square()
     damping = finfo.eps**0.5 * scale
     dependent = (info != 0) | (pivots < damping).any(-1)
-    return L, dependent, damping
+    return L, dependent, damping, padded
 
 
 def _damped_cholesky(G: Tensor, damping: Tensor) -> Tensor:
@@ -130,22 +131,24 @@ def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
     :func:`penetration_target`)."""
     op = as_operator(J, None)
     G = op.gram()
-    L, dependent, damping = _gram_cholesky(G)
+    L, dependent, damping, _ = _gram_cholesky(G)
     L = torch.where(dependent[..., None, None], _damped_cholesky(G, damping), L)
     y = cholesky_solve(v.unsqueeze(-1), L)
     return op.generalized_impulse(y.squeeze(-1))
 
 
 def _range_projection(op: ContactOperator, v: Tensor) -> Tensor:
-    """``J pinv(J) v`` for ``v: (..., m)``: ``v`` where ``J`` has full row rank, the damped
-    pseudo-inverse's ``J J^T (J J^T + lambda I)^-1 v`` where its rows are dependent (see
+    """``J pinv(J) v`` for ``v: (..., m)``: ``v`` where ``J``'s rows are independent (zero
+    on its zero rows, which its range does not reach), the damped pseudo-inverse's ``J
+    J^T (J J^T + lambda I)^-1 v`` where they are dependent (see
     :func:`penetration_target`), from ``G = J J^T`` alone. Every state is solved and the
     dependent ones selected: no read of the device (a step reads it once, to select the
     states in contact)."""
     G = op.gram()
-    _, dependent, damping = _gram_cholesky(G)
+    _, dependent, damping, zero_rows = _gram_cholesky(G)
     y = cholesky_solve(v.unsqueeze(-1), _damped_cholesky(G, damping))
-    return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), v)
+    independent = torch.where(zero_rows, 0.0, v)
+    return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), independent)
 
 
 def two_phase_impulse(
