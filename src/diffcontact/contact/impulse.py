@@ -66,7 +66,7 @@ def penetration_target(
     damped pseudo-inverse ``J_C^T (J_C J_C^T + lambda I)^-1``
     (``lambda = sqrt(eps)`` times the largest diagonal entry of ``J_C J_C^T``) stands in:
     it agrees with ``pinv`` to ``sqrt(eps)`` relative on the range of ``J_C`` and ignores
-    the dependent part as ``pinv`` does. No host synchronisation.
+    the dependent part as ``pinv`` does.
 
     Without equality constraints the target is ``J_C pinv(J_C) v``, the projection of ``v``
     onto the range of ``J_C``: ``v`` itself where ``J_C`` has full row rank, which most
@@ -111,7 +111,7 @@ def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     diag = G.diagonal(dim1=-2, dim2=-1)
     finfo = torch.finfo(G.dtype)
     scale = diag.amax(-1, keepdim=True).clamp_min(finfo.tiny)  # (..., 1)
-    padded = diag <= 0  # zero rows (v is zero there): a unit pivot keeps them out
+    padded = diag <= 0  # zero rows (padded contacts): a unit pivot keeps them out
     exact = G + torch.diag_embed(torch.where(padded, scale, 0))
     L, info = torch.linalg.cholesky_ex(exact)
     pivots = L.diagonal(dim1=-2, dim2=-1).square()
