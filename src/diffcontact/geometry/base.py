@@ -38,6 +38,7 @@ __all__ = [
     "GeometryBase",
     "SparseJacobian",
     "assemble_jacobian",
+    "at_points",
     "broadcast_batch",
     "gather_points",
     "jacobian_matvec",
@@ -106,6 +107,15 @@ def gather_points(x: Tensor, points: Tensor) -> Tensor:
     flat = points.reshape(*batch, -1)
     out = torch.gather(x, -2, flat.unsqueeze(-1).expand(*flat.shape, x.shape[-1]))
     return out.reshape(*batch, *tail, x.shape[-1])
+
+
+def at_points(per_point: Tensor, points: Tensor) -> Tensor:
+    """A per-point quantity at sparse entries' points: ``per_point: (P,)`` (shared) or
+    ``(n, P)`` (per state), ``points: (n, *S)`` long -> ``(n, *S)``."""
+    if per_point.dim() == 1:
+        return per_point[points]
+    n = points.shape[0]
+    return per_point.gather(-1, points.reshape(n, -1)).view(points.shape)
 
 
 def assemble_jacobian(jac: SparseJacobian, n_points: int) -> Tensor:

@@ -23,7 +23,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import SparseJacobian, assemble_jacobian, jacobian_matvec, jacobian_rmatvec
+from .base import (
+    SparseJacobian,
+    assemble_jacobian,
+    at_points,
+    jacobian_matvec,
+    jacobian_rmatvec,
+)
 from .sparse_gram import sparse_gram
 
 __all__ = ["SparseContact"]
@@ -57,19 +63,8 @@ class SparseContact:
         points = self.rows.points.unsqueeze(-2).expand(n, K, d, m)
         values = self.rows.values
         if scale is not None:
-            values = values * self._at_points(scale)[:, :, None, :, None]
+            values = values * at_points(scale, self.rows.points)[:, :, None, :, None]
         return points.reshape(n, K * d, m), values.reshape(n, K * d, m, dim)
-
-    def _at_points(self, per_point: Tensor) -> Tensor:
-        """``(P,)`` or ``(n, P)`` -> ``(n, K, m)``: the value at each entry's point."""
-        points = self.rows.points
-        if per_point.dim() == 1:
-            return per_point[points]
-        n = points.shape[0]
-        return per_point.gather(-1, points.reshape(n, -1)).view(points.shape)
-
-    def _per_point(self, per_point: Tensor) -> Tensor:  # (n or 1, P, 1)
-        return per_point.unsqueeze(-1) if per_point.dim() == 2 else per_point[None, :, None]
 
     def contact_velocity(self, v: Tensor) -> Tensor:
         n, K, d, _, dim = self._shape
@@ -80,9 +75,9 @@ class SparseContact:
         return jacobian_rmatvec(self.rows, f.reshape(n, K, d), self.n_points).flatten(-2)
 
     def velocity_change(self, f: Tensor) -> Tensor:
-        n, K, d, _, _ = self._shape
-        impulse = jacobian_rmatvec(self.rows, f.reshape(n, K, d), self.n_points)  # (n, P, dim)
-        return (impulse * self._per_point(self.inverse_mass)).flatten(-2)
+        n, _, _, _, dim = self._shape
+        impulse = self.generalized_impulse(f).view(n, self.n_points, dim)
+        return (impulse * self.inverse_mass.unsqueeze(-1)).flatten(-2)  # w: (P,) or (n, P)
 
     def delassus(self) -> Tensor:
         return sparse_gram(*self._entries(self.inverse_mass.sqrt()))

@@ -84,6 +84,7 @@ from diffcontact.geometry.base import (
     GeometryBase,
     SparseJacobian,
     assemble_jacobian,
+    at_points,
     jacobian_rmatvec,
     take_rows,
 )
@@ -189,11 +190,7 @@ def _metric_norms(
     pa, pb = jac.points.unsqueeze(-1), jac.points.unsqueeze(-2)  # (n, K, m, 1), (n, K, 1, m)
     if diagonal:  # M^-1[p_a, p_b] = w[p_a] where p_a == p_b, else 0: no (P, P) lookups
         w = M_inv.diagonal(dim1=-2, dim2=-1).to(v)  # (P,) or (n, P)
-        points = jac.points.expand(n, *jac.points.shape[-2:])
-        if w.dim() == 1:
-            w_a = w[points]
-        else:
-            w_a = w.gather(-1, points.reshape(n, -1)).view(points.shape)
+        w_a = at_points(w, jac.points.expand(n, *jac.points.shape[-2:]))
         w = torch.where(pa == pb, w_a.unsqueeze(-1), 0.0)
     elif M_inv.dim() == 2:
         w = M_inv.to(v)[pa, pb]
@@ -352,12 +349,7 @@ def project_positions(
             # J_s^T and the step M^-1 J^T lambda = M^-1/2 J_s^T lambda need only J_s, not J
             # and J M^-1 (scaled on the few sparse entries, not on dense rows)
             root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
-            points = taken.points  # (n, R, m)
-            if root.dim() == 1:
-                root_entries = root[points]
-            else:
-                root_entries = root.gather(-1, points.reshape(n, -1)).view(points.shape)
-            values = values * root_entries[:, :, None, :, None]
+            values = values * at_points(root, taken.points)[:, :, None, :, None]
         gap = torch.where(mask, gap, torch.zeros_like(gap))
         base = None
         if root is not None and sparse and n * R * D >= MIN_DENSE_SIZE:
