@@ -20,7 +20,6 @@ The same numbers as the dense products to rounding, differentiable in the entrie
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from .base import (
@@ -88,9 +87,3 @@ class SparseContact:
     def dense(self) -> Tensor:
         n, K, d, _, _ = self._shape
         return assemble_jacobian(self.rows, self.n_points).reshape(n, K * d, -1)
-
-    def dense_inverse_inertia(self) -> Tensor:
-        """``Mhat^-1 = kron(diag(w), I_dim)``: ``(n, D, D)`` (for tests and dense models)."""
-        n, _, _, _, dim = self._shape
-        w = self.inverse_mass.expand(n, self.n_points)
-        return torch.diag_embed(w.repeat_interleave(dim, -1))
