@@ -29,6 +29,10 @@ def test_help_and_version(capsys):
     assert code == 0
     for flag in ("--n", "--steps", "--seed", "--out", "--gif", "--contact-model", "--device"):
         assert flag in out
+    import diffcontact as dc
+
+    listed = "".join(out.split())  # (argparse wraps the help text, also at hyphens)
+    assert all(f"{task}," in listed or f"{task})" in listed for task in dc.list_tasks())
     code, out, _ = run(capsys, "--version")
     assert code == 0 and out.strip() == f"diffcontact {__version__}"
     code, out, _ = run(capsys)  # no command: help

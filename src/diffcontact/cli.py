@@ -31,11 +31,18 @@ import argparse
 import os
 import sys
 import time
+from pathlib import Path
 from typing import NoReturn
 
 from diffcontact import __version__
 from diffcontact.cli_args import non_negative_int, one_line, positive_int, threads_arg
 from diffcontact.contact.registry import contact_models
+
+
+def _task_names() -> list[str]:
+    """The built-in tasks (``diffcontact.list_tasks()``, read without importing torch)."""
+    return sorted(p.stem for p in (Path(__file__).parent / "systems" / "tasks").glob("*.yaml"))
+
 
 EXIT_USAGE = 2
 
@@ -92,8 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "task",
         metavar="TASK_OR_CONFIG",
-        help="built-in task (BP5-e, BP5, BD5, CP3-e, CP3, Gyro-e, Gyro, Rope, Rope-D100, "
-        "Rope-D200, Rope-D400) or a path to a .yaml/.json config",
+        help=f"built-in task ({', '.join(_task_names())}) or a path to a .yaml/.json config",
     )
     sim.add_argument("--n", type=positive_int, default=4, help="trajectories (default 4)")
     sim.add_argument(

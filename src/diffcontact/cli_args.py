@@ -54,16 +54,24 @@ def positive_float(text: str) -> float:
     return value
 
 
-def float_in(low: float, high: float = math.inf) -> Callable[[str], float]:
-    """An argparse type accepting numbers in ``[low, high]`` with a message naming the range."""
+def float_in(
+    low: float, high: float = math.inf, *, infinite: bool = False
+) -> Callable[[str], float]:
+    """An argparse type accepting finite numbers in ``[low, high]`` with a message naming
+    the range (``high = inf``: any finite number from ``low`` on; ``infinite``: ``inf``
+    too, where it means "off")."""
+    bracket = "]" if infinite or not math.isinf(high) else ")"
+    kind = "a number" if infinite else "a finite number"
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must lie in [{low:g}, {high:g}], got {value:g}")
+        if not (low <= value <= high and (infinite or math.isfinite(value))):
+            raise argparse.ArgumentTypeError(
+                f"must be {kind} in [{low:g}, {high:g}{bracket}, got {value:g}"
+            )
         return value
 
     return parse

@@ -580,3 +580,24 @@ def test_contacts_of_very_different_scales_are_solved(backend):
     b_ = b.clone().requires_grad_()
     solve_cone_qp(A_, b_, mu, 2, settings=settings).sum().backward()
     assert torch.isfinite(A_.grad).all() and torch.isfinite(b_.grad).all()
+
+
+@pytest.mark.parametrize("backend", ["torch", "warp"])
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_an_empty_batch_gives_empty_results(backend, d):
+    """Zero problems: ``(0, C)`` impulses and an empty status on both backends (the
+    reference solver raised an UnboundLocalError), and a backward pass through them."""
+    if backend == "warp":
+        pytest.importorskip("warp")
+    K = 2
+    A = torch.eye(K * d, dtype=torch.float64).expand(0, K * d, K * d).requires_grad_()
+    b = torch.zeros(0, K * d, dtype=torch.float64, requires_grad=True)
+    mu = torch.zeros(0, K, dtype=torch.float64)
+    settings = SolverSettings(backend=backend)
+    f, status = solve_cone_qp(A, b, mu, d, return_status=True, settings=settings)
+    assert f.shape == (0, K * d) and f.dtype == torch.float64
+    assert status.converged.shape == status.unbounded.shape == status.residual.shape == (0,)
+    assert status.all_converged
+    assert solve_cone_qp(A, b, mu, d, settings=settings).shape == (0, K * d)
+    f.sum().backward()
+    assert b.grad.shape == (0, K * d)

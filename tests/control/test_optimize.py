@@ -293,3 +293,22 @@ def test_iterations_are_governed_once_not_per_rollout(two_balls, monkeypatch):
         assert made[0]._steps == 30 and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(initial)
+
+
+def test_an_objective_without_a_path_to_the_variable_gets_a_zero_gradient(two_balls):
+    """mu acts only in contacts: with both balls at rest none happens, the objective does
+    not depend on it, and optimize warns once and leaves it in place (it raised autograd's
+    "does not require grad" before); a batch without problems is named."""
+    system, z0 = two_balls
+    with pytest.warns(UserWarning, match=r"does not depend on mu at iteration 0"):
+        res = dc.optimize(
+            system, z0, _final(1, torch.zeros(2)), variables=[Parameter("mu")], steps=3,
+            starts=2, iterations=2, progress=False,
+        )  # fmt: skip
+    assert res.iterations == 2
+    start = res.start_variables["mu"][int(res.best_start)]  # the best start, unmoved
+    assert torch.equal(res.params.mu.flatten(), start.flatten())
+    assert torch.equal(res.history[0], res.history[-1])
+    with pytest.raises(ControlError, match=r"z0 holds no problem"):
+        dc.optimize(system, z0[None][:0], _final(1, torch.zeros(2)), variables=[Velocity(0)],
+                    progress=False)  # fmt: skip

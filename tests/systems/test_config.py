@@ -110,13 +110,22 @@ def test_unknown_task_lists_known_ones():
         dc.load_system("/nonexistent/system.yaml")
 
 
+def test_a_file_that_is_not_a_config_is_named(tmp_path):
+    path = tmp_path / "sim.npz"  # e.g. what diffcontact simulate writes
+    path.write_bytes(b"")
+    with pytest.raises(ValueError, match=r"sim\.npz' is not a config file: .*\.yaml, \.yml or"):
+        dc.load_system(str(path))
+
+
 @pytest.mark.parametrize(
     ("override", "pattern"),
     [
         ({"masses": [0.1, -0.1, 0.3, 0.4, 0.5]}, r"masses\.1: .*greater than 0"),
         ({"masses": [0.1, 0.0, 0.3, 0.4, 0.5]}, r"masses\.1: .*greater than 0"),
         ({"radii": [0.1]}, r"radii: expected 5 values"),
-        ({"mu": -0.1}, r"mu: value -0\.1 .* must be >= 0"),
+        ({"mu": -0.1}, r"mu: value -0\.1 .* must be finite and >= 0"),
+        ({"mu": float("inf")}, r"mu: value inf of contact 0 must be finite and >= 0"),
+        ({"cor": float("nan")}, r"cor: value nan of contact 0 must lie in \[0, 1\]"),
         ({"cor": 1.5}, r"cor: value 1\.5 .* must lie in \[0, 1\]"),
         ({"cor": [0.5] * 7}, r"cor: expected one number or 30 values .* got a list of 7"),
         ({"mu": {"pairs": [0.1] * 3, "walls": 0.1}}, r"mu\.pairs: expected one number or 10"),
@@ -237,6 +246,13 @@ def test_bad_initial_states_are_rejected():
         system.simulate(z0[:, :, :4])
     with pytest.raises(ValueError, match=r"z0 must have shape"):
         system.simulate(z0[0])
+    # half precision failed at the first contact (no Cholesky for it), meta tensors at a
+    # read of their values
+    for dtype in (torch.float16, torch.bfloat16, torch.int64):
+        with pytest.raises(ValueError, match=rf"z0 must be a float32 or float64 .*got {dtype}"):
+            system.simulate(z0.to(dtype), steps=2)
+    with pytest.raises(ValueError, match=r"z0 is on the meta device"):
+        system.simulate(z0.to("meta"), steps=2)
     bad = z0.clone()
     bad[2, 1, 0, 0] = float("nan")
     with pytest.raises(ValueError, match=r"NaN or infinite values \(states \[2\]\)"):

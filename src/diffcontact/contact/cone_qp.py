@@ -891,6 +891,12 @@ def solve_cone_qp(
             raise ValueError(f"solve_cone_qp: warm_start does not broadcast: {err}") from None
     flat, warm_start = flatten_batch(batch, A, b, mu, lower, active, warm_start)
     n = flat[1].shape[0]
+    if n == 0:  # an empty batch: nothing to solve (the solvers' loops and launches need one)
+        empty = torch.zeros(0, dtype=torch.bool, device=A.device)
+        return _finish(
+            flat[1] * 0, ~empty, empty, empty.to(torch.int64), empty.to(A.dtype), batch, C, n,
+            resolved, return_status,
+        )  # fmt: skip
     if resolved.backend == "warp":
         # the whole call (scaling, fast paths, solve, certificate, status) in one kernel;
         # one host synchronisation reads its flags (non-finite inputs, failures)

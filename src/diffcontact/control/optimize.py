@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -102,6 +103,8 @@ def _check_z0(z0: Any, planner: Planner) -> tuple[Tensor, bool]:
         raise ControlError(
             f"z0 must have shape {shape} or (N, *{shape}) for {planner.name}, got {tuple(z0.shape)}"
         )
+    if z0.dim() == 4 and z0.shape[0] == 0:
+        raise ControlError(f"z0 holds no problem: shape {tuple(z0.shape)} (N = 0)")
     if not torch.isfinite(z0).all():
         raise ControlError("z0 holds NaN or infinite values")
     return (z0.unsqueeze(0) if single else z0), single
@@ -318,6 +321,7 @@ def optimize(
         threads_held = contextlib.ExitStack()
         try:
             scope = threads_held.enter_context(thread_scope(threads, device, iterations))
+            warned: list[int] = []  # the iteration of the zero-gradient warning
             for it in range(iterations):
                 last: dict[str, Tensor] = {}
 
@@ -330,6 +334,12 @@ def optimize(
                     if "obj" not in last:
                         last["obj"] = obj.detach()
                         last["vals"] = [v.detach().clone() for v in values]
+                    if not obj.requires_grad:
+                        # no path from the variables to the objective (e.g. mu or e_P when
+                        # no contact happens, or an objective that detaches): a zero
+                        # gradient, which the optimiser's step leaves in place
+                        last["no_gradient"] = obj
+                        return obj.sum()
                     obj.sum().backward()
                     for v, val in zip(variables, values, strict=True):
                         g = val.grad
@@ -342,6 +352,15 @@ def optimize(
 
                 with scope.step():
                     opt.step(closure)
+                if "no_gradient" in last and not warned:
+                    warned.append(it)
+                    warnings.warn(
+                        f"optimize: the objective does not depend on "
+                        f"{', '.join(v.name for v in variables)} at iteration {it} (no "
+                        "contact for a contact parameter to act in, or an objective that "
+                        "detaches its input): zero gradient",
+                        stacklevel=2,
+                    )
                 with torch.no_grad():
                     for val, (lo, hi) in zip(values, dev_bounds, strict=True):
                         val.copy_(torch.maximum(torch.minimum(val, hi), lo))

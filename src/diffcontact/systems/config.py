@@ -237,8 +237,8 @@ class _SystemBase(_Strict):
         for key, low, high in (("mu", 0.0, math.inf), ("cor", 0.0, 1.0)):
             values = self.per_contact(key)
             for k, value in enumerate(values):
-                if not (low <= value <= high) or math.isnan(value):
-                    rng = "must be >= 0" if key == "mu" else "must lie in [0, 1]"
+                if not (low <= value <= high) or not math.isfinite(value):
+                    rng = "must be finite and >= 0" if key == "mu" else "must lie in [0, 1]"
                     raise ValueError(f"{key}: value {value} of contact {k} {rng}")
         return self
 

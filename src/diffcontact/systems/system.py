@@ -160,6 +160,11 @@ def load_config(spec: Any, **overrides: Any):
             if not path.is_file():
                 raise ValueError(f"config file {str(path)!r} does not exist")
             data, source = _read_file(path), f" in {path}"
+        elif path.is_file():
+            raise ValueError(
+                f"{str(path)!r} is not a config file: a config is a .yaml, .yml or .json file "
+                "(or a built-in task name, or a dict)"
+            )
         else:
             raise ValueError(
                 f"unknown task {name!r}; known tasks: {', '.join(list_tasks())} "
@@ -773,8 +778,13 @@ class System:
                 f"{name} must have shape {want} for {self.name} (positions then velocities "
                 f"of {self.n_points} points in {self.dim}D); got {tuple(z.shape)}"
             )
-        if not z.is_floating_point():
-            raise ValueError(f"{name} must be a floating-point tensor, got {z.dtype}")
+        if z.dtype not in (torch.float32, torch.float64):
+            raise ValueError(
+                f"{name} must be a float32 or float64 tensor (the dtypes of the contact "
+                f"solver), got {z.dtype}"
+            )
+        if z.device.type == "meta":
+            raise ValueError(f"{name} is on the meta device, which holds no values")
 
     def _check_state(self, z: Tensor, name: str) -> None:
         self._check_state_shape(z, name)

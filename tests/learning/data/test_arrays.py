@@ -68,7 +68,7 @@ def test_arrays_validation_messages(recorded, tmp_path):
     fails(recorded[:2], r"2 trajectories are too few")
     fails(recorded, r"val_fraction \+ test_fraction must be below 1", val_fraction=0.5,
           test_fraction=0.5)  # fmt: skip
-    fails(recorded, r"val_fraction must lie in \[0, 1\)", val_fraction=1.0)
+    fails(recorded, r"val_fraction must be a finite number in \[0, 1\)", val_fraction=1.0)
     fails(np.array([["a"]]), "numeric array")
     overlapping = recorded.copy()
     overlapping[4, :, 0, 0] = (-0.5, 0.5)  # body 0 beyond the left wall at every state

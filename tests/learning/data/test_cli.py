@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from diffcontact.learning.data.cli import register_cli
 from diffcontact.learning.data.format import load_dataset
@@ -91,3 +92,24 @@ def test_cli_simulates_a_tiny_dataset(tmp_path, capsys):
     ds = load_dataset(out)
     assert ds.counts == {"train": 2, "val": 1, "test": 1}
     assert ds.metadata["seeds"] == {"train": 2000, "val": 2001, "test": 2002}
+
+
+def test_cli_refuses_an_infinite_noise_std(tmp_path, capsys):
+    """``--noise-std inf`` wrote a dataset of infinite chunks, found only by ``train``."""
+    from diffcontact.learning.data.generate import generate_dataset
+
+    for value in ("inf", "nan", "-1"):
+        with pytest.raises(SystemExit) as exc:
+            cli(capsys, "generate", "BP5-e", "--noise-std", value, "--out", str(tmp_path / "x"))
+        assert exc.value.code == 2
+        assert "--noise-std: must be a finite number in [0, inf)" in capsys.readouterr().err
+    # where inf means "off" it stays accepted (--impact-tol)
+    parser = argparse.ArgumentParser(prog="diffcontact")
+    register_cli(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(
+        ["generate", "--out", "o", "--from-arrays", "a.npz", "--impact-tol", "inf"]
+    )
+    assert args.impact_tol == float("inf")
+    with pytest.raises(ValueError, match=r"noise_std must be a finite number in \[0, inf\)"):
+        generate_dataset(BP5, tmp_path / "y", n_train=2, n_val=0, n_test=0, noise_std=np.inf)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -29,6 +29,8 @@ def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
         (["train", str(bp5_data), "--dtype", "float16", "--out", out], "dtype"),
         (["train", str(bp5_data), "--threads", "0", "--out", out], "threads must be"),
         (["train", str(bp5_data), "--threads", "many", "--out", out], "threads must be"),
+        # (it was ignored: CM has no regulariser)
+        (["train", str(bp5_data), "--eps", "0.1", "--out", out], "eps is the regulariser of"),
     ]
     if not torch.cuda.is_available():
         cases.append((["train", str(bp5_data), "--device", "cuda", "--out", out], "CUDA"))

@@ -115,7 +115,7 @@ def dataset_from_arrays(
         stride = int_arg("stride", stride, 1)
     if not isinstance(true_parameters, bool):
         raise ValueError(f"true_parameters must be True or False, got {true_parameters!r}")
-    impact_tol = float_arg("impact_tol", impact_tol, 0.0, math.inf)
+    impact_tol = float_arg("impact_tol", impact_tol, 0.0, math.inf, infinite=True)  # inf: off
     gap_tol = float_arg("gap_tol", gap_tol, 0.0, math.inf)
     vf = float_arg("val_fraction", val_fraction, 0.0, 1.0, high_open=True)
     tf = float_arg("test_fraction", test_fraction, 0.0, 1.0, high_open=True)

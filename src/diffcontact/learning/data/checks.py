@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -16,15 +17,21 @@ def int_arg(name: str, value: Any, low: int) -> int:
     return int(value)
 
 
-def float_arg(name: str, value: Any, low: float, high: float, *, high_open=False) -> float:
-    """``value`` as a ``float`` when it lies in ``[low, high]`` (``[low, high)``: ``high_open``)."""
+def float_arg(
+    name: str, value: Any, low: float, high: float, *, high_open=False, infinite=False
+) -> float:
+    """``value`` as a ``float`` when it is finite and lies in ``[low, high]`` (``[low,
+    high)``: ``high_open``, or ``high`` infinite; ``infinite``: ``inf`` too, where it
+    means "off")."""
     try:
         x = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if isinstance(value, bool) or not (low <= x <= high) or (high_open and x == high):
-        bracket = ")" if high_open else "]"
-        raise ValueError(f"{name} must lie in [{low:g}, {high:g}{bracket}, got {value!r}")
+    outside = not (low <= x <= high) or (high_open and x == high)
+    if isinstance(value, bool) or outside or not (infinite or math.isfinite(x)):
+        bracket = ")" if high_open or (math.isinf(high) and not infinite) else "]"
+        kind = "a number" if infinite else "a finite number"
+        raise ValueError(f"{name} must be {kind} in [{low:g}, {high:g}{bracket}, got {value!r}")
     return x
 
 

@@ -132,7 +132,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--impact-tol",
         metavar="TOL",
-        type=float_in(0.0),
+        type=float_in(0.0, infinite=True),
         default=None,
         help="with --from-arrays: flag an impact between samples when the velocities jump by "
         "more than TOL times the trajectory's RMS speed beyond what the neighbouring steps "

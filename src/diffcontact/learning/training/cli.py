@@ -197,7 +197,7 @@ def register_refit_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a finished run (diffcontact train)")
     p.add_argument(
-        "--iterations", type=non_negative_int, default=2, metavar="N",
+        "--iterations", type=positive_int, default=2, metavar="N",
         help="the most Gauss-Newton iterations (default 2)",
     )  # fmt: skip
     p.add_argument(

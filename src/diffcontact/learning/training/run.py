@@ -483,6 +483,10 @@ def train(
     options = dict(model_options or {})
     physical = {"eps": eps, "heterogeneous": heterogeneous, "hidden": hidden}
     if is_physical_model(model):
+        if eps is not None and not model.startswith("CMr-"):
+            raise TrainingInputError(
+                f"eps is the regulariser of the CMr models; {model} has none (leave eps unset)"
+            )
         defaults = {"eps": DEFAULT_EPS, "heterogeneous": None, "hidden": DEFAULT_HIDDEN}
         options = {k: defaults[k] if v is None else v for k, v in physical.items()} | options
     elif model in BASELINE_MODELS and eps is None and heterogeneous is None:
