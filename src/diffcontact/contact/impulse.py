@@ -89,18 +89,16 @@ def penetration_target(
         v_C_star: (..., K*d).
     """
     op = as_operator(J_C, None)
-    with torch.no_grad():
-        depth = torch.where(active, depth.clamp_min(0), 0)
-        v_d = depth.new_zeros(*depth.shape, d)
-        v_d[..., 0] = fraction * depth / dt
-        v_d = v_d.flatten(-2)
-        if J_E is None or J_E.shape[-2] == 0:
-            return _range_projection(op, v_d)
-        v_star = _pinv_apply(op, v_d)
-        JJt = J_E @ J_E.transpose(-1, -2)
-        corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
-        v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
-        return op.contact_velocity(v_star)
+    depth = torch.where(active, depth.clamp_min(0), 0)
+    v_d = torch.stack([fraction * depth / dt, *[torch.zeros_like(depth)] * (d - 1)], -1)
+    v_d = v_d.flatten(-2)
+    if J_E is None or J_E.shape[-2] == 0:
+        return _range_projection(op, v_d)
+    v_star = _pinv_apply(op, v_d)
+    JJt = J_E @ J_E.transpose(-1, -2)
+    corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
+    v_star = v_star - (J_E.transpose(-1, -2) @ corr).squeeze(-1)
+    return op.contact_velocity(v_star)
 
 
 def _gram_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:

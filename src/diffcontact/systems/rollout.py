@@ -106,6 +106,9 @@ class RolloutOptions(NamedTuple):
     fraction: float
     iterations: int
     solver_settings: SolverSettings | None
+    #: differentiate the penetration compensation target (False: a constant, as the
+    #: paper's appendix G; :meth:`System.simulate`'s ``penetration_gradient``)
+    target_gradient: bool = True
 
 
 class _NeedsGradient(Exception):
@@ -247,7 +250,7 @@ class Rollout:
         each step reads the device (the selection, the solver's flags, the projection's
         rows and early stop) and raises at once."""
         system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
-        model, dynamics, fraction, iterations, solver_settings = self.options
+        model, dynamics, fraction, iterations, solver_settings, target_gradient = self.options
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
@@ -268,7 +271,10 @@ class Rollout:
                 with scope.step():
                     z1 = system._integrate(z, ctx, dynamics)
                     try:
-                        res = system._resolve(z1, ctx, model, fraction, solver_settings, padded)
+                        res = system._resolve(
+                            z1, ctx, model, fraction, solver_settings, padded,
+                            target_gradient=target_gradient,
+                        )  # fmt: skip
                         z = system._project(res, ctx, iterations, solver_settings, read_free)
                         if padded is not None:
                             self._count(res.gaps, read_free)
@@ -427,7 +433,7 @@ class Rollout:
         :class:`Overflow` where a state had more active contacts or its projection needed
         more rows; one read of the device."""
         system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
-        model, dynamics, fraction, iterations, solver_settings = self.options
+        model, dynamics, fraction, iterations, solver_settings, target_gradient = self.options
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         self._track(z0, contacts, read_free)
@@ -436,7 +442,10 @@ class Rollout:
         def one_step() -> Tensor:  # the next state goes to z_in; returns its gaps
             with deferred_checks(flags):
                 z1 = system._integrate(z_in, ctx, dynamics)
-                res = system._resolve(z1, ctx, model, fraction, solver_settings, contacts)
+                res = system._resolve(
+                    z1, ctx, model, fraction, solver_settings, contacts,
+                    target_gradient=target_gradient,
+                )  # fmt: skip
                 if res.z.requires_grad:
                     raise _NeedsGradient
                 z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))

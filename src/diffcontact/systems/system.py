@@ -907,6 +907,7 @@ class System:
         settings: SolverSettings | None = None,
         static_contacts: int | None = None,
         dense_rows: bool = False,
+        target_gradient: bool = True,
     ) -> ContactResult:
         """The contact resolution of a step: the states with an active contact, padded to
         the largest active count (one read of the device). With ``static_contacts``:
@@ -916,7 +917,8 @@ class System:
         do not depend on the data and the device is never read
         (:meth:`~diffcontact.systems.rollout.Rollout.graphed`). The result's ``J_C`` is
         ``None`` where the impulse took the rows' sparse entries (:meth:`_sparse_contact`),
-        unless ``dense_rows``."""
+        unless ``dense_rows``. ``target_gradient``: differentiate the penetration
+        compensation target (else a constant of the gradient, as appendix G)."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         P, dim, d = self.n_points, self.dim, self.d
         D = P * dim
@@ -966,8 +968,12 @@ class System:
             J_E, Mh = self._constrained_inverse_inertia(ctx, xs, M_inv, b)
             op = J
         if fraction > 0:
-            depth = -gaps[b].gather(-1, idx)
-            v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E)
+            with torch.set_grad_enabled(torch.is_grad_enabled() and target_gradient):
+                # the depths with their graph where the positions have one (the selection
+                # above ran without): the target is differentiable like the rest of the step
+                graph = xs.requires_grad and torch.is_grad_enabled()
+                depth = -(ctx.geometry.gaps(xs) if graph else gaps[b]).gather(-1, idx)
+                v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E)
         else:
             v_star = vs.new_zeros(n, Ka * d)
 
@@ -1297,6 +1303,7 @@ class System:
         position_projection: int | None = None,
         threads: int | str | None = "auto",
         cuda_graph: bool | str = "auto",
+        penetration_gradient: bool = True,
     ) -> Tensor:
         """Roll out trajectories from initial states: a pure function of ``z0`` and ``params``.
 
@@ -1358,9 +1365,16 @@ class System:
                 rounding (with the projection, to its tolerance). A failed solve or a
                 non-finite state reruns the rollout step by step, which raises the
                 usual error naming the states.
+            penetration_gradient: differentiate the penetration compensation target
+                (``fraction * depth / dt`` mapped through ``J_C``), so that gradients are
+                the rollout's exact derivatives (default). ``False``: the target is a
+                constant of the gradient, as in the paper (appendix G: "the gradients of
+                v_C^* are not required for learning"); learned models train that way
+                (:class:`~diffcontact.learning.LearnedModel`'s ``penetration_gradient``).
 
         Returns:
-            ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``.
+            ``(N, steps + 1, 2, P, dim)`` with ``traj[:, 0] == z0``; differentiable with
+            respect to ``z0`` and every tensor in ``params``.
 
         Raises:
             ValueError: bad shape, NaN, overlapping bodies in ``z0`` (a gap below 0;
@@ -1391,7 +1405,13 @@ class System:
         # the gaps of each state, for the tunnelling check: the contact resolution's own
         # (a step's positions are final there unless the position projection moves them)
         keep_gaps = not iterations and on_tunnelling != "ignore"
-        options = RolloutOptions(model, dynamics, fraction, iterations, solver_settings)
+        if not isinstance(penetration_gradient, bool):
+            raise ValueError(
+                f"penetration_gradient must be True or False, got {penetration_gradient!r}"
+            )
+        options = RolloutOptions(
+            model, dynamics, fraction, iterations, solver_settings, penetration_gradient
+        )
         run = Rollout(self, ctx, z0, steps, options, keep_gaps, progress, threads)
         result = run.graphed(strict=cuda_graph is True) if run.graph_wanted(cuda_graph) else None
         self._last_rollout_graphed = result is not None

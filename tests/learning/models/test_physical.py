@@ -383,3 +383,37 @@ def test_a_rollout_casts_the_float32_potential_once():
     assert plain.for_rollout() is plain
     f32 = LearnedModel("BP5", hidden=(8,), potential_dtype="float32").potential
     assert f32.for_rollout() is f32
+
+
+def test_training_rollouts_keep_the_paper_s_constant_penetration_target(tmp_path):
+    """A learned model's rollouts treat the compensation target as a constant of the
+    gradient by default (the paper's training set-up, appendix G), as
+    ``System.simulate(penetration_gradient=False)`` does; ``penetration_gradient=True``
+    gives the exact derivative, ``System.simulate``'s default. The two differ through
+    a contact whose target shapes the impulse (CP3's ground)."""
+    truth, m = _truth_model("CP3", "CM-CD-CLNN", hidden=(8,))
+    m.potential = ChainGravity(truth.mass, truth.gravity)
+    _, exact = _truth_model("CP3", "CM-CD-CLNN", hidden=(8,), penetration_gradient=True)
+    exact.potential = m.potential
+    z0 = _states_before_contact("CP3", 2, 6)
+    weights = torch.randn(2, 7, 2, 3, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+
+    def grad(model_or_system, **kw):
+        z = z0.clone().requires_grad_()
+        if isinstance(model_or_system, LearnedModel):
+            traj = model_or_system.simulate(z, 6)
+        else:
+            traj = model_or_system.simulate(z, 6, contact_model="CM", **kw)
+        (traj * weights).sum().backward()
+        return z.grad
+
+    paper, derivative = grad(m), grad(exact)
+    torch.testing.assert_close(paper, grad(truth, penetration_gradient=False))
+    torch.testing.assert_close(derivative, grad(truth))
+    assert float((paper - derivative).abs().max()) > 1e-3 * float(derivative.abs().max())
+    assert "penetration_gradient" not in m.options()  # (files stay as before)
+    _, saved = _truth_model("CP3", "CM-CD-CLNN", hidden=(8,), penetration_gradient=True)
+    saved.save(tmp_path / "model.pt")
+    assert load_model(tmp_path).penetration_gradient is True
+    with pytest.raises(ValueError, match="penetration_gradient must be True or False"):
+        LearnedModel("CP3", penetration_gradient="yes")

@@ -280,6 +280,12 @@ class LearnedModel(nn.Module):
         potential_dtype: ``"float32"`` runs the potential MLP in float32 inside
             a float64 rollout (:class:`PotentialMLP`'s ``compute_dtype``): about
             1.5x faster training steps; ``None`` (default): the rollout's dtype.
+        penetration_gradient: whether :meth:`simulate` (the training rollouts)
+            differentiates the penetration compensation target. ``False``
+            (default): the paper's training set-up (appendix G), which every
+            result in docs/results.md used; ``True``: the exact derivative of the
+            rollout (``System.simulate``'s default, and what planning through the
+            model uses, :func:`~diffcontact.control.as_planner`).
 
     Parameters (``nn.Parameter``): ``log_mass_scale ()``, ``log_mass_rel (B,)``,
     ``log_second_moments (B, dim)`` (rigid bodies only), ``raw_mu (1,)`` or
@@ -300,9 +306,15 @@ class LearnedModel(nn.Module):
         heterogeneous: bool | None = None,
         hidden: Sequence[int] = (256, 256, 256),
         potential_dtype: str | None = None,
+        penetration_gradient: bool = False,
     ) -> None:
         super().__init__()
         self.contact_model, self.dynamics = parse_model_name(model)
+        if not isinstance(penetration_gradient, bool):
+            raise ValueError(
+                f"penetration_gradient must be True or False, got {penetration_gradient!r}"
+            )
+        self.penetration_gradient = penetration_gradient
         self.model_name = model
         cfg = load_config(config)
         self.system = System(cfg)
@@ -389,6 +401,7 @@ class LearnedModel(nn.Module):
             "heterogeneous": self.heterogeneous,
             "hidden": list(self.hidden),
             **({} if self.potential_dtype is None else {"potential_dtype": self.potential_dtype}),
+            **({"penetration_gradient": True} if self.penetration_gradient else {}),
         }
 
     def extra_repr(self) -> str:
@@ -644,7 +657,8 @@ class LearnedModel(nn.Module):
 
         Returns:
             ``(N, steps + 1, 2, P, dim)``, differentiable with respect to the
-            model's parameters and ``z0``.
+            model's parameters and ``z0`` (the penetration compensation target a
+            constant of the gradient unless the model's ``penetration_gradient``).
         """
         self._check_options(contact_model, eps, dynamics)
         return self.system.simulate(
@@ -659,6 +673,7 @@ class LearnedModel(nn.Module):
             solver_settings=solver_settings,
             on_tunnelling=on_tunnelling,
             threads=threads,
+            penetration_gradient=self.penetration_gradient,
         )
 
     def forward(self, z0: Tensor, steps: int | None = None, **kwargs: Any) -> Tensor:

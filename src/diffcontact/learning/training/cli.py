@@ -84,7 +84,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--model-option", action="append", default=[], metavar="KEY=VALUE", type=_cli_option,
         help="an option of the model's factory (repeatable; VALUE is read as JSON if it "
-        "parses, else as a string), for registered models other than the physical ones",
+        "parses, else as a string): a registered model's, or a physical model's "
+        "LearnedModel option such as penetration_gradient=true",
     )  # fmt: skip
     p.add_argument(
         "--epochs", type=positive_int, default=options.DEFAULT_EPOCHS,
@@ -197,7 +198,7 @@ def register_refit_cli(subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="a finished run (diffcontact train)")
     p.add_argument(
-        "--iterations", type=positive_int, default=2, metavar="N",
+        "--iterations", type=non_negative_int, default=2, metavar="N",
         help="the most Gauss-Newton iterations (default 2)",
     )  # fmt: skip
     p.add_argument(

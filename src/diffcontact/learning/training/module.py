@@ -74,9 +74,12 @@ log = logging.getLogger(__name__)
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 SKIP_REASONS = ("nonfinite_loss", "nonfinite_grad", "solver_failure", "gradient_spike")
 # a step whose gradient norm (per group: network, physical) exceeds SPIKE_FACTOR times the
-# median over the last SPIKE_WINDOW accepted steps (once SPIKE_MIN_HISTORY are known) is
-# skipped: a near-grazing contact can give one batch a gradient 1e4 times the usual, which
-# then dominates Adam's second-moment estimate and freezes the parameter (docs/training.md)
+# median over the last SPIKE_WINDOW steps (once SPIKE_MIN_HISTORY are known) is skipped: a
+# near-grazing contact can give one batch a gradient 1e4 times the usual, which then
+# dominates Adam's second-moment estimate and freezes the parameter (docs/training.md).
+# The skipped steps' norms count in the median too: a batch whose gradient stays large
+# (its contacts, once the others have converged) is accepted again once such norms make
+# up half the window, instead of being left out of training for good
 SPIKE_FACTOR = 100.0
 SPIKE_WINDOW = 50
 SPIKE_MIN_HISTORY = 2
@@ -191,7 +194,7 @@ class RolloutModule(pl.LightningModule):
         self.report_epochs = False  # set by train(progress=False): one line per epoch on stdout
         self._resumed_epoch: dict[str, Any] | None = None  # a mid-epoch checkpoint's sums
         self.skipped_total = dict.fromkeys(SKIP_REASONS, 0)
-        # gradient norms of the last accepted steps, per parameter group (spike detection)
+        # gradient norms of the last steps, skipped spikes included, per parameter group
         self.group_names = [g["name"] for g in model.param_groups(self._optimizer_settings())]
         self.grad_norm_history: list[list[float]] = [[] for _ in self.group_names]
         self._reset_epoch()
@@ -337,6 +340,10 @@ class RolloutModule(pl.LightningModule):
         if reason is not None:
             self._step_schedule()
             opt.zero_grad(set_to_none=True)
+            if reason in ("gradient_spike", "nonfinite_grad"):  # a finite loss: counted
+                self._add_train_loss(loss.detach(), chunk.shape[0])
+            if reason == "gradient_spike":
+                self._record_norms(norms)
             self._epoch_skipped[reason] += 1
             self.skipped_total[reason] += 1
             if self._epoch_first_error is None:
@@ -346,13 +353,18 @@ class RolloutModule(pl.LightningModule):
         opt.step()
         self._step_schedule()
         value = loss.detach()
-        n = chunk.shape[0]
+        self._add_train_loss(value, chunk.shape[0])
+        self.log(
+            "train/loss_step", value, on_step=True, on_epoch=False, prog_bar=True,
+            batch_size=chunk.shape[0],
+        )  # fmt: skip
+        return None
+
+    def _add_train_loss(self, value: Tensor, n: int) -> None:
+        """Add a batch's loss to the epoch's train loss: every batch with a finite loss,
+        skipped ones included, so that a skipped batch is not hidden by the mean."""
         self._train_sum += float(value) * n
         self._train_count += n
-        self.log(
-            "train/loss_step", value, on_step=True, on_epoch=False, prog_bar=True, batch_size=n
-        )
-        return None
 
     def validation_step(self, batch: Any, batch_idx: int) -> None:
         chunk = self._chunk(batch)
