@@ -313,6 +313,15 @@ def test_float32_potential_inside_a_float64_rollout(task, tmp_path):
     assert m.potential.compute_dtype == torch.float32
     with pytest.raises(ValueError, match="potential_dtype"):
         LearnedModel(task, potential_dtype="half")
+    # set on a trained model (to plan or simulate faster): the same rollout as built so
+    m64.potential_dtype = "float32"
+    assert m64.potential.compute_dtype == torch.float32
+    assert m64.options()["potential_dtype"] == "float32"
+    torch.testing.assert_close(m64.simulate(z0, steps), mixed.simulate(z0, steps), rtol=0, atol=0)
+    m64.potential_dtype = None
+    assert m64.potential.compute_dtype is None and "potential_dtype" not in m64.options()
+    with pytest.raises(ValueError, match="potential_dtype"):
+        m64.potential_dtype = "half"
 
 
 @pytest.mark.parametrize("compute_dtype", [None, torch.float32])
