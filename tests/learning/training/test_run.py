@@ -86,6 +86,23 @@ def test_resume_gives_the_uninterrupted_result(bp5_data, tmp_path):
     assert epochs == ["0", "1"]  # continuous log, the interrupted epoch once
 
 
+def test_a_run_resumed_with_more_epochs_steps_at_the_longer_cosine(bp5_data, tmp_path):
+    """The first step after ``--resume`` with more epochs takes the stretched schedule's
+    rate, not the one the checkpoint held (the finished schedule's last: 0)."""
+    seen = []
+
+    class Record(pl.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    opts = dict(batch_size=4, lr=1e-3, **SMALL)
+    train(bp5_data, tmp_path / "run", epochs=2, **opts)  # 8 chunks: 4 steps
+    train(bp5_data, tmp_path / "run", epochs=3, resume=True, callbacks=[Record()], **opts)
+    x = 4 / 5  # step 4 of 6
+    factor = COSINE_FLOOR + (1 - COSINE_FLOOR) * 0.5 * (1 + np.cos(np.pi * x))
+    assert seen[0] == pytest.approx(1e-3 * factor, rel=1e-12) and seen[0] > 0
+
+
 def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
     """Learning rates per step, logged by a callback, follow the documented cosine."""
     seen = []

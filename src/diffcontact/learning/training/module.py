@@ -391,6 +391,16 @@ class RolloutModule(pl.LightningModule):
 
     # ------------------------------------------------------------------- epochs
     def on_train_start(self) -> None:
+        # the learning rates of the next step from the schedule's factor at that step:
+        # a checkpoint holds those the run had when it was written, which a run resumed
+        # with more epochs (a longer cosine) would otherwise take for its first step (the
+        # same values where the length did not change)
+        scheduler = self.lr_schedulers()
+        if scheduler is not None:
+            factor = self._cosine_factor(scheduler.last_epoch)
+            groups = scheduler.optimizer.param_groups
+            for group, base in zip(groups, scheduler.base_lrs, strict=True):
+                group["lr"] = base * factor
         # resumed in the middle of an epoch: Lightning does not start that epoch again
         # (no on_train_epoch_start), so its sums so far come from the checkpoint
         state, self._resumed_epoch = self._resumed_epoch, None
