@@ -58,6 +58,9 @@ def test_throw_with_a_saved_model(capsys, tmp_path):
         (["billiards", "BP5-e", "--target", "0.5", "0.5", "--cue", "2"], ["different bodies"]),
         (["billiards", "BP5-e", "--target", "0.5", "0.5", "--ball", "9"], ["ball must be"]),
         (["billiards", "BP5-e", "--target", "0.5", "0.5", "--time", "0.015"], ["multiple"]),
+        # (it ran until the memory was full)
+        (["billiards", "BP5-e", "--target", "0.5", "0.5", "--time", "1e7"], ["at most 1000000"]),
+        (["throw", "BD1-ground", "--target", "1", "--time", "1e5"], ["10000000 steps"]),
         (["billiards", "no-such-task", "--target", "0.5", "0.5"], ["unknown task"]),
         (["billiards", "CP3", "--target", "0.5", "0.5"], ["system of circles"]),
         (["throw", "BP5", "--target", "1"], ["throw needs rigid disks"]),
@@ -68,3 +71,66 @@ def test_throw_with_a_saved_model(capsys, tmp_path):
 def test_bad_input_is_one_line(capsys, argv, needles):
     code, _, err = run(capsys, *argv, "--quiet", "--no-gif")
     assert_usage_error(code, err, *needles)
+
+
+def _run_of(tmp_path, name, data):
+    """A training-run folder: an (untrained) CM-CD-CLNN model of BD1-ground, its data."""
+    import diffcontact as dc
+    from diffcontact.learning.models.registry import create_model
+    from diffcontact.learning.models.storage import save_model
+
+    run_dir = tmp_path / name
+    run_dir.mkdir()
+    model = create_model("CM-CD-CLNN", dc.load_system("BD1-ground").config, hidden=[8])
+    save_model(model, run_dir / "model.pt")
+    (run_dir / "run.json").write_text(json.dumps({"data_dir": str(data)}))
+    return run_dir
+
+
+def test_a_run_s_plans_are_judged_by_its_data_s_truth(capsys, tmp_path):
+    """The truth simulates with the contact model of the run's data (it was always CM),
+    and recorded data without declared parameters has no truth to judge by (the config's
+    placeholders judged it)."""
+    import math
+
+    import torch
+
+    import diffcontact as dc
+    from diffcontact.control import as_planner
+    from diffcontact.control.tasks import plan_throw
+    from diffcontact.learning.data.arrays import dataset_from_arrays
+    from diffcontact.learning.data.generate import generate_dataset
+    from diffcontact.mechanics import disk_points_2d
+
+    truth = dc.load_system("BD1-ground")
+    lcp = generate_dataset("BD1-ground", tmp_path / "lcp", n_train=2, n_val=1, n_test=1,
+                           contact_model="LCP", progress=False)  # fmt: skip
+    planner = as_planner(str(_run_of(tmp_path, "on_lcp", lcp)))
+    assert (planner.truth_contact_model, planner.truth_known) == ("LCP", True)
+    # a spinning disk that slides when it hits the ground: CM and LCP bounce it differently
+    one = torch.ones(1, dtype=torch.float64)
+    z0 = disk_points_2d(torch.tensor([[0.0, 0.2]], dtype=torch.float64), 0 * one,
+                        torch.tensor([[3.0, -1.0]], dtype=torch.float64), 40 * one)  # fmt: skip
+    z0 = z0.transpose(0, 1).reshape(1, 2, 3, 2)
+    lcp_traj = truth.simulate(z0, 30, contact_model="LCP")
+    assert not torch.allclose(lcp_traj, truth.simulate(z0, 30))  # CM's differs
+    torch.testing.assert_close(planner.simulate_truth(z0, 30), lcp_traj, rtol=0, atol=0)
+    plan = plan_throw(planner, 0.8, starts=2, iterations=2, progress=False)
+    steps = plan.traj_true.shape[1] - 1
+    torch.testing.assert_close(plan.traj_true, planner.simulate_truth(plan.result.z0, steps))
+
+    recorded = dataset_from_arrays(
+        truth.simulate(truth.sample_initial_conditions(5, seed=1)), "BD1-ground",
+        tmp_path / "recorded", val_fraction=0.2, test_fraction=0.2, progress=False,
+    )  # fmt: skip
+    run_dir = _run_of(tmp_path, "on_recorded", recorded)
+    assert as_planner(str(run_dir / "model.pt")).truth_known is False
+    out = tmp_path / "t.json"
+    code, stdout, err = run(
+        capsys, "throw", str(run_dir), "--target", "0.4", *QUICK, "--json", str(out), "--no-gif"
+    )
+    assert code == 0, err
+    assert "unknown under the ground truth (recorded data" in stdout
+    assert json.loads(out.read_text())["distance_true"] is None
+    plan = plan_throw(as_planner(str(run_dir)), 0.8, starts=2, iterations=2, progress=False)
+    assert math.isnan(float(plan.distance_true[0]))

@@ -423,3 +423,18 @@ def test_bodies_run_one_at_a_time_on_the_cpu_and_at_once_on_cuda():
     assert system._static_on(torch.device("cpu"))[2] is not None
     assert system_module._per_body(torch.device("cpu"))
     assert not system_module._per_body(torch.device("cuda"))
+
+
+@pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro", "Rope", "BD1-ground"])
+def test_an_empty_batch_gives_empty_results(task):
+    """Zero states: empty outputs from every public method (the gyroscope's rim lookup
+    failed to reshape an empty batch)."""
+    system = dc.load_system(task)
+    z = system.sample_initial_conditions(1, seed=0)[:0]
+    P, dim = system.n_points, system.dim
+    assert system.simulate(z, 3).shape == (0, 4, 2, P, dim)
+    assert system.step(z).shape == (0, 2, P, dim)
+    assert system.gaps(z[:, 0]).shape == (0, system.n_contacts)
+    assert system.resolve_contacts(z).z.shape == (0, 2, P, dim)
+    assert system.project_positions(z).shape == (0, 2, P, dim)
+    assert system.energy(z).shape == (0,)

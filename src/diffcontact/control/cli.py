@@ -137,11 +137,20 @@ def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -
     shot = ", ".join(f"{k} = {_fmt(v)}" for k, v in info["variables"].items())
     res = plan.result
     print(f"{plan.task} with {planner.name}: {shot}")
+    if planner.truth_known:
+        judged = f"{info['distance_true']:.4g} under the ground truth ({planner.truth.name}"
+        judged += (
+            f", {planner.truth_contact_model})" if planner.truth_contact_model != "CM" else ")"
+        )
+    else:
+        judged = "unknown under the ground truth (recorded data without true parameters)"
+        info["distance_true"] = None
     print(
         f"  final distance to the target: {info['distance_model']:.4g} under the planning "
-        f"model, {info['distance_true']:.4g} under the ground truth ({planner.truth.name})"
+        f"model, {judged}"
     )
-    print(f"  {res.iterations} iterations ({res.stopped}), {args.starts} starts, {seconds:.1f} s")
+    its = f"{res.iterations} iteration{'s' if res.iterations != 1 else ''}"
+    print(f"  {its} (stopped: {res.stopped}), {args.starts} starts, {seconds:.1f} s")
     if args.json:
         info.update(planner=planner.name, iterations=res.iterations, seconds=round(seconds, 3))
         atomic_write_json(args.json, info)
@@ -150,14 +159,13 @@ def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -
         from diffcontact.viz import animate, scene_from_system
 
         scene = scene_from_system(planner.truth, title=f"{plan.task}: {planner.name}")
-        animate(
-            plan.traj_true[:1],
-            scene,
-            args.gif,
-            overlay=plan.traj_model[:1],
-            labels=("ground truth", "planning model"),
-            dt=planner.dt,
-        )
+        if planner.truth_known:
+            animate(
+                plan.traj_true[:1], scene, args.gif, overlay=plan.traj_model[:1],
+                labels=("ground truth", "planning model"), dt=planner.dt,
+            )  # fmt: skip
+        else:  # only the plan: no truth to draw
+            animate(plan.traj_model[:1], scene, args.gif, dt=planner.dt)
         print(f"  wrote {args.gif}")
     return 0
 

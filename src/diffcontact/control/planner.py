@@ -38,6 +38,11 @@ class Planner:
         system: the System holding the structure (bodies, geometry, ``dt``).
         truth: the ground-truth System of the same config.
         learned: whether the dynamics are a learned model's.
+        truth_contact_model: the contact model the truth simulates with (a model
+            loaded from a training run: its dataset's, e.g. ``"LCP"``; else ``"CM"``).
+        truth_known: whether :attr:`truth` is the data's system (``False`` for a model
+            trained on recorded data whose true parameters were not declared: the
+            config's masses, mu and e_P are placeholders, and nothing can judge a plan).
     """
 
     name: str
@@ -47,6 +52,14 @@ class Planner:
     _simulate: Callable[..., Tensor]
     _parameters: Callable[[], Any]
     _frozen: Callable[[], contextlib.AbstractContextManager[None]]
+    truth_contact_model: Any = "CM"
+    truth_known: bool = True
+
+    def simulate_truth(self, z0: Tensor, steps: int) -> Tensor:
+        """``(N, steps + 1, 2, P, dim)``: ``z0`` under the ground truth (its contact model)."""
+        if not self.truth_known:
+            raise ValueError(f"the ground truth of {self.name} is unknown (recorded data)")
+        return self.truth.simulate(z0, steps, contact_model=self.truth_contact_model)
 
     @property
     def bodies(self) -> tuple[Any, ...]:
@@ -92,15 +105,34 @@ def _no_grad_weights(module: Any) -> Iterator[None]:
             p.requires_grad_(flag)
 
 
-def _from_string(spec: str) -> Any:
+def _from_string(spec: str) -> tuple[Any, dict[str, Any]]:
+    """The object ``spec`` names, and what its training data say about the truth."""
     path = Path(spec)
     if path.is_dir() or path.suffix in (".pt", ".ckpt"):
         from diffcontact.learning.models.storage import load_model
 
-        return load_model(path)
+        return load_model(path), _truth_of_run(path if path.is_dir() else path.parent)
     from diffcontact.systems import load_system
 
-    return load_system(spec)
+    return load_system(spec), {}
+
+
+def _truth_of_run(run: Path) -> dict[str, Any]:
+    """``truth_contact_model`` and ``truth_known`` from the dataset of a training run
+    (``run.json``'s ``data_dir``); nothing where the run or its data cannot be read."""
+    import json
+
+    from diffcontact.learning.data.format import load_dataset
+
+    try:
+        data_dir = json.loads((run / "run.json").read_text())["data_dir"]
+        dataset = load_dataset(data_dir)
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    return {
+        "truth_contact_model": dataset.contact_model or "CM",
+        "truth_known": dataset.parameters_known,
+    }
 
 
 def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
@@ -118,8 +150,9 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
 
     if isinstance(obj, Planner):
         return obj
+    about_truth: dict[str, Any] = {}
     if isinstance(obj, (str, Path)):
-        obj = _from_string(str(obj))
+        obj, about_truth = _from_string(str(obj))
     if isinstance(obj, System):
         system = obj
 
@@ -136,6 +169,7 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
             _simulate=simulate,
             _parameters=system.parameters,
             _frozen=contextlib.nullcontext,
+            truth_contact_model=contact_model,
         )
     config = getattr(obj, "config", None)
     if config is None or not callable(getattr(obj, "simulate", None)):
@@ -184,4 +218,5 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
         _simulate=simulate,
         _parameters=parameters,
         _frozen=frozen,
+        **about_truth,
     )

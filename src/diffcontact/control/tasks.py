@@ -29,6 +29,7 @@ from torch import Tensor
 from diffcontact.control.optimize import ControlError, OptimizeResult, optimize
 from diffcontact.control.planner import Planner, as_planner
 from diffcontact.control.variables import Spin, Velocity
+from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, _large_allowed
 
 __all__ = [
     "ShotPlan",
@@ -48,9 +49,11 @@ class ShotPlan:
         task: ``"billiards"`` or ``"throw"``.
         target: ``(N, 2)`` (billiards) or ``(N,)`` (throw).
         variables: the chosen values by variable name, ``(N, size)``.
-        distance_model, distance_true: ``(N,)`` final distances to the target.
+        distance_model, distance_true: ``(N,)`` final distances to the target
+            (``distance_true`` NaN where the truth is unknown: ``planner.truth_known``).
         traj_model, traj_true: ``(N, steps + 1, 2, P, dim)`` the planned motion
-            under the planner and under the truth.
+            under the planner and under the truth (its contact model,
+            ``planner.truth_contact_model``; NaN where unknown).
         result: the :class:`OptimizeResult`.
     """
 
@@ -82,6 +85,11 @@ def _steps(time: float, dt: float) -> int:
     steps = round(time / dt)
     if steps < 1 or abs(steps * dt - time) > 1e-9 * max(1.0, time):
         raise ControlError(f"time {time:g} s is not a positive multiple of the step dt = {dt:g} s")
+    if steps > MAX_STATES and not _large_allowed():  # (a typo would fill the memory)
+        raise ControlError(
+            f"time {time:g} s is {steps} steps of dt = {dt:g} s; at most {MAX_STATES} "
+            f"(set {ALLOW_LARGE_ENV}=1 to lift the limit)"
+        )
     return steps
 
 
@@ -323,7 +331,10 @@ def _judge(
     z0 = result.z0
     with planner.frozen():  # no torch.no_grad: a learned potential's force needs autograd
         traj_model = planner.simulate(z0, steps, result.params).detach()
-    traj_true = planner.truth.simulate(z0, steps).detach()
+    if planner.truth_known:
+        traj_true = planner.simulate_truth(z0, steps).detach()
+    else:  # recorded data without true parameters: nothing to judge by (NaN distances)
+        traj_true = torch.full_like(traj_model, math.nan)
     return ShotPlan(
         task=task,
         target=target,

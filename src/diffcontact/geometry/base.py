@@ -104,7 +104,7 @@ def gather_points(x: Tensor, points: Tensor) -> Tensor:
     """
     batch = x.shape[:-2]
     tail = points.shape[len(batch) :]
-    flat = points.reshape(*batch, -1)
+    flat = points.reshape(*batch, math.prod(tail))  # (not -1: ambiguous for an empty batch)
     out = torch.gather(x, -2, flat.unsqueeze(-1).expand(*flat.shape, x.shape[-1]))
     return out.reshape(*batch, *tail, x.shape[-1])
 

@@ -77,3 +77,16 @@ def test_a_changed_test_set_is_refused(tmp_path, dataset, capsys):
     assert cli(argv) == 2
     assert "test.npz does not match its sha256" in _error_line(capsys)
     assert not (run / "evaluation").exists()
+
+
+def test_data_of_another_system_is_refused_up_front(tmp_path, dataset, capsys):
+    """A model of three balls evaluated on two balls' data: one line, exit 2 (a raw
+    ValueError from the rollout, exit 1, before)."""
+    root = tmp_path / "r"
+    root.mkdir()
+    run = run_dir(root, dataset, log=False)
+    LearnedModel({**TINY, "masses": [0.1, 0.2, 0.3], "radii": [0.1] * 3, "cor": 0.8},
+                 hidden=(4,)).save(run / "model.pt")  # fmt: skip
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev")]) == 2
+    line = _error_line(capsys)
+    assert "(2, 2, 2) (BP2), the model's have (2, 3, 2)" in line and "another system" in line
