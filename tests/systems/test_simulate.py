@@ -259,8 +259,20 @@ def test_tunnelling_warns_once_or_raises_naming_the_states():
     fast = dc.load_system("BP5")
     z = fast.sample_initial_conditions(2, seed=1)
     z[:, 1] *= 1e3
-    with pytest.raises(ValueError, match="tunnelled"):
+    with pytest.raises(ValueError, match=r"tunnelled .*too large for these speeds"):
         fast.simulate(z, 5, on_tunnelling="raise")
+
+
+def test_tunnelling_under_a_learned_contact_model_names_the_model_not_the_step():
+    """An untrained contact network lets the balls pass: the message blames it, not dt."""
+    from diffcontact.learning.models.registry import create_model
+
+    torch.manual_seed(0)
+    system = dc.load_system("BP5")
+    model = create_model("MLP-CD-CLNN", system.config, hidden=[8], contact_hidden=[8]).double()
+    z0 = system.sample_initial_conditions(4, seed=0)
+    with torch.no_grad(), pytest.raises(ValueError, match="learned contact model lets bodies"):
+        model.simulate(z0, 60, on_tunnelling="raise")
 
 
 @pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro", "Rope"])

@@ -1442,7 +1442,8 @@ class System:
         if nonfinite:
             raise ValueError(self._nonfinite_message(list(traj.unbind(1)), steps))
         if tunnelled:
-            self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise")
+            learned = getattr(model, "needs_contact_state", False)  # a learned contact model
+            self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
         return traj
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
@@ -1470,9 +1471,12 @@ class System:
             gaps = gaps.detach()
             return gaps, gaps < -TUNNELLING_FRACTION * self._contact_sizes(gaps)
 
-    def _report_tunnelling(self, gaps: Tensor, bad: Tensor, n: int, raise_error: bool) -> None:
+    def _report_tunnelling(
+        self, gaps: Tensor, bad: Tensor, n: int, raise_error: bool, learned: bool = False
+    ) -> None:
         """Warn (or raise) once, naming the states that tunnelled (``gaps`` and ``bad`` of
-        :meth:`_tunnelling`; some are)."""
+        :meth:`_tunnelling`; some are). ``learned``: the contact model is a learned one
+        (a contact network), which is then the likely cause rather than the step."""
         with torch.no_grad():
             depth = -gaps / self._contact_sizes(gaps)
             rows = bad.flatten(1).any(-1).nonzero().flatten().tolist()
@@ -1487,8 +1491,14 @@ class System:
         message = (
             f"simulate {self.name}: bodies tunnelled (penetration deeper than "
             f"{TUNNELLING_FRACTION} of the smaller radius) in {len(rows)} of {n} "
-            f"trajectories: {'; '.join(items)}{more}. The step dt = {self.dt} is too large "
-            "for these speeds: use a smaller dt (on_tunnelling='ignore' silences this)"
+            f"trajectories: {'; '.join(items)}{more}. "
+            + (
+                "The learned contact model lets bodies pass through each other (it has not "
+                "learned to stop them there)"
+                if learned
+                else f"The step dt = {self.dt} is too large for these speeds: use a smaller dt"
+            )
+            + " (on_tunnelling='ignore' silences this)"
         )
         if raise_error:
             raise ValueError(message)
