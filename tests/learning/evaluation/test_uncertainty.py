@@ -159,6 +159,11 @@ def test_evaluate_writes_and_prints_the_uncertainty(tmp_path, dataset, capsys):
     assert set(u) >= {"mass_ratios", "mu", "cor", "regimes", "residual_mean_abs"}
     assert len(u["mu"]["determined"]) == len(u["mu"]["value"])
     assert "95 % interval" in printed
+    reasons = [r for k in ("mass_ratios", "mu", "cor") for r, ok in
+               zip(u[k]["reason"], u[k]["determined"], strict=True) if not ok]  # fmt: skip
+    assert reasons  # (the untrained model leaves some undetermined)
+    for reason in reasons:  # printed with the reason, not only "not determined"
+        assert f"? {reason.split(': ', 1)[-1]}" in printed, (reason, printed)
     assert cli([*argv, "--no-uncertainty"]) == 0
     assert json.loads((out / "metrics.json").read_text())["uncertainty"] is None
 

@@ -88,7 +88,7 @@ def _fmt(x: Any) -> str:
 
 
 def _interval(unc: Mapping[str, Any] | None, i: int) -> str:
-    """``[lo, hi]`` of the 95 % interval, ``?`` (with the reason's head) when not determined."""
+    """``[lo, hi]`` of the 95 % interval, ``?`` with the reason when not determined."""
     if unc is None:
         return ""
     i = 0 if len(unc["value"]) == 1 else i  # one shared value
@@ -96,7 +96,8 @@ def _interval(unc: Mapping[str, Any] | None, i: int) -> str:
     text = "flat" if ci is None else f"[{ci[0]:.4g}, {ci[1]:.4g}]"
     if ok:
         return f"  {text}"
-    return f"  {text} ? {unc['reason'][i].split(':')[0]}"
+    reason = unc["reason"][i]  # "not determined: <why>": the why (docs/evaluation.md)
+    return f"  {text} ? {reason.split(': ', 1)[-1]}"
 
 
 def _param_rows(
