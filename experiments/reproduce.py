@@ -148,9 +148,10 @@ NOTES = (
     "the masses, and other errors (e_P, the potential) weigh in, so the scale settles "
     "elsewhere. Before the scale had its own parameter (model format 2), it barely moved "
     "and BP5-e's CMr ratios were 0.57 % off.",
-    "A step whose gradient norm is more than 100 times the recent median is skipped "
-    "(`skipped steps`; docs/training.md): near-grazing contacts produce such spikes, and one "
-    "of them fed to Adam froze the gyroscope's inertia before this check existed.",
+    "A step whose gradient norm is more than 100 times the 0.9 quantile of the last 50 "
+    "steps' norms is skipped (`skipped steps`; docs/training.md): near-grazing contacts "
+    "produce such spikes, and one of them fed to Adam froze the gyroscope's inertia before "
+    "this check existed.",
     "The chain pendulum is chaotic: rollout errors over 100 steps grow with any error of the "
     "learned potential, which is the last part to converge under Adam (the *before refit* "
     "column, after the 1000 epochs). The refit (`diffcontact refit`, docs/training.md) fits "
