@@ -96,8 +96,7 @@ def _interval(unc: Mapping[str, Any] | None, i: int) -> str:
     text = "flat" if ci is None else f"[{ci[0]:.4g}, {ci[1]:.4g}]"
     if ok:
         return f"  {text}"
-    reason = unc["reason"][i]  # "not determined: <why>": the why (docs/evaluation.md)
-    return f"  {text} ? {reason.split(': ', 1)[-1]}"
+    return f"  {text} ? {unc['reason'][i]}"  # e.g. "not stable: the data would move it ..."
 
 
 def _param_rows(
