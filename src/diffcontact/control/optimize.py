@@ -321,7 +321,7 @@ def optimize(
         threads_held = contextlib.ExitStack()
         try:
             scope = threads_held.enter_context(thread_scope(threads, device, iterations))
-            warned: list[int] = []  # the iteration of the zero-gradient warning
+            warned = False  # the zero-gradient warning, once per call
             for it in range(iterations):
                 last: dict[str, Tensor] = {}
 
@@ -353,7 +353,7 @@ def optimize(
                 with scope.step():
                     opt.step(closure)
                 if "no_gradient" in last and not warned:
-                    warned.append(it)
+                    warned = True
                     warnings.warn(
                         f"optimize: the objective does not depend on "
                         f"{', '.join(v.name for v in variables)} at iteration {it} (no "

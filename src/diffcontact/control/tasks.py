@@ -29,7 +29,7 @@ from torch import Tensor
 from diffcontact.control.optimize import ControlError, OptimizeResult, optimize
 from diffcontact.control.planner import Planner, as_planner
 from diffcontact.control.variables import Spin, Velocity
-from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, _large_allowed
+from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, large_allowed
 
 __all__ = [
     "ShotPlan",
@@ -85,7 +85,7 @@ def _steps(time: float, dt: float) -> int:
     steps = round(time / dt)
     if steps < 1 or abs(steps * dt - time) > 1e-9 * max(1.0, time):
         raise ControlError(f"time {time:g} s is not a positive multiple of the step dt = {dt:g} s")
-    if steps > MAX_STATES and not _large_allowed():  # (a typo would fill the memory)
+    if steps > MAX_STATES and not large_allowed():  # (a typo would fill the memory)
         raise ControlError(
             f"time {time:g} s is {steps} steps of dt = {dt:g} s; at most {MAX_STATES} "
             f"(set {ALLOW_LARGE_ENV}=1 to lift the limit)"

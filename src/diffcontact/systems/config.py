@@ -34,6 +34,7 @@ __all__ = [
     "GyroscopeConfig",
     "RopeConfig",
     "SystemConfig",
+    "large_allowed",
     "parse_config",
     "state_bytes",
 ]
@@ -162,7 +163,8 @@ def _bytes(n: float) -> str:
     return f"{n:,.0f} bytes"
 
 
-def _large_allowed() -> bool:
+def large_allowed() -> bool:
+    """Whether :data:`ALLOW_LARGE_ENV` lifts the size limits (:data:`MAX_STATES`, ...)."""
     return os.environ.get(ALLOW_LARGE_ENV, "").strip().lower() in ("1", "true", "yes")
 
 
@@ -230,7 +232,7 @@ class _SystemBase(_Strict):
                 f"dt={self.dt} (ratio {ratio:g})"
             )
         self._check_sizes()
-        if not _large_allowed():
+        if not large_allowed():
             self._check_cost(round(ratio))
         if self.n_contacts < 1:
             raise ValueError("the system has no candidate contacts (add walls or bodies)")
