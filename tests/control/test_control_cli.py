@@ -134,3 +134,7 @@ def test_a_run_s_plans_are_judged_by_its_data_s_truth(capsys, tmp_path):
     assert json.loads(out.read_text())["distance_true"] is None
     plan = plan_throw(as_planner(str(run_dir)), 0.8, starts=2, iterations=2, progress=False)
     assert math.isnan(float(plan.distance_true[0]))
+    # a run whose data is gone: the config's CM truth, and a warning that says so
+    with pytest.warns(UserWarning, match=r"data of run .* cannot be read .*config's system"):
+        planner = as_planner(str(_run_of(tmp_path, "data_gone", tmp_path / "missing")))
+    assert (planner.truth_contact_model, planner.truth_known) == ("CM", True)

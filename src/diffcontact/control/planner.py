@@ -119,15 +119,25 @@ def _from_string(spec: str) -> tuple[Any, dict[str, Any]]:
 
 def _truth_of_run(run: Path) -> dict[str, Any]:
     """``truth_contact_model`` and ``truth_known`` from the dataset of a training run
-    (``run.json``'s ``data_dir``); nothing where the run or its data cannot be read."""
+    (``run.json``'s ``data_dir``); nothing for a model file without a run, and a warning
+    where the run's data cannot be read (the truth is then the config's, with CM)."""
     import json
+    import warnings
 
     from diffcontact.learning.data.format import load_dataset
 
     try:
         data_dir = json.loads((run / "run.json").read_text())["data_dir"]
-        dataset = load_dataset(data_dir)
     except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    try:
+        dataset = load_dataset(data_dir)
+    except ValueError as err:
+        warnings.warn(
+            f"the data of run {run} cannot be read ({err}): plans are judged by the "
+            "config's system with CM, which may not be the data's",
+            stacklevel=3,
+        )
         return {}
     return {
         "truth_contact_model": dataset.contact_model or "CM",
