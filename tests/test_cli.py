@@ -234,3 +234,12 @@ def test_check_writable(tmp_path):
         check_writable(tmp_path)
     with pytest.raises(FileNotFoundError):
         check_writable(tmp_path / "missing" / "x.npz")
+    assert list(tmp_path.iterdir()) == []  # the write probe leaves nothing behind
+
+
+def test_check_writable_tries_a_file(monkeypatch):
+    """Permission bits pass everything for root: a folder where no file can be
+    created (here /proc) is refused up front, not after the expensive work."""
+    monkeypatch.setattr(os, "access", lambda *a, **k: True)  # as root
+    with pytest.raises(PermissionError, match="folder /proc is not writable"):
+        check_writable("/proc/result.json")

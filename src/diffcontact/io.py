@@ -81,6 +81,9 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
 
     Checks that the parent folder exists and is writable and that ``path`` is
     not a folder. Call it before expensive work whose result goes to ``path``.
+    Writability is tried with a file created and removed in the folder:
+    permission bits say nothing for root or on read-only or virtual file systems
+    (``/sys``, ``/proc``).
     """
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
@@ -90,6 +93,12 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
         raise FileNotFoundError(f"folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(f"folder {parent} is not writable")
+    try:  # what the writer will do: create a file there (root passes os.access anywhere)
+        fd, probe = tempfile.mkstemp(dir=parent, prefix=".diffcontact-probe-")
+    except OSError as e:
+        raise PermissionError(f"folder {parent} is not writable ({e.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
     if p.exists() and not os.access(p, os.W_OK):
         raise PermissionError(f"{p} is not writable")
     return p

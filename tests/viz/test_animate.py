@@ -96,11 +96,11 @@ def test_gif_bouncing_points(tmp_path):
 def test_frames_subsampled_and_grid(tmp_path):
     traj = torch.from_numpy(bouncing_points(6, 250))  # torch input, N > max_trajectories
     scene = Scene(dim=2, circles=tuple(Circle(i, 0.08) for i in range(3)), walls=BOX)
-    out = animate(traj, scene, tmp_path / "grid.gif", max_frames=40, dpi=50, panel_size=2.0)
+    out = animate(traj, scene, tmp_path / "grid.gif", max_frames=40, dpi=50, panel_size=3.0)
     assert n_frames(out) == 40
     with Image.open(out) as im:  # 4 trajectories shown as a 2 x 2 grid
         w, h = im.size
-    assert w == 2 * 2.0 * 50
+    assert w == 2 * 3.0 * 50
     assert h > w
 
 

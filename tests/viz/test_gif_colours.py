@@ -54,3 +54,21 @@ def test_four_trajectories_stay_under_300_kb(tmp_path):
     assert 50_000 < size < 300_000, size
     with Image.open(path) as gif:
         assert gif.n_frames == 40  # the default max_frames of 100 states
+
+
+def test_title_and_legend_fit_over_one_panel():
+    """evaluate's GIF of one trajectory (``--n-gif 1``): its title and legend are wider
+    than one panel and were cut at the figure's edges."""
+    system, true, pred = _rollouts("BP5", n=1, steps=9)
+    scene = scene_from_system(system, title="BP5: truth (filled) vs MLP-CD-CLNN (dashed)")
+    fig, _, _ = _build_figure(
+        true, scene, max_trajectories=1, overlay=pred, max_frames=10,
+        labels=("ground truth", "MLP-CD-CLNN"), trail=0, panel_size=3.2,
+    )  # fmt: skip
+    title = fig.suptitle(f"{scene.title}   t = 0.090 s", fontsize=9)  # as animate sets it
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    width = fig.bbox.width
+    for artist in (title, *fig.legends):
+        box = artist.get_window_extent(renderer)
+        assert 0 <= box.x0 and box.x1 <= width, (artist, box.x0, box.x1, width)

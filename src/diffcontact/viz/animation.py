@@ -40,6 +40,8 @@ _PALETTE = (
     "#17becf",
 )
 _CONTACT = "#e00000"
+MIN_WIDTH = 5.2
+"""The figure's least width in inches: room for the title and the legend over one panel."""
 _OVERLAY = "#222222"
 
 
@@ -557,7 +559,9 @@ def _build_figure(
     idx = frame_indices(n_steps, max_frames)
     ncols = math.ceil(math.sqrt(n))
     nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(panel_size * ncols, panel_size * nrows + 0.35), layout="constrained")
+    # at least MIN_WIDTH wide: one panel is narrower than the title and the legend
+    width = max(panel_size * ncols, MIN_WIDTH)
+    fig = Figure(figsize=(width, panel_size * nrows + 0.35), layout="constrained")
     FigureCanvasAgg(fig)
     shown = [x[:n, idx].reshape(-1, n_points, dim)]
     if xo is not None:
