@@ -138,3 +138,18 @@ def test_training_examples():
     system = ns["system"]
     assert system.parameters().mu.flatten()[0].item() == pytest.approx(0.3)
     assert system.parameters().cor.flatten()[0].item() == pytest.approx(0.8)
+
+
+def test_evaluation_examples():
+    # the run and the dataset the page's examples name, made small
+    sizes = ["--n-train", "8", "--n-val", "2", "--n-test", "2"]
+    assert main(["generate", "BP5", "--out", "data/BP5", *sizes, "--quiet"]) == 0
+    assert main(["train", "data/BP5", "--out", "runs/BP5-CM", "--epochs", "1", "--quiet"]) == 0
+    prelude = "import diffcontact as dc\nmy_model = dc.learning.load_model('runs/BP5-CM')\n"
+    ns = run_block("docs/evaluation.md", 0, prelude=prelude)
+    assert ns["metrics"]["model"] == "CM-CD-CLNN" and Path("eval/mine/metrics.json").is_file()
+    prelude += (
+        "model = my_model\ntrain_chunks = dc.learning.load_dataset('data/BP5').train.chunks\n"
+    )
+    ns = run_block("docs/evaluation.md", 1, prelude=prelude)
+    assert set(ns["u"]["mu"]) >= {"value", "ci95", "determined", "reason"}
