@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
+import torch
 from torch import Tensor
 
 from diffcontact.fastops import times_matrix
@@ -103,6 +104,11 @@ class DenseContact:
 
     def dense(self) -> Tensor:
         return self.J_C
+
+    def to(self, dtype: torch.dtype) -> DenseContact:
+        """The same operator in ``dtype`` (its products then formed in ``dtype``)."""
+        M = None if self.Mhat_inv is None else self.Mhat_inv.to(dtype)
+        return DenseContact(self.J_C.to(dtype), M)
 
 
 def as_operator(J_C: Tensor | ContactOperator, Mhat_inv: Tensor | None) -> ContactOperator:

@@ -20,6 +20,7 @@ The same numbers as the dense products to rounding, differentiable in the entrie
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from .base import (
@@ -87,3 +88,8 @@ class SparseContact:
     def dense(self) -> Tensor:
         n, K, d, _, _ = self._shape
         return assemble_jacobian(self.rows, self.n_points).reshape(n, K * d, -1)
+
+    def to(self, dtype: torch.dtype) -> SparseContact:
+        """The same operator in ``dtype`` (its products then formed in ``dtype``)."""
+        rows = SparseJacobian(self.rows.points, self.rows.values.to(dtype))
+        return SparseContact(rows, self.inverse_mass.to(dtype))
