@@ -66,3 +66,15 @@ def test_trajectories_alone_and_inside_random_batches(task, seed):
             rows = torch.cat([others[:where], torch.tensor([i]), others[where:]])
             batch = system.simulate(pool[rows], steps)
             torch.testing.assert_close(batch[where : where + 1], alone, rtol=0, atol=TOL)
+
+
+def test_rope_projection_alone_and_inside_a_batch():
+    """The rope's position projection stops each state at its own convergence: the
+    iterations went on for every state while any state of the batch had a limit left, so
+    a state alone and inside a batch differed by up to 1.7e-9 after 60 steps."""
+    system = dc.load_system("Rope")
+    z0 = system.sample_initial_conditions(24, seed=3)
+    full = system.simulate(z0, 60)
+    for i in (1, 2, 7):
+        alone = system.simulate(z0[i : i + 1], 60)
+        torch.testing.assert_close(full[i : i + 1], alone, rtol=0, atol=TOL)

@@ -44,8 +44,10 @@ Making it robust on a whipping rope (violations of 0.1-0.4 rad per step at
 Limitation: on a long whipping rope (Rope-D200) the per-step violations grow beyond
 what the iterations resolve and the limits are not held (docs/config.md, ``rope``).
 
-The iterations stop early once every gap is above ``-tol`` and ``Phi`` is within
-``tol``. Velocities are not changed (the impulse already made them admissible).
+Each state stops iterating once its gaps are above ``-tol`` and its ``Phi`` is within
+``tol`` (its positions are then kept, whatever the other states of its batch still do:
+a state's projection does not depend on its batch), and the iterations end when every
+state has stopped. Velocities are not changed (the impulse already made them admissible).
 Everything but the discrete choices (rows, step length, early stop) is
 differentiable; with the projection on, ``System`` drops the penetration target
 (it would add a velocity for a violation the projection already removed, which
@@ -107,8 +109,8 @@ class ReadFree:
     CUDA graph, or of a step-by-step rollout on CUDA, where each read stalls the queue.
 
     Every state takes part (those without a violated limit get no rows and keep their
-    positions), every iteration runs (a state's correction is applied while any state
-    is left to correct, as the early stop would have it, and is zero after), and each
+    positions), every iteration runs (a state's correction is applied until the state
+    has converged, as the early stop would have it, and is zero after), and each
     state's problem is padded to ``rows`` rows, so that no shape depends on the data.
 
     Attributes:
@@ -116,7 +118,7 @@ class ReadFree:
             iteration the early stop would have run sets :attr:`overflowed`; its
             result is then not the projection's, and the caller must compute it again.
         needed: ``()`` int64 on the device, updated in place: the most rows any state
-            selected (read once by the caller, after the rollout).
+            not yet converged selected (read once by the caller, after the rollout).
         diagonal: whether ``M^-1`` is diagonal (point masses), known from the system's
             structure instead of read from the matrix.
         two_sided: whether the geometry has two-sided limits (finite ``gap_widths``).
@@ -303,7 +305,7 @@ def project_positions(
     sparse = bool(diagonal) and phi0 is None and sparse_gram_available(settings, x.dtype, x.device)
     x_i = x_pred
     dist = None  # after the first iteration: the line search's distances at x_i
-    going = None  # read-free: () bool, whether the early stop would still iterate
+    going = None  # after the first iteration: (n,) bool, the states not converged yet
     for it in range(iterations):
         with torch.no_grad():
             if dist is None:
@@ -312,21 +314,20 @@ def project_positions(
             worst = (-dist).amax(-1, keepdim=True).clamp_min(0)
             rows = mask_rows | (dist < 0) | (dist < MARGIN * worst)
             R = rows.sum(-1).max()
-            if it > 0:  # whether a limit is left, and the rows' count
-                left = (dist * scale_rows < -tol).any()
-                if phi0 is not None:  # and the equality constraints are back where they were
-                    left = (
-                        left | ((constraints.phi(x_i.detach()) - phi0.detach()).abs() > tol).any()
-                    )
+            if it > 0:  # the states with a limit left, and the rows' count
+                left = (dist * scale_rows < -tol).any(-1)  # (n,)
+                if phi0 is not None:  # or the equality constraints not back where they were
+                    drift = (constraints.phi(x_i.detach()) - phi0.detach()).abs() > tol
+                    left = left | drift.any(-1)
+                # a state stops at its own convergence, whatever the others in its batch
+                going = left if going is None else going & left
+                R = torch.where(going, rows.sum(-1), 0).max()
                 if read_free is None:  # one read
-                    left, R = torch.stack([left.to(R), R]).tolist()
+                    left, R = torch.stack([going.any().to(R), R]).tolist()
                     if not left:
                         break  # converged (the line search's gaps said so: no evaluation more)
-                else:
-                    going = left if going is None else going & left
             if read_free is not None:  # the padded rows; the count they had to hold
-                counted = R if going is None else torch.where(going, R, 0)
-                read_free.needed.copy_(torch.maximum(read_free.needed, counted))
+                read_free.needed.copy_(torch.maximum(read_free.needed, R))
                 R = min(read_free.rows, rows.shape[-1])
             mask_rows = rows
         if it > 0:
@@ -402,7 +403,7 @@ def project_positions(
             # the distances at the chosen step: the next iteration's convergence test
             dist = trial_dist.gather(0, choice.view(1, n, 1).expand(1, *trial_dist.shape[1:]))[0]
         x_next = x_i + best[:, None, None] * dx
-        x_i = x_next if going is None else torch.where(going, x_next, x_i)
+        x_i = x_next if going is None else torch.where(going[:, None, None], x_next, x_i)
     if read_free is not None:
         return torch.where(has[:, None, None], x_i, x)
     return x.index_put((b,), x_i)
