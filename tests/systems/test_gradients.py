@@ -149,3 +149,22 @@ def test_gradients_bp5_longer_rollout():
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(2, seed=0)
     check_rollout(system, ["mu", "cor", "mass"], z0, steps=40)
+
+
+def test_parameters_the_rollout_does_not_use_get_a_zero_gradient():
+    """Balls at rest never touch: mu and e_P take no part in the rollout. Asking for their
+    gradient gave autograd's 'element 0 of tensors does not require grad'."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(3, seed=0)
+    z0[:, 1] = 0
+    params = system.parameters()
+    mu = params.mu.clone().requires_grad_(True)
+    cor = params.cor.clone().requires_grad_(True)
+    traj = system.simulate(z0, 5, params=params.replace(mu=mu, cor=cor))
+    torch.testing.assert_close(traj[:, -1], z0)  # nothing moved
+    traj[:, -1, 0].sum().backward()
+    assert torch.equal(mu.grad, torch.zeros_like(mu)) and torch.equal(
+        cor.grad, torch.zeros_like(cor)
+    )
+    with torch.no_grad():  # and nothing changes without gradients
+        assert not system.simulate(z0, 5, params=params.replace(mu=mu)).requires_grad

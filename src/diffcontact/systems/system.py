@@ -106,6 +106,20 @@ each, seconds): BP5 (10 columns) 0.34-0.41 dense against 0.47-0.75 sparse; Rope 
 (400) 21.3-21.7 against 15.2-16.2."""
 
 
+class _ZeroGradient(torch.autograd.Function):
+    """``traj`` unchanged, linked to ``inputs`` it does not depend on: their gradient is zero."""
+
+    @staticmethod
+    def forward(ctx: Any, traj: Tensor, *inputs: Tensor) -> Tensor:
+        ctx.inputs = [(t.shape, t.dtype, t.device) for t in inputs]
+        return traj.clone()
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
+        zeros = (torch.zeros(shape, dtype=dt, device=dev) for shape, dt, dev in ctx.inputs)
+        return (None, *zeros)
+
+
 def list_tasks() -> list[str]:
     """Names of the built-in tasks (the YAML files in ``systems/tasks``)."""
     return sorted(p.stem for p in _TASK_DIR.glob("*.yaml"))
@@ -811,7 +825,11 @@ class System:
             raise ValueError(
                 f"{name} has overlapping bodies or violated limits "
                 f"(gap < {f'-{tol:.1e}' if tol else '0'}) in "
-                f"{int(bad.any(-1).sum())} of {z.shape[0]} states:\n  " + "\n  ".join(items) + more
+                f"{int(bad.any(-1).sum())} of {z.shape[0]} states:\n  "
+                + "\n  ".join(items)
+                + more
+                + "\n(a state a simulation ended in may touch or be slightly inside a contact: "
+                "to go on from one, pass check_overlap=False)"
             )
 
     # ---------------------------------------------------------------- sampling
@@ -1315,7 +1333,11 @@ class System:
             params: :class:`~diffcontact.systems.PhysicalParams` (default:
                 :meth:`parameters`, the system's own); fields may carry a
                 leading dimension ``N`` (one set per trajectory). Differentiable
-                with respect to every tensor in it.
+                with respect to every tensor in it. Where the trajectory depends on
+                none of the tensors that require a gradient (``mu`` of a rollout
+                without a contact, ``z0`` without one), it still carries a graph and
+                they get a zero gradient; a tensor it does not depend on beside
+                others it does gets none (``grad`` stays ``None``, torch's rule).
             contact_model: a registered name (``"CM"``, ``"CMr"``, see
                 :func:`~diffcontact.contact.contact_models`) or a
                 :class:`~diffcontact.contact.ContactModel` object.
@@ -1444,6 +1466,11 @@ class System:
         if tunnelled:
             learned = getattr(model, "needs_contact_state", False)  # a learned contact model
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
+        if torch.is_grad_enabled() and not traj.requires_grad:
+            given = () if params is None else params.tensors().values()
+            wanted = [t for t in (z0, *given) if t.requires_grad]
+            if wanted:  # a gradient was asked for: zero, not autograd's "does not require grad"
+                traj = _ZeroGradient.apply(traj, *wanted)
         return traj
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
