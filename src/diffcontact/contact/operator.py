@@ -11,7 +11,10 @@ only through five maps:
 - ``A = J_C Mhat^-1 J_C^T`` (:meth:`ContactOperator.delassus`),
 - ``J_C J_C^T`` (:meth:`ContactOperator.gram`).
 
-A :class:`ContactOperator` is anything that provides them. :class:`DenseContact` computes
+A :class:`ContactOperator` is anything that provides them; one that also has
+``to(dtype)`` (both built in do) is cast to the solver's compute dtype when the states are
+narrower (float32 states: the impulse's products formed in float64,
+:func:`~diffcontact.contact.two_phase_impulse`). :class:`DenseContact` computes
 them from the dense matrices (every system, every device). A long rope's rows touch two
 or three of its hundreds of points, and its masses are point masses without equality
 constraints (a diagonal ``Mhat^-1``): there
