@@ -348,6 +348,9 @@ def optimize(
                             raise ControlError(
                                 f"gradient of {v.name} is not finite at {bad} (iteration {it})"
                             )
+                    if all(val.grad is None or not val.grad.any() for val in values):
+                        # a simulator links parameters it did not use with a zero gradient
+                        last["no_gradient"] = obj
                     return obj.sum()
 
                 with scope.step():
