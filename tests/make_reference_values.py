@@ -24,7 +24,10 @@ ratios up to 1.57 and bends 0.39 rad past the limit within the Rope task's 1 s a
 dt = 0.01, ``python experiments/rope_limits.py --task Rope --horizon 1 --dt 0.01 --n 8``),
 so the rope the config describes is a different trajectory, not a rounding change
 (Rope moved by up to 1.1). The other tasks' rollouts are unchanged (their projection is
-off).
+off). Rope (two states) was rewritten once more when the projection began to stop each
+state at its own convergence (it iterated both while either had a limit left): it moved
+by 3.8e-10, and now equals each state's rollout alone (the one-state rope entries did not
+move).
 
 ``tests/test_reference_values.py`` compares against it.
 """
