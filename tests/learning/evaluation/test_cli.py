@@ -7,6 +7,7 @@ import shutil
 
 import pytest
 
+from diffcontact.cli import main
 from diffcontact.learning.models.physical import LearnedModel
 
 from .support import TINY, cli, run_dir
@@ -89,4 +90,31 @@ def test_data_of_another_system_is_refused_up_front(tmp_path, dataset, capsys):
                  hidden=(4,)).save(run / "model.pt")  # fmt: skip
     assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev")]) == 2
     line = _error_line(capsys)
-    assert "(2, 2, 2) (BP2), the model's have (2, 3, 2)" in line and "another system" in line
+    assert "(2, 2, 2) (BP2), the model's (2, 3, 2)" in line and "another system" in line
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        ({"dt": 0.02, "horizon": 0.4}, "steps at dt = 0.02 s, the data are sampled every 0.01 s"),
+        ({"radii": [0.12, 0.15]}, "the contact geometry differs (walls, radii or limits)"),
+    ],
+)  # fmt: skip
+def test_a_model_of_another_step_or_geometry_is_refused(tmp_path, dataset, capsys, change, said):
+    """Evaluate and refit compared a model with data of another dt or other walls/radii
+    without a word (a relative error of 0.88, and a refit to the wrong data)."""
+    root = tmp_path / "r"
+    root.mkdir()
+    run = run_dir(root, dataset, log=False)
+    LearnedModel({**TINY, **change}, hidden=(4,)).save(run / "model.pt")
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev")]) == 2
+    line = _error_line(capsys)
+    assert said in line and "another system" in line
+    assert main(["refit", str(run), "--iterations", "1"]) == 2
+    assert said in capsys.readouterr().err
+    assert not (run / "model_adam.pt").exists()
+    # the learned parameters may differ: other masses, friction and restitution are scored
+    LearnedModel({**TINY, "masses": [0.2, 0.2], "mu": 0.4, "cor": 0.5}, hidden=(4,)).save(
+        run / "model.pt"
+    )
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev2")]) == 0

@@ -341,6 +341,55 @@ class Dataset:
     def counts(self) -> dict[str, int]:
         return {s: int(self.metadata[f"n_{s}"]) for s in SPLITS}
 
+    def mismatch(self, model: Any) -> str | None:
+        """Why ``model`` cannot be scored on or refit to these data, or ``None``.
+
+        What a model does not learn must match: the state shape, the time step and the
+        contact geometry (every candidate's gap at the data's first states, under the
+        model's ``config`` and the data's: walls, radii, limits). Masses, friction,
+        restitution and the potential may differ; those are what is learned.
+        """
+        system = self.system
+        shape = getattr(model, "state_shape", None)
+        if shape is not None and tuple(shape) != tuple(system.state_shape):
+            return (
+                f"its states have shape {tuple(system.state_shape)} ({system.name}), the "
+                f"model's {tuple(shape)}"
+            )
+        dt = getattr(model, "dt", None)
+        if dt is not None and abs(float(dt) - system.dt) > 1e-9 * system.dt:
+            return (
+                f"the model steps at dt = {float(dt):g} s, the data are sampled every "
+                f"{system.dt:g} s"
+            )
+        config = getattr(model, "config", None)
+        if config is None:
+            return None
+        try:
+            theirs = load_system(config)
+        except (ValueError, TypeError):
+            return None  # a model whose config is not a system's: nothing to compare
+        for name in SPLITS:
+            if self.counts[name] > 0:
+                x = self.split(name, dtype=torch.float64).traj[:64, 0, 0]  # (n, P, dim)
+                break
+        else:
+            return None
+        with torch.no_grad():
+            ours, model_gaps = system.gaps(x), theirs.gaps(x)
+        if ours.shape != model_gaps.shape:
+            return (
+                f"the data's system has {ours.shape[-1]} candidate contacts, the model's "
+                f"{model_gaps.shape[-1]}"
+            )
+        diff = float((ours - model_gaps).abs().max()) if ours.numel() else 0.0
+        if diff > 1e-9 * (1.0 + float(ours.abs().max())):
+            return (
+                f"the contact geometry differs (walls, radii or limits): the gaps of its "
+                f"states differ by up to {diff:.3g} under the model's config"
+            )
+        return None
+
     def __repr__(self) -> str:
         c = self.counts
         return (

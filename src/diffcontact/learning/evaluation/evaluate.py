@@ -393,13 +393,10 @@ def evaluate(
             raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
     if isinstance(model, torch.nn.Module):
         model = model.to(dev).eval()
-    shape = getattr(model, "state_shape", None)
-    if shape is not None and tuple(shape) != tuple(traj.shape[2:]):
+    why = dataset.mismatch(model)
+    if why is not None:
         name = getattr(model, "name", None) or type(model).__name__
-        raise EvaluationInputError(
-            f"{data_path}: its states have shape {tuple(traj.shape[2:])} ({system.name}), the "
-            f"model's have {tuple(shape)} ({name}): data of another system"
-        )
+        raise EvaluationInputError(f"{data_path}: {why} ({name}): data of another system")
 
     # ---- rollouts
     dt = system.dt

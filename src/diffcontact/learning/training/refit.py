@@ -345,6 +345,9 @@ def refit_run(
     model = load_model(run)
     _check_model(model)
     dataset = load_dataset(source)
+    why = dataset.mismatch(model)
+    if why is not None:
+        raise ValueError(f"{source}: {why}: data of another system, not refit to")
     train_chunks = dataset.split("train", dtype=torch.float64).chunks
     val_chunks = dataset.split("val", dtype=torch.float64).chunks
     report = refit(model.double(), train_chunks, val_chunks, iterations, log=log)
