@@ -103,6 +103,20 @@ def test_a_run_resumed_with_more_epochs_steps_at_the_longer_cosine(bp5_data, tmp
     assert seen[0] == pytest.approx(1e-3 * factor, rel=1e-12) and seen[0] > 0
 
 
+def test_resume_with_fewer_epochs_than_trained_is_refused_and_changes_nothing(bp5_data, tmp_path):
+    """It ended in Lightning's traceback ("You restored a checkpoint with current_epoch=1,
+    but you have set Trainer(max_epochs=1)") after run.json had been rewritten."""
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=2, **opts)
+    before = (run / "run.json").read_bytes()
+    with pytest.raises(
+        TrainingInputError, match=r"--epochs 1: .* has trained 2 .*--epochs 2 or more"
+    ):
+        train(bp5_data, run, epochs=1, resume=True, **opts)
+    assert (run / "run.json").read_bytes() == before
+
+
 def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
     """Learning rates per step, logged by a callback, follow the documented cosine."""
     seen = []

@@ -541,6 +541,13 @@ def train(
     launcher = _launcher_rank() == 0
     info = check_run_dir(out, run_info, resume) if launcher else None
     point = resume_point(checkpoints) if resume else None
+    if point is not None and point.path is not None and epochs < point.epoch + 1:
+        reached = "was in epoch" if point.mid_epoch else "has trained"
+        raise TrainingInputError(
+            f"cannot resume with --epochs {epochs}: {out} {reached} {point.epoch + 1} (its "
+            f"last checkpoint), and a resumed run trains up to --epochs; pass --epochs "
+            f"{point.epoch + 1} or more"
+        )
     if launcher and point is not None and point.path is None and (out / "model.pt").is_file():
         raise TrainingInputError(
             f"cannot resume: {out} holds a finished model.pt but no checkpoint to continue "
