@@ -15,7 +15,7 @@ from diffcontact.learning.models.storage import load_model
 from diffcontact.learning.training.options import COSINE_FLOOR, TrainingInputError
 from diffcontact.learning.training.run import train
 
-from .support import SMALL
+from .support import SMALL, write_dataset
 
 
 def _state(run_dir):
@@ -115,6 +115,26 @@ def test_resume_with_fewer_epochs_than_trained_is_refused_and_changes_nothing(bp
     ):
         train(bp5_data, run, epochs=1, resume=True, **opts)
     assert (run / "run.json").read_bytes() == before
+
+
+def test_resume_follows_moved_data_and_refuses_replaced_data(tmp_path):
+    """A run's data are known by their checksum: moved data resume (the path in run.json
+    follows them; they were "a different run" before, even through a link to the new
+    place), other data written at the run's path are refused (they trained silently)."""
+    opts = dict(batch_size=4, **SMALL)
+    data, run = tmp_path / "data", tmp_path / "run"
+    write_dataset(data, "BP5")
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(data, run, epochs=2, callbacks=[_CrashAt(1, 0)], **opts)
+    moved = tmp_path / "moved data"
+    data.rename(moved)
+    train(moved, run, epochs=2, resume=True, **opts)
+    info = json.loads((run / "run.json").read_text())
+    assert info["data_dir"] == str(moved.resolve()) and (run / "model.pt").is_file()
+    # other data at the run's path: another seed, the same shapes
+    write_dataset(data, "BP5", seed=7)
+    with pytest.raises(TrainingInputError, match=r"data_checksum: .*is not the one this run"):
+        train(data, run, epochs=3, resume=True, **opts)
 
 
 def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):

@@ -44,7 +44,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler, TensorData
 
 from diffcontact import __version__
 from diffcontact.io import jsonable
-from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.data.format import METADATA_CHECKSUM, load_dataset, metadata_checksum
 from diffcontact.learning.models.physical import FORMAT_VERSION as MODEL_FORMAT_VERSION
 from diffcontact.learning.models.registry import (
     BASELINE_MODELS,
@@ -515,6 +515,9 @@ def train(
         "model": model,
         "options": jsonable(learned.options()),
         "data_dir": str(data_path),
+        # the data's identity (metadata.json's checksum covers every file's): a resume
+        # checks it, so data replaced at the same path are refused and moved data are not
+        "data_checksum": meta.get(METADATA_CHECKSUM) or metadata_checksum(meta),
         "task": meta.get("task"),
         "seed": int(seed),
         "epochs": int(epochs),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,8 @@ __all__ = [
     "write_run_file",
 ]
 
+log = logging.getLogger(__name__)
+
 RUN_FILE = "run.json"
 LOG_DIR = "logs"
 METRICS = "metrics.csv"
@@ -68,9 +71,13 @@ def is_run_file(data: Any) -> bool:
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    return [
-        f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in _RUN_IDENTITY if old.get(k) != new.get(k)
-    ]
+    """What differs between two runs' identities. The data are compared by their checksum
+    where the old run recorded one (moved data are the same data; data replaced at the
+    same path are not), else by their path."""
+    keys = list(_RUN_IDENTITY)
+    if old.get("data_checksum") is not None:
+        keys[keys.index("data_dir")] = "data_checksum"
+    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
 
 
 def _names(folder: Path) -> str:
@@ -124,10 +131,21 @@ def check_run_dir(out: Path, run_info: dict[str, Any], resume: bool) -> dict[str
         raise TrainingInputError(f"{out} already holds a run; {hint} or choose another --out")
     diff = _differences(old, run_info)
     if diff:
-        raise TrainingInputError(
-            f"{out} holds a different run ({'; '.join(diff)}); use another --out"
-        )
+        hint = "use another --out"
+        if any(d.startswith("data_checksum") for d in diff):
+            hint = (
+                f"the dataset at {run_info['data_dir']} is not the one this run trained on "
+                f"(its metadata checksum differs); resume with that dataset, or {hint}"
+            )
+        raise TrainingInputError(f"{out} holds a different run ({'; '.join(diff)}); {hint}")
     info = dict(old)
+    if old.get("data_dir") != run_info["data_dir"]:  # the same data, moved
+        log.warning(
+            "the run's dataset moved: %s -> %s (the same checksum); run.json names the new one",
+            old.get("data_dir"), run_info["data_dir"],
+        )  # fmt: skip
+        info["data_dir"] = run_info["data_dir"]
+    info.setdefault("data_checksum", run_info["data_checksum"])
     info["epochs"] = run_info["epochs"]
     info["resumed"] = [*info.get("resumed", []), run_info["created"]]
     return info
