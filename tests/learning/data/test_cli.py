@@ -59,6 +59,13 @@ def test_cli_bad_input_exits_2(recorded, tmp_path, capsys):
     assert_one_line_error(code, err, "--n-train does not apply with --from-arrays")
     code, _, err = cli(capsys, "generate", "BP5", "--dt", "0.01", "--out", out)
     assert_one_line_error(code, err, "--dt applies only with --from-arrays")
+    # --dt against the file's own dt (--dt won silently, and the metadata said 0.02)
+    np.savez(tmp_path / "rec_dt.npz", traj=recorded, dt=0.01)
+    code, _, err = cli(
+        capsys, "generate", "--from-arrays", str(tmp_path / "rec_dt.npz"), "--config", "BP5",
+        "--dt", "0.02", "--out", out,
+    )  # fmt: skip
+    assert_one_line_error(code, err, "--dt 0.02 contradicts the dt 0.01 stored in")
     assert not Path(out).exists()
 
 

@@ -200,6 +200,11 @@ def _cli_generate(args: argparse.Namespace) -> int:
                     "--val-fraction/--test-fraction; recorded data gets no noise)"
                 )
         traj, file_dt, file_config = read_arrays_file(args.from_arrays)
+        if args.dt is not None and file_dt is not None and abs(args.dt - file_dt) > 1e-9 * file_dt:
+            raise ValueError(
+                f"--dt {args.dt:g} contradicts the dt {file_dt:g} stored in {args.from_arrays} "
+                "(the recording's own step): leave --dt out, or fix the file"
+            )
         contact, event_times = read_flag_entries(args.from_arrays)
         if spec is None:
             if file_config is None:
