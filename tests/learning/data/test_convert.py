@@ -278,6 +278,13 @@ def test_convert_cli_positions_then_generate(tmp_path, capsys):
         assert np.abs(data["traj"][:, :, 1] - traj[:, :, 1])[ok].max() < 1e-10
     assert main(["convert", "positions", str(raw), "--config", str(cfg), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
+    # an --out in a missing folder: named up front (exit 1 and a temporary file's name before)
+    missing = tmp_path / "nowhere" / "c.npz"
+    assert (
+        main(["convert", "positions", str(raw), "--config", str(cfg), "--out", str(missing)]) == 2
+    )
+    err = capsys.readouterr().err
+    assert f"folder {missing.parent} does not exist" in err and ".tmp-" not in err
     data_dir = tmp_path / "data"
     assert main(["generate", "--from-arrays", str(out), "--out", str(data_dir), "--quiet"]) == 0
     assert load_dataset(data_dir).counts["train"] == 4

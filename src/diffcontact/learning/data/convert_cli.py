@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from diffcontact.cli_args import float_in, one_line, report_errors
+from diffcontact.io import check_writable
 
 __all__ = ["SOURCES", "register_cli", "run_convert_cli"]
 
@@ -138,6 +139,10 @@ def _cli_convert(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out} exists; pass --force to replace it")
     if out.suffix != ".npz":
         raise ValueError(f"--out must name an .npz file; got {args.out!r}")
+    try:  # before the conversion: a missing or read-only folder named up front
+        check_writable(out)
+    except OSError as err:
+        raise ValueError(f"--out {args.out}: {err}") from None
     mujoco_only = {"--model": args.model, "--bodies": args.bodies, "--plane": args.plane,
                    "--origin": args.origin}  # fmt: skip
     if args.source != "mujoco":
