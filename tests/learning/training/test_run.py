@@ -137,6 +137,20 @@ def test_resume_follows_moved_data_and_refuses_replaced_data(tmp_path):
         train(data, run, epochs=3, resume=True, **opts)
 
 
+def test_a_dataset_without_a_validation_split_is_named(tmp_path):
+    """generate writes empty splits (--val-fraction 0); train said the file's chunks had a
+    bad shape, as for a corrupt file."""
+    from diffcontact import load_system
+    from diffcontact.learning import dataset_from_arrays
+
+    system = load_system("BP5")
+    traj = system.simulate(system.sample_initial_conditions(10), 19, progress=False)
+    dataset_from_arrays(traj.numpy(), "BP5", tmp_path / "data", val_fraction=0.0, progress=False)
+    with pytest.raises(TrainingInputError, match=r"validation split is empty.*--val-fraction"):
+        train(tmp_path / "data", tmp_path / "run", epochs=1, **SMALL)
+    assert not (tmp_path / "run").exists()
+
+
 def test_cosine_schedule_runs_from_lr_to_the_floor(bp5_data, tmp_path):
     """Learning rates per step, logged by a callback, follow the documented cosine."""
     seen = []

@@ -206,7 +206,15 @@ def _read_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any], Tensor
     except ValueError as err:
         raise TrainingInputError(str(err)) from None
     for name, chunks in (("train", train), ("val", val)):
-        if chunks.shape[1] < 2 or chunks.shape[0] < 1:
+        if chunks.shape[0] == 0:
+            raise TrainingInputError(
+                f"{folder}: its validation split is empty, and training reports the "
+                "validation loss every epoch: generate the dataset with a --val-fraction "
+                "(or --n-val) above 0"
+                if name == "val"
+                else f"{folder}: its train split is empty: nothing to train on"
+            )
+        if chunks.shape[1] < 2:
             raise TrainingInputError(
                 f"{folder}/{name}.npz: chunks must have shape (N, L, 2, P, dim) with N >= 1 "
                 f"and L >= 2, got {tuple(chunks.shape)}"
