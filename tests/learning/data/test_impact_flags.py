@@ -172,6 +172,18 @@ def test_user_flags_and_event_times_replace_detection(balls):
     assert flags.sum() == 1 and flags[0, 7] and counts["given"] == 1
     with pytest.raises(ValueError, match=r"contact flags must be a boolean array of shape"):
         contact_flags(system, traj, contact=given[:, :5])
+    # integer flags: 0 and 1 are booleans, other values a mistake (7 and -3 were taken as True)
+    flags01, _ = contact_flags(system, traj, impact_tol=math.inf, contact=given.astype(np.int64))
+    np.testing.assert_array_equal(flags01, flags)
+    with pytest.raises(ValueError, match=r"booleans \(or 0 and 1\), got values \[-3, 7\]"):
+        contact_flags(
+            system, traj, contact=np.where(given, 7, 0) - 3 * np.eye(*given.shape, dtype=int)
+        )
+    # an infinite event time is no time in the recording (it was dropped silently)
+    with pytest.raises(ValueError, match=r"trajectory 1 has an infinite event time"):
+        contact_flags(
+            system, traj, event_times=np.where(np.arange(len(times))[:, None] == 1, np.inf, times)
+        )
     # a gap tolerance flags the states near the floor
     near, counts = contact_flags(system, traj, impact_tol=math.inf, gap_tol=0.05)
     assert counts["gap"] == near.sum() > 0

@@ -119,6 +119,12 @@ def event_states(event_times: Any, n_trajectories: int, n_states: int, dt: float
             f"seconds), got {ev.shape}"
         )
     flags = np.zeros((n_trajectories, n_states), dtype=bool)
+    if np.isinf(ev).any():  # NaN pads; an infinite time is no time in the recording
+        n, e = np.argwhere(np.isinf(ev))[0]
+        raise ValueError(
+            f"event_times: trajectory {n} has an infinite event time ({ev[n, e]}); pad "
+            "trajectories with fewer events with NaN"
+        )
     n, e = np.nonzero(np.isfinite(ev))
     tau = ev[n, e]
     end = (n_states - 1) * dt
@@ -172,6 +178,11 @@ def contact_flags(
             raise ValueError(
                 f"contact flags must be a boolean array of shape (N, T) = ({N}, {T}), got "
                 f"{c.dtype} of shape {c.shape}"
+            )
+        if c.dtype.kind in "iu" and not np.isin(c, (0, 1)).all():
+            raise ValueError(
+                f"contact flags must be booleans (or 0 and 1), got values "
+                f"{np.unique(c[~np.isin(c, (0, 1))])[:5].tolist()}"
             )
         given = c.astype(bool)
     events = np.zeros((N, T), dtype=bool)
