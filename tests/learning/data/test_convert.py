@@ -219,6 +219,25 @@ def test_gyroscope_round_trip_matrix_quaternion_body_frame():
     assert smooth < 0.2  # omega from dR/dt R^T (dt = 0.02, spin ~10 rad/s)
 
 
+def test_rates_in_the_wrong_frame_are_warned():
+    """A spinning gyroscope's body-frame rates read as world-frame ones (and an orientation
+    whose motion is not the rates', as the own-data page once had): the point velocities
+    do not move the points, which the constraint residual cannot see."""
+    system, traj = _simulate("Gyro", 2, 30, seed=1, wall=[0.0, 1.0, 0.0, 5.0])
+    x, v = traj[:, :, 0], traj[:, :, 1]
+    axes = x[:, :, 1:] - x[:, :, :1]
+    U, _, Vt = np.linalg.svd(np.swapaxes(axes, -1, -2))
+    R = U @ Vt
+    omega = 0.5 * np.cross(axes, v[:, :, 1:] - v[:, :, :1]).sum(2)
+    body = np.einsum("ntji,ntj->nti", R, omega)
+    good = trajectories_from_coordinates("Gyro", R, body, omega_frame="body")  # no warning
+    assert trajectory_checks(system, good)["velocity_mismatch"] < 0.05
+    with pytest.warns(RuntimeWarning, match=r"do not match the motion of q.*omega_frame"):
+        bad = trajectories_from_coordinates("Gyro", R, body)  # body rates read as world
+    checks = trajectory_checks(system, bad)
+    assert checks["velocity_mismatch"] > 0.25 and checks["velocity_constraint_residual"] < 1e-9
+
+
 def test_quaternion_to_matrix_matches_axis_angle():
     gen = torch.Generator().manual_seed(0)
     axis = torch.nn.functional.normalize(torch.randn(5, 3, generator=gen, dtype=F64), dim=-1)

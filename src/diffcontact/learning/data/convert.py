@@ -62,6 +62,7 @@ __all__ = [
     "trajectories_from_positions",
     "trajectory_checks",
     "velocity_jumps",
+    "velocity_mismatch",
 ]
 
 JUMP_FACTOR = 10.0
@@ -69,6 +70,8 @@ JUMP_FACTOR = 10.0
 JUMP_RELATIVE = 0.05
 """... and at least this share of the RMS speed per time step (``0.01 * v_rms / dt``)."""
 ON_JUMP = ("warn", "raise", "ignore")
+VELOCITY_MISMATCH_WARN = 0.25
+"""Given rates whose :func:`velocity_mismatch` is above this get a warning."""
 # predictions of a second difference D2_t from D2_{t+k}: {k: weight}; polynomial
 # interpolation / extrapolation in time (error O(dt^4) for the first three, O(dt^5) and
 # O(dt^6) for the others where the motion is smooth)
@@ -501,6 +504,17 @@ def trajectories_from_coordinates(
         z = rigid_body_points_3d(centre, R, torch.linalg.cross(omega, centre, dim=-1), omega)
     if qdot is None:
         _report_jumps(z[:, :, 0], dt, threshold, on_jump)
+    elif z.shape[1] >= 3:
+        mismatch = velocity_mismatch(z[:, :, 0], z[:, :, 1], dt)
+        if mismatch > VELOCITY_MISMATCH_WARN:
+            frame = " (omega_frame: world or body?)" if kind == "gyroscope" else ""
+            warnings.warn(
+                f"the given rates qdot do not match the motion of q: the point velocities "
+                f"differ from the positions' finite differences by {mismatch:.2f} of the "
+                f"median speed{frame}; check their frame, units and order",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     return _output(z, numpy_out)
 
 
@@ -523,7 +537,11 @@ def trajectory_checks(config: Any, z: Any) -> dict[str, float]:
         - ``share_of_states_in_contact``: states with some gap < 0;
         - ``min_gap``: the smallest signed gap (a large negative one means the config's
           radii or walls do not match the data);
-        - ``max_speed``: the largest point speed.
+        - ``max_speed``: the largest point speed;
+        - ``velocity_mismatch`` (``T >= 3``): :func:`velocity_mismatch` of the velocities
+          against the positions' central differences (0.01 or less for smooth motion
+          sampled finely; around 1 when velocities of another frame, unit or order of
+          points were given).
     """
     system = _system(config)
     t, _ = _tensor(z, "trajectories")
@@ -540,7 +558,29 @@ def trajectory_checks(config: Any, z: Any) -> dict[str, float]:
     out["share_of_states_in_contact"] = float((gaps < 0).any(-1).double().mean())
     out["min_gap"] = float(gaps.min())
     out["max_speed"] = float(torch.linalg.vector_norm(v, dim=-1).max())
+    if x.shape[1] >= 3:
+        out["velocity_mismatch"] = velocity_mismatch(x, v, float(system.dt))
     return out
+
+
+def velocity_mismatch(x: Tensor, v: Tensor, dt: float) -> float:
+    """How far velocities ``v`` are from the positions' motion: the median over the inner
+    samples of ``|v_t - (x_{t+1} - x_{t-1}) / (2 dt)|`` over the median speed.
+
+    Robust to the few samples an impact spoils (a median); near the finite differences'
+    error ``O(dt^2)`` (relative) for velocities that belong to the positions.
+
+    Args:
+        x, v: ``(N, T, P, d)`` positions and velocities, ``T >= 3``.
+        dt: the sampling step.
+    """
+    central = (x[:, 2:] - x[:, :-2]) / (2 * dt)
+    inner = v[:, 1:-1]
+    error = torch.linalg.vector_norm((inner - central).flatten(2), dim=-1).median()
+    speed = torch.linalg.vector_norm(inner.flatten(2), dim=-1).median()
+    if float(speed) == 0.0:
+        return 0.0 if float(error) == 0.0 else float("inf")
+    return float(error / speed)
 
 
 def _unreliable(x: Any, dt: float, threshold: float | None) -> Any:
