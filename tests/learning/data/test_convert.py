@@ -297,6 +297,21 @@ def test_convert_cli_positions_then_generate(tmp_path, capsys):
         assert np.abs(data["traj"][:, :, 1] - traj[:, :, 1])[ok].max() < 1e-10
     assert main(["convert", "positions", str(raw), "--config", str(cfg), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
+    # --quiet: no summary, and a warning as one line on stderr (it was Python's, with a
+    # source line)
+    quiet = tmp_path / "quiet.npz"
+    argv = ["convert", "positions", str(raw), "--config", str(cfg), "--out", str(quiet)]
+    assert main([*argv, "--quiet"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert captured.out == "" and len(lines) == 1, captured
+    assert lines[0].startswith("diffcontact convert: warning: velocities by finite differences")
+    # positions in millimetres: every state "in contact", which the checks show: warned
+    mm = tmp_path / "mm.npz"
+    np.savez(mm, x=traj[:, :, 0] * 1000, dt=0.01)
+    argv = ["convert", "positions", str(mm), "--config", str(cfg), "--out", str(tmp_path / "m.npz")]
+    assert main(argv) == 0
+    assert "warning: 100% of the states are in contact" in capsys.readouterr().out
     # an --out in a missing folder: named up front (exit 1 and a temporary file's name before)
     missing = tmp_path / "nowhere" / "c.npz"
     assert (

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,10 @@ def _read(path: str, source: str) -> tuple[dict[str, Any], float | None]:
     return arrays, dt
 
 
+CONTACT_SHARE_WARN = 0.9
+"""A conversion with more of its states in contact than this warns (wrong geometry or units)."""
+
+
 def _cli_convert(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.force:
@@ -209,11 +214,18 @@ def _cli_convert(args: argparse.Namespace) -> int:
         diffcontact_version=np.str_(__version__),
         **extra,
     )
+    checks = convert.trajectory_checks(system, z)
+    notes = [one_line(w.message) for w in caught]
+    if checks["share_of_states_in_contact"] > CONTACT_SHARE_WARN:
+        notes.append(
+            f"{checks['share_of_states_in_contact']:.0%} of the states are in contact (min_gap "
+            f"{checks['min_gap']:.3g}): the config's radii or walls, or the units of the "
+            "positions, do not match the data (docs/own-data.md, 'What to check')"
+        )
     if not args.quiet:
-        checks = convert.trajectory_checks(system, z)
         print(f"{system.name}: converted {args.source} {args.file} -> {out}: traj {z.shape}")
-        for w in caught:
-            print(f"  warning: {one_line(w.message)}")
+        for note in notes:
+            print(f"  warning: {note}")
         if "velocity_unreliable" in extra:
             n = int(extra["velocity_unreliable"].sum())
             print(
@@ -222,9 +234,9 @@ def _cli_convert(args: argparse.Namespace) -> int:
             )
         print("  checks: " + ", ".join(f"{k} {v:.3g}" for k, v in checks.items()))
         print(f"  next: diffcontact generate --from-arrays {out} --out DATASET_DIR")
-    else:
-        for w in caught:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    else:  # no summary, but the warnings still, one line each on stderr
+        for note in notes:
+            print(f"diffcontact convert: warning: {note}", file=sys.stderr)
     return 0
 
 
