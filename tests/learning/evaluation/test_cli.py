@@ -118,3 +118,18 @@ def test_a_model_of_another_step_or_geometry_is_refused(tmp_path, dataset, capsy
         run / "model.pt"
     )
     assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev2")]) == 0
+
+
+def test_a_run_without_model_pt_is_scored_with_a_warning(tmp_path, dataset, capsys):
+    """An interrupted run is evaluated from its last checkpoint: said on screen and in
+    metrics.json (it looked like a final model)."""
+    from diffcontact.learning.training.run import train
+
+    run = tmp_path / "run"
+    train(dataset, run, epochs=1, batch_size=1, hidden=(4,), progress=False)
+    (run / "model.pt").unlink()  # as a run killed before its end leaves it
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--no-uncertainty"]) == 0
+    out = capsys.readouterr().out
+    assert "WARNING: " in out and "has no model.pt (its training did not finish)" in out
+    metrics = json.loads((run / "evaluation" / "metrics.json").read_text())
+    assert "last checkpoint after 1 of 1 epochs" in metrics["model_note"]

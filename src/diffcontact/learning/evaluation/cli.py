@@ -184,6 +184,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{m['task']}: {m['model']}, {m['n_test']} test trajectories x {m['steps']} steps "
         f"(dt {m['dt']:g} s; ground truth: {m['ground_truth']})"
     )
+    if m.get("model_note"):
+        print(f"  WARNING: {m['model_note']}")
     if m.get("rollout_note"):
         print(f"  note: {m['rollout_note']}")
     if m["n_nonfinite"]:

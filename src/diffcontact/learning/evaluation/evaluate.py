@@ -141,6 +141,23 @@ def _has_checkpoint(run_dir: Path) -> bool:
     return ckpts.is_dir() and any(ckpts.glob("*.ckpt"))
 
 
+def _unfinished_note(run_path: Path, run: Mapping[str, Any]) -> str:
+    """What an evaluation of a run without ``model.pt`` scores: its last checkpoint."""
+    from diffcontact.learning.training.checkpoints import resume_point
+
+    try:
+        point = resume_point(run_path / "checkpoints")
+    except ValueError:
+        point = None
+    done = None if point is None or point.path is None else point.epoch + (not point.mid_epoch)
+    of = f" of {run['epochs']}" if isinstance(run.get("epochs"), int) else ""
+    when = "" if done is None else f" after {done}{of} epochs"
+    return (
+        f"{run_path} has no model.pt (its training did not finish): this is its last "
+        f"checkpoint{when}, not a final model"
+    )
+
+
 def _resolve_data_dir(run_dir: Path | None, run: Mapping[str, Any], data_dir: Any) -> Path:
     if data_dir is not None:
         return Path(data_dir)
@@ -384,6 +401,7 @@ def evaluate(
         raise EvaluationInputError(f"output folder {out} is not writable")
 
     # ---- model
+    model_note = None
     if model is None:
         from diffcontact.learning.models.storage import load_model
 
@@ -391,6 +409,8 @@ def evaluate(
             model = load_model(run_path)
         except (FileNotFoundError, ValueError) as err:
             raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
+        if not (run_path / "model.pt").is_file():  # a run still training, or interrupted
+            model_note = _unfinished_note(run_path, run)
     if isinstance(model, torch.nn.Module):
         model = model.to(dev).eval()
     why = dataset.mismatch(model)
@@ -479,6 +499,7 @@ def evaluate(
         "duration": steps * dt,
         "ground_truth": source,
         "rollout_note": rollout_note,
+        "model_note": model_note,
         "parameters_known": known,
         "unknown": unknown,
         "rel_err_mean": rel_mean,
