@@ -100,6 +100,7 @@ def test_ctrl_c_stops_at_the_next_step_and_resume_gives_the_uninterrupted_result
     assert _epoch_losses(run) == _epoch_losses(uninterrupted)
     steps = [r["step"] for r in _log_rows(run) if r["train/loss_step"]]
     assert len(steps) == 12 and len(set(steps)) == 12
+    assert steps == [r["step"] for r in _log_rows(uninterrupted) if r["train/loss_step"]]
     a = json.loads((run / "learned.json").read_text())
     b = json.loads((uninterrupted / "learned.json").read_text())
     assert (a["train_loss"], a["val_loss"], a["global_step"]) == (

@@ -81,7 +81,12 @@ from diffcontact.learning.training.rundir import (
     truncate_log,
     write_run_file,
 )
-from diffcontact.learning.training.stopping import GracefulStop, StopAfter, Stopped
+from diffcontact.learning.training.stopping import (
+    GracefulStop,
+    ResumedStepCount,
+    StopAfter,
+    Stopped,
+)
 from diffcontact.threads import parse_threads
 
 __all__ = [
@@ -600,6 +605,8 @@ def train(
     stop_after = None if max_time is None else StopAfter(float(max_time) * 60.0)
     governor = thread_callback(threads, device)
     all_callbacks = [checkpoint, stop, *callbacks, *([stop_after] if stop_after else [])]
+    if point is not None and point.path is not None and point.mid_epoch:
+        all_callbacks.append(ResumedStepCount(point.batches_stepped))
     all_callbacks += [governor] if governor is not None else []
     if strategy == "ddp":
         strategy = "ddp_find_unused_parameters_true"

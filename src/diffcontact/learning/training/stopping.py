@@ -115,6 +115,28 @@ class GracefulStop(pl.Callback):
         raise Stopped(self.signal_name)
 
 
+class ResumedStepCount(pl.Callback):
+    """Put Lightning's count of stepped batches back to a mid-epoch checkpoint's.
+
+    :class:`GracefulStop` writes its checkpoint at the start of a batch, after Lightning
+    has counted the previous one (``_batches_that_stepped``, the ``step`` column of
+    ``metrics.csv``); restoring it, Lightning adds one more (it expects checkpoints written
+    before that count), and every later row was logged one step ahead. The first batch
+    after the resume sets the count back to the checkpoint's ``stepped``.
+    """
+
+    def __init__(self, stepped: int) -> None:
+        self.stepped: int | None = int(stepped)
+
+    def on_train_batch_start(
+        self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch: Any, batch_idx: int
+    ) -> None:
+        loop = trainer.fit_loop.epoch_loop
+        if self.stepped is not None and hasattr(loop, "_batches_that_stepped"):
+            loop._batches_that_stepped = self.stepped
+        self.stepped = None
+
+
 class StopAfter(pl.Callback):
     """Stop at the end of the first epoch that ends after ``seconds`` of this invocation.
 
