@@ -191,7 +191,8 @@ def _load_test(data_path: Path) -> tuple[np.ndarray, Any, Any]:
     (its ``contact_model``, ``parameters_known`` and ``metadata["source"]``)."""
     if not data_path.is_dir():
         raise EvaluationInputError(
-            f"test data not found: {data_path / 'test.npz'} (missing data directory)"
+            f"test data not found: {data_path / 'test.npz'} (missing data directory; if the "
+            "dataset moved, pass its folder with --data)"
         )
     try:
         dataset = load_dataset(data_path)
