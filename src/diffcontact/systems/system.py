@@ -1335,8 +1335,8 @@ class System:
                 leading dimension ``N`` (one set per trajectory). Differentiable
                 with respect to every tensor in it. Where the trajectory depends on
                 none of the tensors that require a gradient (``mu`` of a rollout
-                without a contact, ``z0`` without one), it still carries a graph and
-                they get a zero gradient; a tensor it does not depend on beside
+                without a contact, ``z0`` not requiring one), it still carries a graph
+                and they get a zero gradient; a tensor it does not depend on beside
                 others it does gets none (``grad`` stays ``None``, torch's rule).
             contact_model: a registered name (``"CM"``, ``"CMr"``, see
                 :func:`~diffcontact.contact.contact_models`) or a
