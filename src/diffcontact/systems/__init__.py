@@ -7,11 +7,19 @@ dict) returns a :class:`System` with ``sample_initial_conditions``,
 
 from diffcontact.systems.config import SYSTEM_TYPES, parse_config
 from diffcontact.systems.params import PhysicalParams
-from diffcontact.systems.system import ContactResult, System, list_tasks, load_config, load_system
+from diffcontact.systems.system import (
+    ContactResult,
+    NonFiniteRolloutError,
+    System,
+    list_tasks,
+    load_config,
+    load_system,
+)
 
 __all__ = [
     "SYSTEM_TYPES",
     "ContactResult",
+    "NonFiniteRolloutError",
     "PhysicalParams",
     "System",
     "list_tasks",

@@ -291,7 +291,7 @@ class Rollout:
                         if "NaN or infinite" not in str(err) and not nonfinite:
                             raise
                         states.append(z1)
-                        raise ValueError(system._nonfinite_message(states, step + 1)) from err
+                        raise system._nonfinite_error(states, step + 1) from err
                     except ConeQPError as err:
                         failure = ConeQPError(
                             system._solver_failure_message(err, z0, z1, step + 1), err.status

@@ -106,6 +106,20 @@ each, seconds): BP5 (10 columns) 0.34-0.41 dense against 0.47-0.75 sparse; Rope 
 (400) 21.3-21.7 against 15.2-16.2."""
 
 
+class NonFiniteRolloutError(ValueError):
+    """A rollout reached NaN or infinite states.
+
+    Attributes:
+        states: the indices of the trajectories (of the call's batch) that did, where
+            known; a caller can go on without them (``diffcontact evaluate`` counts them
+            as diverged).
+    """
+
+    def __init__(self, message: str, states: list[int] | None = None) -> None:
+        super().__init__(message)
+        self.states = states
+
+
 class _ZeroGradient(torch.autograd.Function):
     """``traj`` unchanged, linked to ``inputs`` it does not depend on: their gradient is zero."""
 
@@ -1462,7 +1476,7 @@ class System:
                     gaps, bad = self._tunnelling(traj, gaps)
                     tunnelled = bool(bad.any())
         if nonfinite:
-            raise ValueError(self._nonfinite_message(list(traj.unbind(1)), steps))
+            raise self._nonfinite_error(list(traj.unbind(1)), steps)
         if tunnelled:
             learned = getattr(model, "needs_contact_state", False)  # a learned contact model
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
@@ -1563,6 +1577,13 @@ class System:
             f"of {z0.shape[0]} trajectories: {'; '.join(items)}{more}. Likely cause: {cause}. "
             f"Solver: {err}"
         )
+
+    def _nonfinite_error(self, states: list[Tensor], at: int) -> NonFiniteRolloutError:
+        """:class:`NonFiniteRolloutError` naming the trajectories that became NaN or infinite."""
+        with torch.no_grad():
+            traj = torch.stack([s.detach() for s in states], dim=1)
+            rows = (~torch.isfinite(traj).flatten(2).all(-1)).any(-1).nonzero().flatten()
+        return NonFiniteRolloutError(self._nonfinite_message(states, at), rows.tolist())
 
     def _nonfinite_message(self, states: list[Tensor], at: int) -> str:
         """Which states became NaN or infinite, when, and the likely cause."""

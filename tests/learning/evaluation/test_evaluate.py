@@ -207,3 +207,30 @@ def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
     assert m["solver_failures"] == [bad]
     assert m["n_nonfinite"] == 1
     assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)  # the truth's own rollouts
+
+
+@pytest.mark.parametrize("diverged", [[0, 2], [0, 1, 2]])
+def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged):
+    """Rollouts that reach NaN (NonFiniteRolloutError naming them) are counted in
+    n_nonfinite, as documented; the evaluation stopped with the error before."""
+    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.systems import NonFiniteRolloutError, System, load_config
+
+    system = System(load_config(TINY))
+
+    class Diverging:
+        def __init__(self):
+            self.bad = None
+
+        def simulate(self, z0, steps):
+            if self.bad is None:
+                self.bad = z0[diverged].clone()
+            hit = ((z0[:, None] - self.bad[None]).flatten(2).abs().amax(-1) == 0).any(-1)
+            if bool(hit.any()):
+                raise NonFiniteRolloutError("diverged", hit.nonzero().flatten().tolist())
+            return system.simulate(z0, steps)
+
+    m = evaluate(None, tmp_path / "out", model=Diverging(), data_dir=dataset, n_gif=0, steps=5)
+    assert m["n_nonfinite"] == len(diverged) and m["solver_failures"] == []
+    if len(diverged) < 3:
+        assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)

@@ -253,26 +253,32 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
 
 def _rollouts(model: Any, z0: torch.Tensor, steps: int) -> tuple[np.ndarray, list[int]]:
     """``model.simulate(z0, steps)`` as numpy; a trajectory whose contact solve fails
-    (``ConeQPError`` naming its states) is left out and returned as NaN, so that it
-    counts as diverged (``n_nonfinite``) instead of stopping the evaluation."""
+    (``ConeQPError`` naming its states) or whose rollout diverges
+    (:class:`~diffcontact.systems.NonFiniteRolloutError`) is left out and returned as
+    NaN, so that it counts as diverged (``n_nonfinite``) instead of stopping the
+    evaluation. Returns the rollouts and the trajectories whose contact solve failed."""
     from diffcontact.contact import ConeQPError
+    from diffcontact.systems import NonFiniteRolloutError
 
     keep = torch.arange(z0.shape[0], device=z0.device)
     failed: list[int] = []
-    while True:
+    out = None
+    while len(keep):
         try:
             out = model.simulate(z0[keep], steps)
             break
-        except ConeQPError as err:
-            if not err.states or len(keep) == len(err.states):
+        except (ConeQPError, NonFiniteRolloutError) as err:
+            if not err.states or (isinstance(err, ConeQPError) and len(keep) == len(err.states)):
                 raise
             drop = torch.as_tensor(err.states, dtype=torch.long, device=z0.device)
-            failed += keep[drop].tolist()
+            if isinstance(err, ConeQPError):
+                failed += keep[drop].tolist()
             mask = torch.ones(len(keep), dtype=torch.bool, device=z0.device)
             mask[drop] = False
             keep = keep[mask]
     pred = np.full((z0.shape[0], steps + 1, *z0.shape[1:]), np.nan)
-    pred[keep.cpu().numpy()] = as_numpy(out)
+    if out is not None:
+        pred[keep.cpu().numpy()] = as_numpy(out)
     return pred, sorted(failed)
 
 

@@ -58,7 +58,7 @@ from diffcontact.learning.models.physical import (
 )
 from diffcontact.learning.models.protocol import OptimizerSettings
 from diffcontact.learning.models.registry import BASELINE_MODELS
-from diffcontact.systems import PhysicalParams, System, load_config
+from diffcontact.systems import NonFiniteRolloutError, PhysicalParams, System, load_config
 from diffcontact.systems.graph import EDGE_KINDS, ENVIRONMENT
 from diffcontact.threads import thread_scope
 
@@ -980,9 +980,12 @@ class INSPCP(nn.Module):
                 states.append(z)
         traj = torch.stack(states, dim=1)
         if not bool(torch.isfinite(traj.detach()).all()):
-            raise ValueError(
+            bad = (~torch.isfinite(traj.detach()).flatten(2).all(-1)).any(-1).nonzero().flatten()
+            raise NonFiniteRolloutError(
                 f"{self.model_name} rollout of {system.name}: NaN or infinite values in the "
-                "predicted states (the network diverged)"
+                f"predicted states of {bad.numel()} of {traj.shape[0]} trajectories (the "
+                "network diverged)",
+                bad.tolist(),
             )
         return traj
 
