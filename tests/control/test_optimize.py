@@ -312,3 +312,23 @@ def test_an_objective_without_a_path_to_the_variable_gets_a_zero_gradient(two_ba
     with pytest.raises(ControlError, match=r"z0 holds no problem"):
         dc.optimize(system, z0[None][:0], _final(1, torch.zeros(2)), variables=[Velocity(0)],
                     progress=False)  # fmt: skip
+
+
+def test_a_position_moved_into_an_overlap_is_never_the_plan():
+    """Pulling ball 0 onto ball 1: the best plan was a start with the two balls overlapping
+    (0.19 deep), which simulate refuses, reached with a tunnelling warning per iteration
+    that blamed dt."""
+    system = dc.load_system("BP5-e")
+    z0 = system.sample_initial_conditions(1, seed=0)[0]
+    z0[1] = 0
+    target = z0[0, 1].clone()
+
+    def objective(traj):
+        return (traj[:, -1, 0, 0] - target).norm(dim=-1)
+
+    with pytest.warns(UserWarning, match=r"position\[0\] moved start\(s\) \[0\] into an overlap"):
+        res = dc.optimize(system, z0, objective, variables=[Position(0, bounds=(0.0, 1.0))],
+                          steps=5, iterations=40, progress=False)  # fmt: skip
+    assert (system.gaps(res.z0[None, 0]) > 0).all()  # a state simulate accepts
+    traj = system.simulate(res.z0[None], 5, params=res.params)
+    assert float(objective(traj)[0]) == pytest.approx(float(res.objective), rel=1e-12)

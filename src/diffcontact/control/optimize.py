@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.control.planner import Planner, as_planner
-from diffcontact.control.variables import Parameter, Variable, as_bounds
+from diffcontact.control.variables import Parameter, Position, Variable, as_bounds
 from diffcontact.threads import parse_threads, thread_scope
 
 __all__ = ["ControlError", "OptimizeResult", "optimize"]
@@ -287,10 +287,25 @@ def optimize(
                 z, p = v.write(z, p, val.reshape(N * S, -1), planner)
             return z, p
 
-        def evaluate(vals: list[Tensor], check: bool) -> Tensor:
+        moves = [v.name for v in variables if isinstance(v, Position)]
+
+        def overlapping(z: Tensor) -> Tensor:
+            """``(N, S)`` bool: starts whose bodies overlap or cross a wall (a Position
+            moved them there): no initial state, so never a plan."""
+            if not moves:
+                return torch.zeros(N, S, dtype=torch.bool, device=device)
+            with torch.no_grad():
+                gaps = planner.truth.gaps(z[..., 0, :, :].detach().to(torch.float64))
+            return (gaps <= 0).any(-1).reshape(N, S).to(device)
+
+        def evaluate(vals: list[Tensor], check: bool) -> tuple[Tensor, Tensor]:
             z, p = build(vals)
+            bad = overlapping(z)
             try:
-                traj = planner.simulate(z, steps, p, check_overlap=check)
+                with warnings.catch_warnings():
+                    if bool(bad.any()):  # the tunnelling check would blame dt for the overlap
+                        warnings.filterwarnings("ignore", "(?s).*tunnel", RuntimeWarning)
+                    traj = planner.simulate(z, steps, p, check_overlap=check)
             except ValueError as err:
                 raise ControlError(f"simulation failed: {err}") from None
             traj = traj.reshape(N, S, *traj.shape[1:])
@@ -299,7 +314,7 @@ def optimize(
                 want = f"({S},)" if single else f"({N}, {S})"
                 got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
                 raise ControlError(f"objective must return shape {want}, got {got}")
-            return out.reshape(N, S)
+            return out.reshape(N, S), bad
 
         opt: torch.optim.Optimizer
         if optimizer == "adam":
@@ -322,18 +337,20 @@ def optimize(
         try:
             scope = threads_held.enter_context(thread_scope(threads, device, iterations))
             warned = False  # the zero-gradient warning, once per call
+            warned_overlap = False  # and the one for starts moved into an overlap
             for it in range(iterations):
                 last: dict[str, Tensor] = {}
 
                 def closure(it: int = it, last: dict[str, Tensor] = last) -> Tensor:
                     opt.zero_grad()
-                    obj = evaluate(values, check=(it == 0 and not last))
+                    obj, bad = evaluate(values, check=(it == 0 and not last))
                     if not torch.isfinite(obj).all():
                         bad = _where(~torch.isfinite(obj), single)
                         raise ControlError(f"objective is not finite at {bad} (iteration {it})")
                     if "obj" not in last:
                         last["obj"] = obj.detach()
                         last["vals"] = [v.detach().clone() for v in values]
+                        last["overlap"] = bad
                     if not obj.requires_grad:
                         # no path from the variables to the objective (e.g. mu or e_P when
                         # no contact happens, or an objective that detaches): a zero
@@ -369,6 +386,16 @@ def optimize(
                         val.copy_(torch.maximum(torch.minimum(val, hi), lo))
                 obj = last["obj"]
                 history.append(obj)
+                if bool(last["overlap"].any()):
+                    if not warned_overlap:
+                        warned_overlap = True
+                        warnings.warn(
+                            f"optimize: {', '.join(moves)} moved {_where(last['overlap'], single)}"
+                            f" into an overlap with another body or a wall at iteration {it}: "
+                            "such a start is no initial state, and is not taken as a plan",
+                            stacklevel=2,
+                        )
+                    obj = torch.where(last["overlap"], math.inf, obj)  # never the best
                 finite = torch.isfinite(best)
                 improved = obj < torch.where(finite, best - 1e-9 * best.abs(), best)
                 best = torch.where(improved, obj, best)
