@@ -170,6 +170,23 @@ def test_cuda_not_available(capsys, tmp_path):
 
 
 @needs_systems
+def test_a_simulation_too_large_is_refused_up_front(capsys, tmp_path, monkeypatch):
+    """--steps 2e8 ran (a 25-hour estimate, 32 GB for 23 GB of memory), --n 1e8 sampled
+    silently for minutes; billiards --time and config horizons had the limit already."""
+    monkeypatch.delenv("DIFFCONTACT_ALLOW_LARGE", raising=False)
+    out = str(tmp_path / "x.npz")
+    code, _, err = run(
+        capsys, "simulate", "BP5-e", "--n", "1", "--steps", "200000000", "--out", out
+    )
+    assert_usage_error(code, err, "--steps 200000000: at most 1000000")
+    code, _, err = run(
+        capsys, "simulate", "BP5-e", "--n", "100000000", "--steps", "20", "--out", out
+    )
+    assert_usage_error(code, err, "GiB, more than half of this machine's")
+    assert not (tmp_path / "x.npz").exists()
+
+
+@needs_systems
 def test_cuda_graph_on_the_cpu_is_a_usage_error(capsys, tmp_path):
     out = str(tmp_path / "x.npz")
     args = ("simulate", "BP5", "--n", "2", "--steps", "3", "--out", out, "--quiet")

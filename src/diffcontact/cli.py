@@ -32,7 +32,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from diffcontact import __version__
 from diffcontact.cli_args import non_negative_int, one_line, positive_int, threads_arg
@@ -184,6 +184,30 @@ def _check_outputs(args: argparse.Namespace) -> None:
         seen[real] = flag
 
 
+def _check_size(n: int, steps: int, system: Any) -> None:
+    """Refuse a simulation whose steps exceed ``MAX_STATES`` or whose trajectories would
+    not fit in half the machine's memory (a typo would fill it), unless lifted."""
+    import math
+
+    from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, large_allowed
+
+    if large_allowed():
+        return
+    lift = f"set {ALLOW_LARGE_ENV}=1 to lift the limit"
+    if steps > MAX_STATES:
+        raise UsageError(f"--steps {steps}: at most {MAX_STATES} ({lift})")
+    size = n * (steps + 1) * math.prod(system.state_shape) * 8  # float64 trajectories
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return
+    if size > memory / 2:
+        raise UsageError(
+            f"--n {n} x --steps {steps}: the trajectories would take {size / 2**30:.1f} GiB, "
+            f"more than half of this machine's {memory / 2**30:.1f} GiB ({lift})"
+        )
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_outputs(args)
     import torch
@@ -209,6 +233,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     steps = args.steps if args.steps is not None else system.default_steps
     if steps <= 0:  # a task whose horizon holds a single state
         raise UsageError(f"--steps: the task's default is {steps}; give --steps explicitly")
+    _check_size(args.n, steps, system)
 
     start = time.perf_counter()
     try:
