@@ -122,3 +122,26 @@ def test_a_split_is_hashed_once_unless_its_file_changed(bp5_dir, tmp_path, monke
     os.replace(tmp_path / "val.npz", folder / "val.npz")  # another file (inode) now
     with pytest.raises(DatasetError, match=r"val\.npz does not match"):
         ds.split("val")
+
+
+def test_mismatch_sees_other_link_lengths_and_pivots(tmp_path):
+    """evaluate and refit scored a CP3 model on data of other link lengths or another
+    pivot: the contact gaps agree there, the equality constraints do not."""
+    from diffcontact.learning import create_model
+    from diffcontact.systems import load_config
+
+    config = load_config("CP3").model_dump(mode="json")
+    model = create_model("CM-CD-CLNN", "CP3", hidden=[4])
+    changes = {
+        "same": {},
+        "links": {"link_lengths": [0.3, 0.45, 0.35]},
+        "pivot": {"pivot": [0.1, 0.0]},
+    }
+    for name, change in changes.items():
+        folder = generate_dataset({**config, **change}, tmp_path / name, n_train=2, n_val=1,
+                                  n_test=1, progress=False)  # fmt: skip
+        why = load_dataset(folder).mismatch(model)
+        if name == "same":
+            assert why is None
+        else:
+            assert why is not None and "equality constraints differ" in why

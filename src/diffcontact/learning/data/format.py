@@ -344,10 +344,11 @@ class Dataset:
     def mismatch(self, model: Any) -> str | None:
         """Why ``model`` cannot be scored on or refit to these data, or ``None``.
 
-        What a model does not learn must match: the state shape, the time step and the
+        What a model does not learn must match: the state shape, the time step, the
         contact geometry (every candidate's gap at the data's first states, under the
-        model's ``config`` and the data's: walls, radii, limits). Masses, friction,
-        restitution and the potential may differ; those are what is learned.
+        model's ``config`` and the data's: walls, radii, limits) and the equality
+        constraints (their values at those states: link lengths, pivots). Masses,
+        friction, restitution and the potential may differ; those are what is learned.
         """
         system = self.system
         shape = getattr(model, "state_shape", None)
@@ -388,6 +389,22 @@ class Dataset:
                 f"the contact geometry differs (walls, radii or limits): the gaps of its "
                 f"states differ by up to {diff:.3g} under the model's config"
             )
+        # the equality constraints (link lengths, pivots, rigid bodies) likewise
+        both = (system.constraints, theirs.constraints)
+        cons = [c if c is None or c.num_equations else None for c in both]
+        if (cons[0] is None) != (cons[1] is None):
+            return "one of the two systems has equality constraints, the other none"
+        if cons[0] is not None:
+            with torch.no_grad():
+                phi, phi_model = cons[0].phi(x), cons[1].phi(x)
+            far = phi.shape != phi_model.shape or float((phi - phi_model).abs().max()) > 1e-9 * (
+                1.0 + float(x.abs().max())
+            )
+            if far:
+                return (
+                    "the equality constraints differ (link lengths, pivots or body shapes): "
+                    "the data's states do not satisfy the model's"
+                )
         return None
 
     def __repr__(self) -> str:
