@@ -426,3 +426,25 @@ def test_training_rollouts_keep_the_paper_s_constant_penetration_target(tmp_path
     assert load_model(tmp_path).penetration_gradient is True
     with pytest.raises(ValueError, match="penetration_gradient must be True or False"):
         LearnedModel("CP3", penetration_gradient="yes")
+
+
+@pytest.mark.parametrize("model", ["CM-CD-CLNN", "MLP-CD-CLNN"])
+def test_hidden_widths_are_checked_up_front(model, tmp_path, capsys):
+    """hidden=[] built a model that failed at its first rollout (an IndexError), and the
+    physical models read hidden="16" as [1, 6] and 16.7 as 16."""
+    from diffcontact.cli import main
+    from diffcontact.learning import create_model
+
+    for bad in ([], [16.7], [True, 4], "16,x", 16):
+        with pytest.raises(ValueError, match=r"hidden must be a non-empty list of positive"):
+            create_model(model, "CP3", hidden=bad)
+    assert create_model(model, "CP3", hidden="16,8").options()["hidden"] == [16, 8]
+    assert create_model(model, "CP3", hidden="16").options()["hidden"] == [16]
+    data = tmp_path / "data"
+    assert main(["generate", "CP3", "--out", str(data), "--n-train", "2", "--n-val", "1",
+                 "--n-test", "1", "--quiet"]) == 0  # fmt: skip
+    run = tmp_path / "run"
+    argv = ["train", str(data), "--out", str(run), "--model", model, "--model-option", "hidden=[]"]
+    assert main([*argv, "--quiet"]) == 2
+    assert "hidden must be a non-empty list" in capsys.readouterr().err
+    assert not run.exists()  # nothing written

@@ -55,6 +55,7 @@ from diffcontact.learning.models.physical import (
     PHYSICS_BETAS,
     PotentialMLP,
     _initial_second_moments,
+    hidden_widths,
 )
 from diffcontact.learning.models.protocol import OptimizerSettings
 from diffcontact.learning.models.registry import BASELINE_MODELS
@@ -83,23 +84,6 @@ _CONTACT_KIND = EDGE_KINDS.index("contact")
 
 
 # ----------------------------------------------------------------------------- options
-def _widths(name: str, value: Any) -> tuple[int, ...]:
-    """Hidden widths from a list of positive integers (or ``"64,64"``)."""
-    if isinstance(value, str):
-        try:
-            value = [int(v) for v in value.split(",") if v.strip()]
-        except ValueError:
-            raise ValueError(f"{name} must be a list of positive integers, got {value!r}") from None
-    if not isinstance(value, Sequence) or isinstance(value, (bytes, bytearray)):
-        raise ValueError(f"{name} must be a list of positive integers, got {value!r}")
-    out = []
-    for h in value:
-        if isinstance(h, bool) or not isinstance(h, int) or h < 1:
-            raise ValueError(f"{name} must be a list of positive integers, got {list(value)!r}")
-        out.append(int(h))
-    return tuple(out)
-
-
 def _integer(name: str, value: Any, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
@@ -584,7 +568,7 @@ class _CLNNWithContactNet(nn.Module):
 
     def _build_clnn(self, config: Any, hidden: Any) -> None:
         self.system = System(load_config(config))
-        self.hidden = _widths("hidden", hidden)
+        self.hidden = hidden_widths("hidden", hidden)
         system = self.system
         self.log_mass_scale = nn.Parameter(torch.zeros(()))
         self.log_mass_rel = nn.Parameter(torch.zeros(system.n_bodies))
@@ -757,7 +741,7 @@ class MLPCDCLNN(_CLNNWithContactNet):
     ) -> None:
         super().__init__()
         self._build_clnn(config, hidden)
-        self.contact_hidden = _widths("contact_hidden", contact_hidden)
+        self.contact_hidden = hidden_widths("contact_hidden", contact_hidden)
         self.embedding = _integer("embedding", embedding, 0)
         self.contact_net = ContactMLP(self.tables, self.contact_hidden, self.embedding)
 
@@ -795,7 +779,7 @@ class INCPCLNN(_CLNNWithContactNet):
         super().__init__()
         self._build_clnn(config, hidden)
         self.latent = _integer("latent", latent, 1)
-        self.contact_hidden = _widths("contact_hidden", contact_hidden)
+        self.contact_hidden = hidden_widths("contact_hidden", contact_hidden)
         self.message_steps = _integer("message_steps", message_steps, 1)
         self.contact_net = ContactIN(
             self.tables, self.latent, self.contact_hidden, self.message_steps
@@ -848,7 +832,7 @@ class INSPCP(nn.Module):
     ) -> None:
         super().__init__()
         self.system = system = System(load_config(config))
-        self.hidden = _widths("hidden", hidden)
+        self.hidden = hidden_widths("hidden", hidden)
         self.latent = _integer("latent", latent, 1)
         self.message_steps = _integer("message_steps", message_steps, 1)
         self.tables = t = _GraphTables(system)

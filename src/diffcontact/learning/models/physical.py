@@ -73,6 +73,7 @@ __all__ = [
     "PHYSICS_BETAS",
     "LearnedModel",
     "PotentialMLP",
+    "hidden_widths",
     "parse_model_name",
 ]
 
@@ -87,6 +88,23 @@ FORMAT_VERSION = 3
 _INIT_MU = 0.5
 _INIT_COR = 0.5
 _INIT_EPS = 0.01
+
+
+def hidden_widths(name: str, value: Any) -> tuple[int, ...]:
+    """Hidden-layer widths: a non-empty list of positive integers (or ``"64,64"``, as a
+    ``--model-option`` may give them). Anything else (``[]``, ``"16"`` read as digits,
+    ``16.7``, ``True``) is a ``ValueError`` naming ``name``."""
+    bad = f"{name} must be a non-empty list of positive integers (e.g. [64, 64]), got {value!r}"
+    if isinstance(value, str):
+        try:
+            value = [int(v) for v in value.split(",") if v.strip()]
+        except ValueError:
+            raise ValueError(bad) from None
+    if not isinstance(value, Sequence) or isinstance(value, (bytes, bytearray)) or not value:
+        raise ValueError(bad)
+    if any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in value):
+        raise ValueError(bad)
+    return tuple(int(h) for h in value)
 
 
 def _default_heterogeneous(system: System) -> bool:
@@ -324,10 +342,7 @@ class LearnedModel(nn.Module):
         if not isinstance(heterogeneous, bool):
             raise ValueError(f"heterogeneous must be True, False or None, got {heterogeneous!r}")
         self.heterogeneous = heterogeneous
-        hidden = tuple(int(h) for h in hidden)
-        if any(h < 1 for h in hidden):
-            raise ValueError(f"hidden widths must be positive integers, got {hidden}")
-        self.hidden = hidden
+        self.hidden = hidden = hidden_widths("hidden", hidden)
 
         self.eps_option: float | str | None
         if self.contact_model != "CMr":
