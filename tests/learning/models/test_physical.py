@@ -448,3 +448,28 @@ def test_hidden_widths_are_checked_up_front(model, tmp_path, capsys):
     assert main([*argv, "--quiet"]) == 2
     assert "hidden must be a non-empty list" in capsys.readouterr().err
     assert not run.exists()  # nothing written
+
+
+@pytest.mark.parametrize("model", ["CM-CD-CLNN", "MLP-CD-CLNN"])
+def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
+    """Edited model files gave multi-line RuntimeErrors and TypeErrors (exit 1 with a
+    traceback from evaluate and refit), and the baselines loaded any format_version."""
+    from diffcontact.learning import create_model, load_model, save_model
+
+    path = save_model(create_model(model, "CP3", hidden=[4]), tmp_path / "model.pt")
+    good = torch.load(path, weights_only=True)
+    edits = {
+        "a weight missing": lambda d: d["state_dict"].pop(next(iter(d["state_dict"]))),
+        "options of another kind": lambda d: d["options"].update(nonsense=1),
+        "options not a dict": lambda d: d.update(options=[1, 2]),
+        "a newer format": lambda d: d.update(format_version=99),
+    }
+    for what, edit in edits.items():
+        data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
+        edit(data)
+        torch.save(data, tmp_path / "edited.pt")
+        with pytest.raises(ValueError, match=str(tmp_path / "edited.pt")) as caught:
+            load_model(tmp_path / "edited.pt")
+        assert "\n" not in str(caught.value), what
+        if what == "a newer format":
+            assert "format 99 is not supported" in str(caught.value)

@@ -120,6 +120,13 @@ def model_from_checkpoint(data: Mapping[str, Any]) -> Any:
         from diffcontact.learning.models.physical import LearnedModel
 
         return LearnedModel.from_checkpoint(data)
+    version = data.get("format_version")
+    if version is not None and version != FORMAT_VERSION:  # (None: a training checkpoint's)
+        newer = isinstance(version, int) and version > FORMAT_VERSION
+        raise ValueError(
+            f"model file format {version!r} is not supported (this diffcontact reads format "
+            f"{FORMAT_VERSION}{': written by a newer diffcontact' if newer else ''})"
+        )
     model = create_model(name, data["config"], **dict(data["options"]))
     state = dict(data["state_dict"])
     floats = [v for v in state.values() if v.is_floating_point()]
@@ -171,14 +178,30 @@ def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> An
             raise ValueError(f"{path} is not a diffcontact training checkpoint")
         prefix = "model."
         state = {k[len(prefix) :]: v for k, v in ckpt["state_dict"].items() if k.startswith(prefix)}
-        return model_from_checkpoint(
+        return _rebuilt(
             {
                 "format_version": ckpt.get("diffcontact", {}).get("model_format"),
                 "model_name": hp.get("model_name"),
                 "config": hp["config"],
                 "options": hp["options"],
                 "state_dict": state,
-            }
+            },
+            path,
         )
     data = load_torch_file(path, "model file", map_location)
-    return model_from_checkpoint(data)
+    return _rebuilt(data, path)
+
+
+def _rebuilt(data: Any, path: Path) -> Any:
+    """:func:`model_from_checkpoint` of ``path``'s contents; every failure a one-line
+    ``ValueError`` naming the file (contents that do not fit together: a missing or
+    misshapen weight, options of another model)."""
+    try:
+        return model_from_checkpoint(data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {one_line(err)}") from None
+    except (RuntimeError, TypeError, KeyError, AttributeError, IndexError) as err:
+        raise ValueError(
+            f"{path}: its contents do not fit together ({type(err).__name__}: "
+            f"{one_line(err)[:300]}); was it edited, or written for another model?"
+        ) from None
