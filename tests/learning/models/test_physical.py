@@ -473,3 +473,23 @@ def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
         assert "\n" not in str(caught.value), what
         if what == "a newer format":
             assert "format 99 is not supported" in str(caught.value)
+
+
+@pytest.mark.parametrize("potential_dtype", [None, "float32"])
+def test_as_system_keeps_the_values_of_the_moment(potential_dtype):
+    """as_system's potential was the live network: training on changed the system."""
+    from diffcontact.learning import create_model
+
+    z0 = dc.load_system("CP3").sample_initial_conditions(2, seed=0)
+    model = create_model("CM-CD-CLNN", "CP3", hidden=[8], potential_dtype=potential_dtype).double()
+    system = model.as_system()
+    before = system.simulate(z0, 10)
+    torch.testing.assert_close(before, model.simulate(z0, 10).detach(), rtol=0, atol=0)
+    with torch.no_grad():
+        model.potential.layers[0].weight.mul_(0.5)
+    assert torch.equal(system.simulate(z0, 10), before)
+    assert (
+        not any(t.requires_grad for t in system.potential_model.parameters())
+        if isinstance(system.potential_model, nn.Module)
+        else True
+    )

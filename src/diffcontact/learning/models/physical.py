@@ -53,6 +53,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -715,7 +716,16 @@ class LearnedModel(nn.Module):
             p = self.physical_params()
         for name, value in p.tensors().items():
             setattr(system, name, value.detach() if isinstance(value, Tensor) else value)
-        system.potential_model = p.potential
+        # a copy of the network, frozen: the system keeps the values of now, whatever the
+        # model learns next (the live module was shared, parameters and gradients included)
+        potential = p.potential
+        if isinstance(potential, nn.Module):
+            potential = copy.deepcopy(potential).requires_grad_(False)
+        elif isinstance(potential, _MLPWeights):  # the weights cast for a rollout
+            layers = [(w.detach().clone(), None if b is None else b.detach().clone())
+                      for w, b in potential.hidden_layers]  # fmt: skip
+            potential = _MLPWeights(layers, potential.out.detach().clone(), potential.compute_dtype)
+        system.potential_model = potential
         return system
 
     # ------------------------------------------------------------ saving
