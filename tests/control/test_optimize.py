@@ -245,6 +245,10 @@ def test_non_finite_gradient_names_the_variable(two_balls):
         (dict(variables=[Velocity(0)], starts={"velocity[0]": [1.0, 2.0]}), "shape"),
         (dict(variables=[Velocity(0)], starts={"spin": [[1.0]]}), "unknown variable"),
         (dict(variables=[Velocity(0)], threads="many"), "threads must be"),
+        # (a NaN or negative tolerance never stopped anything, silently)
+        (dict(variables=[Velocity(0)], tolerance=float("nan")), "tolerance must be a number >= 0"),
+        (dict(variables=[Velocity(0)], tolerance=-1), "tolerance must be a number >= 0"),
+        (dict(variables=[Velocity(0)], seed="a"), "seed must be an integer"),
     ],
 )
 def test_bad_arguments_are_named(two_balls, kwargs, match):

@@ -251,6 +251,13 @@ def optimize(
         patience = _check_int("patience", patience, 1)
     if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
         raise ControlError(f"lr must be a positive number, got {lr!r}")
+    if tolerance is not None and not (
+        isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool)
+        and math.isfinite(tolerance) and tolerance >= 0
+    ):  # fmt: skip
+        raise ControlError(f"tolerance must be a number >= 0 or None, got {tolerance!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ControlError(f"seed must be an integer, got {seed!r}")
     try:
         for v in variables:
             v.bind(planner)
