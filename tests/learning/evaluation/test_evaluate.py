@@ -234,3 +234,29 @@ def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged)
     assert m["n_nonfinite"] == len(diverged) and m["solver_failures"] == []
     if len(diverged) < 3:
         assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_an_evaluation_stopped_midway_can_run_again_in_its_folder(tmp_path, dataset, monkeypatch):
+    """Killed after its first files (no metrics.json yet), an evaluation was refused in
+    its own folder as "another evaluation" until --force."""
+    import diffcontact.learning.evaluation.evaluate as ev
+    from diffcontact.systems import System, load_config
+
+    system = System(load_config(TINY))
+    out = tmp_path / "out"
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(ev, "plot_rel_error", killed)
+        with pytest.raises(KeyboardInterrupt):
+            ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5)
+    assert (out / "rollout.npz").is_file() and not (out / "metrics.json").exists()
+    metrics = ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5)
+    assert (out / "metrics.json").is_file() and not (out / ev.STARTED).exists()
+    assert metrics["n_test"] == 3
+    # another data set in that folder is still refused
+    other = shutil.copytree(dataset, tmp_path / "other")
+    with pytest.raises(ev.EvaluationInputError, match="of another evaluation"):
+        ev.evaluate(None, out, model=system, data_dir=other, n_gif=0, steps=5)

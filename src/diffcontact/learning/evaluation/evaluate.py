@@ -218,6 +218,11 @@ def _same_path(recorded: Any, path: Path | None) -> bool:
     return Path(str(recorded)).resolve() == path.resolve()
 
 
+STARTED = ".evaluation-started.json"
+"""Written (run and data) before an evaluation's first output file, removed after its
+``metrics.json``: an evaluation stopped in between can be run again in its folder."""
+
+
 def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -> None:
     """Refuse to replace another evaluation's files in ``out`` (unless ``force``).
 
@@ -227,13 +232,15 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
     present = [n for n in OUTPUT_FILES if (out / n).exists() or (out / n).is_symlink()]
     if not present or force:
         return
-    metrics = out / "metrics.json"
     old = None
-    if metrics.is_file() and not metrics.is_symlink():
-        try:
-            old = json.loads(metrics.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            old = None
+    # metrics.json is written last; an evaluation stopped before it left its marker
+    for name in ("metrics.json", STARTED):
+        found = out / name
+        if old is None and found.is_file() and not found.is_symlink():
+            try:
+                old = json.loads(found.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+                old = None
     if (
         isinstance(old, dict)
         and _same_path(old.get("run_dir"), run_path)
@@ -406,6 +413,8 @@ def evaluate(
         raise EvaluationInputError(f"cannot create output folder {out}: {err}") from None
     if not os.access(out, os.W_OK | os.X_OK):
         raise EvaluationInputError(f"output folder {out} is not writable")
+    started = {"run_dir": None if run_path is None else str(run_path), "data_dir": str(data_path)}
+    atomic_write_json(out / STARTED, started)
 
     # ---- model
     model_note = None
@@ -578,4 +587,5 @@ def evaluate(
     metrics["files"] = sorted(files)
     metrics = jsonable(metrics)
     atomic_write_json(out / "metrics.json", metrics)
+    (out / STARTED).unlink(missing_ok=True)
     return metrics
