@@ -109,10 +109,10 @@ def test_outside_contact_model_and_model_through_the_cli(plugins, tmp_path, caps
     metrics = json.loads((ev / "metrics.json").read_text())
     assert metrics["model"] == "LearnedRestitution"
     assert math.isfinite(metrics["rel_err_mean"]) and metrics["rel_err_mean"] < 0.05
-    # the physical models' options do not apply to a registered model
+    # the built-in models' options do not apply to a registered model
     code = main(["train", str(data), "--out", str(tmp_path / "r2"), "--model",
                  "LearnedRestitution", "--hidden", "8", "--quiet"])  # fmt: skip
-    assert code == 2 and "option(s) of the physical models only" in capsys.readouterr().err
+    assert code == 2 and "hidden: option(s) of the built-in models only" in capsys.readouterr().err
 
 
 def test_unknown_model_lists_the_registered_ones(plugins, tmp_path):

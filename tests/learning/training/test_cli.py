@@ -53,3 +53,24 @@ def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
     with pytest.raises(TrainingInputError, match="strategy"):
         train(bp5_data, tmp_path / "x", epochs=1, strategy="nonsense", progress=False)
     assert not (tmp_path / "x").exists()  # nothing written before the checks pass
+
+
+@pytest.mark.parametrize(
+    ("argv", "text"),
+    [
+        # model_options won silently over the flag
+        (["--hidden", "16", "--model-option", "hidden=[8]"], "hidden given twice"),
+        (["--model", "CMr-CD-CLNN", "--eps", "0.2", "--model-option", "eps=0.1"],
+         "eps given twice"),
+        # CM has no regulariser: dropped silently through model_options
+        (["--model-option", "eps=0.5"], "eps is the regulariser of the CMr models"),
+        # hidden applies to the baselines: only eps is out of place
+        (["--model", "MLP-CD-CLNN", "--hidden", "16", "--eps", "learnable"],
+         "eps: option(s) of the physical models only; MLP-CD-CLNN takes hidden"),
+    ],
+)  # fmt: skip
+def test_options_given_twice_or_out_of_place_are_refused(bp5_data, tmp_path, capsys, argv, text):
+    out = tmp_path / "run"
+    code, err = _run_cli(["train", str(bp5_data), "--out", str(out), *argv], capsys)
+    assert code == 2 and text in err and err.count("\n") == 1, err
+    assert not out.exists()

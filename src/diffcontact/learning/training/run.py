@@ -495,22 +495,29 @@ def train(
     pl.seed_everything(seed, workers=True, verbose=False)
     options = dict(model_options or {})
     physical = {"eps": eps, "heterogeneous": heterogeneous, "hidden": hidden}
+    twice = [k for k, v in physical.items() if v is not None and k in options]
+    if twice:  # (model_options won silently)
+        raise TrainingInputError(f"{', '.join(twice)} given twice (as such and in model_options)")
     if is_physical_model(model):
-        if eps is not None and not model.startswith("CMr-"):
+        if (eps is not None or "eps" in options) and not model.startswith("CMr-"):
             raise TrainingInputError(
                 f"eps is the regulariser of the CMr models; {model} has none (leave eps unset)"
             )
         defaults = {"eps": DEFAULT_EPS, "heterogeneous": None, "hidden": DEFAULT_HIDDEN}
         options = {k: defaults[k] if v is None else v for k, v in physical.items()} | options
-    elif model in BASELINE_MODELS and eps is None and heterogeneous is None:
+    elif model in BASELINE_MODELS:
+        wrong = [k for k in ("eps", "heterogeneous") if physical[k] is not None]
+        if wrong:
+            raise TrainingInputError(
+                f"{', '.join(wrong)}: option(s) of the physical models only; {model} takes "
+                "hidden and model_options"
+            )
         if hidden is not None:  # the baselines' "hidden" option, as for the physical models
-            if "hidden" in options:
-                raise TrainingInputError("hidden given twice (hidden and model_options)")
             options["hidden"] = list(hidden)
     elif any(v is not None for v in physical.values()):
         given = ", ".join(k for k, v in physical.items() if v is not None)
         raise TrainingInputError(
-            f"{given}: option(s) of the physical models only; {model} takes model_options"
+            f"{given}: option(s) of the built-in models only; {model} takes model_options"
         )
     try:
         learned = create_model(model, meta["config"], **options)
