@@ -490,3 +490,20 @@ def test_as_system_keeps_the_values_of_the_moment(potential_dtype):
     assert torch.equal(system.simulate(z0, 10), before)
     if isinstance(system.potential_model, nn.Module):
         assert not any(t.requires_grad for t in system.potential_model.parameters())
+
+
+def test_set_parameters_refuses_what_the_model_cannot_hold():
+    """Masses its float32 parameters cannot hold were stored as 0 or inf, a string gave
+    torch's TypeError, and eps on a model without a regulariser was ignored."""
+    model = LearnedModel("BP5", hidden=(8,))  # float32 parameters
+    before = model.learned_parameters()
+    for bad, match in (([1e-50] * 5, "positive and finite in torch.float32"),
+                       ([1e50] * 5, "positive and finite in torch.float32"),
+                       ("abc", "mass must be numbers")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            model.set_parameters(mass=bad)
+    with pytest.raises(ValueError, match="eps is the regulariser of the CMr models; CM-CD-CLNN"):
+        model.set_parameters(eps=0.05)
+    assert model.learned_parameters() == before  # nothing changed
+    tiny = LearnedModel("BP5", hidden=(8,)).double().set_parameters(mass=[1e-50] * 5)
+    assert tiny.learned_parameters()["mass"][0] == pytest.approx(1e-50)  # float64 holds it

@@ -483,7 +483,10 @@ class LearnedModel(nn.Module):
         """
 
         def shaped(name: str, value: Any, shape: torch.Size) -> Tensor:
-            t = torch.as_tensor(value, dtype=torch.float64).detach().cpu()
+            try:
+                t = torch.as_tensor(value, dtype=torch.float64).detach().cpu()
+            except (TypeError, ValueError, RuntimeError):
+                raise ValueError(f"{name} must be numbers, got {value!r}") from None
             try:
                 return t.expand(shape)
             except RuntimeError:
@@ -502,6 +505,10 @@ class LearnedModel(nn.Module):
         if mass is not None:
             t = shaped("mass", mass, self.log_mass_rel.shape)
             log_mass = check("mass", t, t > 0, "positive and finite").log()
+            # masses the parameters' dtype cannot hold (1e-50 is 0 in float32)
+            held = log_mass.to(self.log_mass_rel.dtype).exp()
+            check("mass", t, (held > 0) & torch.isfinite(held),
+                  f"positive and finite in {self.log_mass_rel.dtype}")  # fmt: skip
             writes += [
                 (self.log_mass_scale, log_mass.mean()),
                 (self.log_mass_rel, log_mass - log_mass.mean()),
@@ -521,6 +528,10 @@ class LearnedModel(nn.Module):
             writes.append((self.raw_cor, _cor_raw(t)))
         eps_value = None
         if eps is not None:
+            if self.eps_option is None:
+                raise ValueError(
+                    f"eps is the regulariser of the CMr models; {self.model_name} has none"
+                )
             try:
                 eps_value = float(eps)
             except (TypeError, ValueError):
