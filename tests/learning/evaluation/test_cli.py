@@ -90,7 +90,12 @@ def test_data_of_another_system_is_refused_up_front(tmp_path, dataset, capsys):
                  hidden=(4,)).save(run / "model.pt")  # fmt: skip
     assert cli(["evaluate", str(run), "--n-gif", "0", "--out", str(tmp_path / "ev")]) == 2
     line = _error_line(capsys)
-    assert "(2, 2, 2) (BP2), the model's (2, 3, 2)" in line and "another system" in line
+    assert (
+        "(2, 2, 2) (BP2), the model's (2, 3, 2) (CM-CD-CLNN)" in line and "another system" in line
+    )
+    # a model file given for its run directory: said so (it said the directory did not exist)
+    assert cli(["evaluate", str(run / "model.pt"), "--n-gif", "0"]) == 2
+    assert "model.pt is a file: give the run directory that holds it" in _error_line(capsys)
 
 
 @pytest.mark.parametrize(

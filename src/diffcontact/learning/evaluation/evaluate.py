@@ -378,6 +378,11 @@ def evaluate(
     run_path = None if run_dir is None else Path(run_dir)
     run: dict[str, Any] = {}
     if run_path is not None:
+        if run_path.is_file():
+            raise EvaluationInputError(
+                f"{run_path} is a file: give the run directory that holds it (evaluate reads "
+                "its run.json, and model.pt or else checkpoints/last.ckpt)"
+            )
         if not run_path.is_dir():
             raise EvaluationInputError(f"run directory {run_path} does not exist")
         if (run_path / "run.json").is_file():
@@ -431,7 +436,7 @@ def evaluate(
         model = model.to(dev).eval()
     why = dataset.mismatch(model)
     if why is not None:
-        name = getattr(model, "name", None) or type(model).__name__
+        name = getattr(model, "model_name", None) or type(model).__name__
         raise EvaluationInputError(f"{data_path}: {why} ({name}): data of another system")
 
     # ---- rollouts
