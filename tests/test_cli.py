@@ -155,7 +155,8 @@ def test_invalid_config_file(capsys, tmp_path):
 def test_unwritable_output(capsys, tmp_path):
     code, _, err = run(capsys, "simulate", "BP5", "--out", str(tmp_path / "no" / "x.npz"))
     assert_usage_error(code, err, "--out", "does not exist")
-    code, _, err = run(capsys, "simulate", "BP5", "--out", str(tmp_path))  # a directory
+    (tmp_path / "d.npz").mkdir()
+    code, _, err = run(capsys, "simulate", "BP5", "--out", str(tmp_path / "d.npz"))  # a directory
     assert_usage_error(code, err, "--out", "directory")
     code, _, err = run(
         capsys, "simulate", "BP5", "--out", str(tmp_path / "a.npz"), "--gif", "/no/such/dir/a.gif"
@@ -165,8 +166,24 @@ def test_unwritable_output(capsys, tmp_path):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
 def test_cuda_not_available(capsys, tmp_path):
-    code, _, err = run(capsys, "simulate", "BP5", "--device", "cuda", "--out", str(tmp_path / "x"))
+    out = str(tmp_path / "x.npz")
+    code, _, err = run(capsys, "simulate", "BP5", "--device", "cuda", "--out", out)
     assert_usage_error(code, err, "CUDA is not available")
+
+
+@needs_systems
+@pytest.mark.parametrize(
+    ("flag", "name", "want"),
+    [("--out", "s.txt", ".npz"), ("--gif", "s.txt", ".gif"), ("--energy-plot", "e.txt", ".png")],
+)
+def test_output_names_must_say_what_they_hold(capsys, tmp_path, flag, name, want):
+    """--out s.txt wrote an .npz archive named .txt (and --gif a GIF), without a word."""
+    args = ["simulate", "BP5", "--n", "1", "--steps", "2"]
+    if flag != "--out":
+        args += ["--out", str(tmp_path / "x.npz")]
+    code, _, err = run(capsys, *args, flag, str(tmp_path / name))
+    assert_usage_error(code, err, f"the file name must end in {want}")
+    assert not any(tmp_path.iterdir())
 
 
 @needs_systems

@@ -171,9 +171,14 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
     paths = [("--out", args.out), ("--gif", args.gif), ("--energy-plot", args.energy_plot)]
     seen: dict[str, str] = {}
+    suffixes = {"--out": (".npz",), "--gif": (".gif",), "--energy-plot": (".png", ".pdf", ".svg")}
     for flag, path in paths:
         if path is None:
             continue
+        if not str(path).lower().endswith(suffixes[flag]):  # (an .npz was written as s3.txt)
+            raise UsageError(
+                f"{flag} {path!r}: the file name must end in {' or '.join(suffixes[flag])}"
+            )
         try:
             check_writable(path)
         except OSError as err:

@@ -336,3 +336,11 @@ def test_a_position_moved_into_an_overlap_is_never_the_plan():
     assert (system.gaps(res.z0[None, 0]) > 0).all()  # a state simulate accepts
     traj = system.simulate(res.z0[None], 5, params=res.params)
     assert float(objective(traj)[0]) == pytest.approx(float(res.objective), rel=1e-12)
+
+
+def test_a_number_parameter_is_read_exactly():
+    """eps, a plain number in PhysicalParams, was read through float32 (start 0 of a
+    Parameter("eps") plan was 0.009999999776, not the current 0.01)."""
+    system = dc.load_system("BD1-ground")
+    value = Parameter("eps").read(None, system.parameters(), system)
+    assert value.dtype == torch.float64 and float(value) == system.parameters().eps

@@ -150,7 +150,8 @@ def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -
         f"model, {judged}"
     )
     its = f"{res.iterations} iteration{'s' if res.iterations != 1 else ''}"
-    print(f"  {its} (stopped: {res.stopped}), {args.starts} starts, {seconds:.1f} s")
+    starts = f"{args.starts} start{'s' if args.starts != 1 else ''}"
+    print(f"  {its} (stopped: {res.stopped}), {starts}, {seconds:.1f} s")
     if args.json:
         info.update(planner=planner.name, iterations=res.iterations, seconds=round(seconds, 3))
         atomic_write_json(args.json, info)

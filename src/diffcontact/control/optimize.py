@@ -383,9 +383,10 @@ def optimize(
                     warned = True
                     warnings.warn(
                         f"optimize: the objective does not depend on "
-                        f"{', '.join(v.name for v in variables)} at iteration {it} (no "
-                        "contact for a contact parameter to act in, or an objective that "
-                        "detaches its input): zero gradient",
+                        f"{', '.join(v.name for v in variables)} at iteration {it} (a "
+                        "contact parameter without a contact to act in, a start whose "
+                        "rollout never reaches what the objective measures, or an objective "
+                        "that detaches its input): zero gradient",
                         stacklevel=2,
                     )
                 with torch.no_grad():

@@ -233,7 +233,8 @@ class Parameter(Variable):
             object.__setattr__(self, "name", f"{self.field}{suffix}")
 
     def _value(self, params: Any) -> Tensor:
-        return torch.as_tensor(getattr(params, self.field))
+        value = getattr(params, self.field)  # a number (eps) read as float64, not float32
+        return value if isinstance(value, Tensor) else torch.tensor(value, dtype=torch.float64)
 
     def bind(self, sim: Any) -> None:
         if self.field not in PARAMETER_FIELDS:
