@@ -43,7 +43,7 @@ import torch
 
 __all__ = [
     "ThreadGovernor", "available_cores", "claim_threads", "governed", "parse_threads",
-    "thread_scope",
+    "settled_on_one", "thread_scope",
 ]  # fmt: skip
 
 MIN_AUTO_STEPS = 24
@@ -395,6 +395,16 @@ def _remembered_governor(top: int) -> ThreadGovernor:
     governor = ThreadGovernor(top, first=1, settled=True, windows_since_probe=windows)
     governor.interval = interval  # the schedule goes on; a won probe still resets it to 4
     return governor
+
+
+def settled_on_one(device: torch.device | str = "cpu") -> bool:
+    """Whether a governed loop on this process's cores ended on one thread less than
+    :data:`MEMORY_S` seconds ago (a CPU that another process uses): work outside any loop,
+    such as the backward pass after a governed rollout, then runs best on one thread too."""
+    if torch.device(device).type != "cpu":
+        return False
+    last = _SETTLED.get(min(available_cores(), torch.get_num_threads()))
+    return last is not None and time.monotonic() - last[0] <= MEMORY_S
 
 
 def _remember(governor: ThreadGovernor) -> None:

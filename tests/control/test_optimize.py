@@ -344,3 +344,37 @@ def test_a_number_parameter_is_read_exactly():
     system = dc.load_system("BD1-ground")
     value = Parameter("eps").read(None, system.parameters(), system)
     assert value.dtype == torch.float64 and float(value) == system.parameters().eps
+
+
+def test_a_short_plan_on_a_loaded_cpu_runs_its_backward_pass_on_one_thread(two_balls, monkeypatch):
+    """Fewer than 24 iterations are not governed: each rollout's forward steps were (one
+    thread on a loaded CPU), but the backward pass ran on every core: the thread cliff,
+    for a learned model's short plan beside one busy process. It now follows the
+    rollouts' choice."""
+    import diffcontact.control.optimize as opt_module
+    from diffcontact.threads import available_cores
+
+    if min(available_cores(), torch.get_num_threads()) < 2:
+        pytest.skip("needs two cores")
+    system, z0 = two_balls
+    seen: list[int] = []
+
+    class Record(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.clone()
+
+        @staticmethod
+        def backward(ctx, g):
+            seen.append(torch.get_num_threads())
+            return g
+
+    def objective(traj):
+        return Record.apply(traj[:, -1, 0, 0]).norm(dim=-1)
+
+    for loaded, want in ((True, 1), (False, torch.get_num_threads())):
+        seen.clear()
+        monkeypatch.setattr(opt_module, "settled_on_one", lambda device, loaded=loaded: loaded)
+        dc.optimize(system, z0, objective, variables=[Velocity(0)], steps=3, iterations=2,
+                    progress=False)  # fmt: skip
+        assert seen and set(seen) == {want}, (loaded, seen)

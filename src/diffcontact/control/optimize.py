@@ -26,7 +26,7 @@ from torch import Tensor
 
 from diffcontact.control.planner import Planner, as_planner
 from diffcontact.control.variables import Parameter, Position, Variable, as_bounds
-from diffcontact.threads import parse_threads, thread_scope
+from diffcontact.threads import MIN_AUTO_STEPS, parse_threads, settled_on_one, thread_scope
 
 __all__ = ["ControlError", "OptimizeResult", "optimize"]
 
@@ -343,6 +343,7 @@ def optimize(
         threads_held = contextlib.ExitStack()
         try:
             scope = threads_held.enter_context(thread_scope(threads, device, iterations))
+            short = iterations < MIN_AUTO_STEPS  # (the rollouts govern their own steps)
             warned = False  # the zero-gradient warning, once per call
             warned_overlap = False  # and the one for starts moved into an overlap
             for it in range(iterations):
@@ -364,7 +365,11 @@ def optimize(
                         # gradient, which the optimiser's step leaves in place
                         last["no_gradient"] = obj
                         return obj.sum()
-                    obj.sum().backward()
+                    # a short loop is not governed: each rollout's forward steps are, and on
+                    # a loaded CPU (they settled on one thread) the backward pass follows
+                    one = threads == "auto" and short and settled_on_one(device)
+                    with thread_scope(1, device) if one else contextlib.nullcontext():
+                        obj.sum().backward()
                     for v, val in zip(variables, values, strict=True):
                         g = val.grad
                         if g is not None and not torch.isfinite(g).all():
