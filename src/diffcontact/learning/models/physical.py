@@ -92,9 +92,10 @@ _INIT_EPS = 0.01
 
 
 def hidden_widths(name: str, value: Any) -> tuple[int, ...]:
-    """Hidden-layer widths: a non-empty list of positive integers (or ``"64,64"``, as a
-    ``--model-option`` may give them). Anything else (``[]``, ``"16"`` read as digits,
-    ``16.7``, ``True``) is a ``ValueError`` naming ``name``."""
+    """Hidden-layer widths: a non-empty list of positive integers, or ``"64,64"`` as a
+    ``--model-option`` may give them (``"16"`` is ``[16]``; it was read as the digits
+    ``[1, 6]``). Anything else (``[]``, ``16.7``, ``True``) is a ``ValueError`` naming
+    ``name``."""
     bad = f"{name} must be a non-empty list of positive integers (e.g. [64, 64]), got {value!r}"
     if isinstance(value, str):
         try:
