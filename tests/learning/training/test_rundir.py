@@ -86,6 +86,11 @@ def test_truncated_model_files_give_one_line_errors(finished, tmp_path, capsys):
         load_model(run)
     code, _, err = run_cli(capsys, "evaluate", str(run), "--n-gif", "0")
     assert_usage_error(code, err, "model.pt", "truncated")
+    # random bytes: corrupted, not "unsafe" (the legacy unpickler's refusal said so)
+    (run / "model.pt").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ValueError, match=r"model\.pt cannot be read .*not a torch file") as caught:
+        load_model(run)
+    assert not isinstance(caught.value, UnsafeFileError)
 
 
 def test_out_must_be_new_empty_or_a_run_of_ours(bp5_data, tmp_path, capsys):

@@ -55,6 +55,12 @@ def load_torch_file(path: str | os.PathLike[str], what: str, map_location: Any =
             (unpickling it could execute code); it is not loaded.
         ValueError: the file is missing, truncated or not a torch file.
     """
+    if Path(path).is_file() and not _is_empty(path) and not zipfile.is_zipfile(path):
+        # torch.save writes zip archives (diffcontact's files all are); anything else went
+        # to the legacy unpickler, whose refusal of random bytes read as "unsafe"
+        raise ValueError(
+            f"{what} {path} cannot be read (truncated or corrupted?): not a torch file"
+        )
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as err:  # what weights_only refuses: a global it does not allow
