@@ -138,3 +138,19 @@ def test_a_run_s_plans_are_judged_by_its_data_s_truth(capsys, tmp_path):
     with pytest.warns(UserWarning, match=r"data of run .* cannot be read .*config's system"):
         planner = as_planner(str(_run_of(tmp_path, "data_gone", tmp_path / "missing")))
     assert (planner.truth_contact_model, planner.truth_known) == ("CM", True)
+
+
+def test_a_target_beyond_reach_is_warned_in_one_line(capsys, tmp_path):
+    """throw --target 100 planned silently towards a point no throw within the bounds
+    reaches; warnings came as Python's, with a source line."""
+    out = str(tmp_path / "t.json")
+    code, _, err = run(
+        capsys, "throw", "BD1-ground", "--target", "100", *QUICK, "--json", out, "--no-gif"
+    )
+    assert code == 0, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == [
+        "diffcontact throw: warning: throw: target(s) [100.0] are beyond reach from x = 0 in "
+        "0.2 s (at most 0.8 m at max_speed 4 m/s and max_spin 30 rad/s): the plan gets as "
+        "close as it can"
+    ], err

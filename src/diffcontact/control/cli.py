@@ -7,10 +7,12 @@ Building the parser imports no torch; the handlers import
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+import warnings
 from typing import Any
 
-from diffcontact.cli_args import float_in, int_at_least, positive_float, report_errors
+from diffcontact.cli_args import float_in, int_at_least, one_line, positive_float, report_errors
 
 __all__ = ["register_cli"]
 
@@ -184,20 +186,25 @@ def _run(args: argparse.Namespace, plan_fn: Any, **kwargs: Any) -> int:
     from diffcontact.control.optimize import ControlError
 
     try:
-        plan = plan_fn(
-            planner,
-            args.target,
-            time=args.time,
-            starts=args.starts,
-            iterations=args.iterations,
-            lr=args.lr,
-            tolerance=args.tolerance,
-            max_speed=args.max_speed,
-            progress=not args.quiet,
-            **kwargs,
-        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            plan = plan_fn(
+                planner,
+                args.target,
+                time=args.time,
+                starts=args.starts,
+                iterations=args.iterations,
+                lr=args.lr,
+                tolerance=args.tolerance,
+                max_speed=args.max_speed,
+                progress=not args.quiet,
+                **kwargs,
+            )
     except ControlError as err:
         raise _InputError(str(err)) from None
+    finally:  # each warning once, one line on stderr (not Python's, with a source line)
+        for message in dict.fromkeys(one_line(w.message) for w in caught):
+            print(f"diffcontact {args.command}: warning: {message}", file=sys.stderr)
     return _report(args, planner, plan, time.perf_counter() - start)
 
 

@@ -20,6 +20,7 @@ call and judge the plans with the ground-truth system (``planner.truth``):
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -302,6 +303,17 @@ def plan_throw(
     if (planner.truth.gaps(z[0].unsqueeze(0)) <= 0).any():
         raise ControlError(f"start {tuple(st.tolist())}: the disk overlaps a wall or another body")
     N = tgt.shape[0]
+    # the centre moves horizontally at most at the larger of the thrown speed and the
+    # rolling speed the spin can give (friction only trades one for the other)
+    reach = time * max(max_speed, max_spin * float(cfg.radii[0]))
+    far = (tgt - st[0]).abs() > reach
+    if bool(far.any()):
+        warnings.warn(
+            f"throw: target(s) {tgt[far].tolist()[:5]} are beyond reach from x = {float(st[0]):g}"
+            f" in {time:g} s (at most {reach:g} m at max_speed {max_speed:g} m/s and max_spin "
+            f"{max_spin:g} rad/s): the plan gets as close as it can",
+            stacklevel=2,
+        )
     z0 = z.unsqueeze(0).expand(N, -1, -1, -1).clone()
     point = planner.bodies[0].points[0]
     tgt_b = tgt.reshape(N, 1)
