@@ -198,7 +198,8 @@ def two_phase_impulse(
     not, by rounding, and the solver then picks the minimiser of the perturbed problem
     instead of the canonical one (:mod:`~diffcontact.contact.cone_qp`). The compression
     impulse's split among the contacts feeds Poisson's bound, so a float32 rollout took
-    another post-impact velocity (0.03 of 1.8 m/s on a BP5 state) and diverged.
+    another post-impact velocity and parted from the float64 one
+    (``tests/systems/test_simulate.py``).
     """
     work = _solve_dtype(v.dtype, settings)
     if work is not None:
