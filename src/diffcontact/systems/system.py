@@ -1579,14 +1579,7 @@ class System:
         )
 
     def _nonfinite_error(self, states: list[Tensor], at: int) -> NonFiniteRolloutError:
-        """:class:`NonFiniteRolloutError` naming the trajectories that became NaN or infinite."""
-        with torch.no_grad():
-            traj = torch.stack([s.detach() for s in states], dim=1)
-            rows = (~torch.isfinite(traj).flatten(2).all(-1)).any(-1).nonzero().flatten()
-        return NonFiniteRolloutError(self._nonfinite_message(states, at), rows.tolist())
-
-    def _nonfinite_message(self, states: list[Tensor], at: int) -> str:
-        """Which states became NaN or infinite, when, and the likely cause."""
+        """Which trajectories became NaN or infinite, when, and the likely cause."""
         with torch.no_grad():
             traj = torch.stack([s.detach() for s in states], dim=1)
             bad = ~torch.isfinite(traj).flatten(2).all(-1)  # (N, T)
@@ -1601,8 +1594,9 @@ class System:
             )
         else:
             cause = "the motion blew up"
-        return (
+        message = (
             f"simulate {self.name}: NaN or infinite values in {len(rows)} of "
             f"{traj.shape[0]} trajectories ({where}{more}; step {at} was reached). Likely "
             f"cause: {cause}; dt = {self.dt} may be too large for this system: try a smaller dt"
         )
+        return NonFiniteRolloutError(message, rows)

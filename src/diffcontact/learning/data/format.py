@@ -341,7 +341,7 @@ class Dataset:
     def counts(self) -> dict[str, int]:
         return {s: int(self.metadata[f"n_{s}"]) for s in SPLITS}
 
-    def mismatch(self, model: Any) -> str | None:
+    def mismatch(self, model: Any, states: Tensor | None = None) -> str | None:
         """Why ``model`` cannot be scored on or refit to these data, or ``None``.
 
         What a model does not learn must match: the state shape, the time step, the
@@ -349,6 +349,8 @@ class Dataset:
         model's ``config`` and the data's: walls, radii, limits) and the equality
         constraints (their values at those states: link lengths, pivots). Masses,
         friction, restitution and the potential may differ; those are what is learned.
+        ``states``: ``(n, P, dim)`` positions of the data to compare at, where the caller
+        has read some (default: the first states of the first non-empty split).
         """
         system = self.system
         shape = getattr(model, "state_shape", None)
@@ -370,11 +372,12 @@ class Dataset:
             theirs = load_system(config)
         except (ValueError, TypeError):
             return None  # a model whose config is not a system's: nothing to compare
-        for name in SPLITS:
+        x = None if states is None else states[:64].to(torch.float64)
+        for name in SPLITS if x is None else ():
             if self.counts[name] > 0:
                 x = self.split(name, dtype=torch.float64).traj[:64, 0, 0]  # (n, P, dim)
                 break
-        else:
+        if x is None or x.shape[0] == 0:
             return None
         with torch.no_grad():
             ours, model_gaps = system.gaps(x), theirs.gaps(x)
