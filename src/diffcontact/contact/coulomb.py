@@ -86,7 +86,7 @@ from diffcontact.contact.cone_qp import (
     flatten_batch,
     solve_cone_qp,
 )
-from diffcontact.contact.impulse import ImpulseResult
+from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
 from diffcontact.contact.interior_point import add_block_diag
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
@@ -515,8 +515,19 @@ def coulomb_two_phase_impulse(
     Raises:
         ConeQPError: some problems did not converge and ``coulomb.on_failure`` is
             ``"raise"``; its ``status`` (shaped like the batch) says which.
+
+    States narrower than ``settings.compute_dtype`` (float32 states, the default float64
+    solve) are resolved in the compute dtype from the rows on, as CM's
+    (:func:`~diffcontact.contact.impulse.widened`).
     """
     coulomb = coulomb or CoulombSettings()
+    work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
+    if work is not None:
+        op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)
+        return coulomb_two_phase_impulse(
+            op, None, v_w, mu_w, cor_w, active, d,
+            v_C_star=star_w, settings=settings, coulomb=coulomb,
+        ).to(v.dtype)  # fmt: skip
     op = as_operator(J_C, Mhat_inv)
     A = op.delassus()  # symmetric
     v_C = op.contact_velocity(v)

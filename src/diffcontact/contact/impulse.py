@@ -42,6 +42,10 @@ class ImpulseResult:
     f_c: Tensor
     f_r: Tensor
 
+    def to(self, dtype: torch.dtype) -> ImpulseResult:
+        """The three impulses in ``dtype`` (differentiable casts)."""
+        return ImpulseResult(self.v_plus.to(dtype), self.f_c.to(dtype), self.f_r.to(dtype))
+
 
 def penetration_target(
     J_C: Tensor | ContactOperator,
@@ -149,12 +153,35 @@ def _range_projection(op: ContactOperator, v: Tensor) -> Tensor:
     return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), independent)
 
 
-def _solve_dtype(dtype: torch.dtype, settings: SolverSettings | None) -> torch.dtype | None:
-    """The solver's compute dtype where it is wider than ``dtype``, else ``None``."""
-    work = (settings or SolverSettings()).compute_dtype
+def wider_dtype(dtype: torch.dtype, work: torch.dtype | None) -> torch.dtype | None:
+    """``work`` where it is a floating dtype wider than ``dtype``, else ``None``: the
+    dtype a contact model resolves states of ``dtype`` in (``work``: its solver's
+    ``compute_dtype``)."""
     if work is None or not dtype.is_floating_point or not work.is_floating_point:
         return None
     return work if torch.finfo(work).bits > torch.finfo(dtype).bits else None
+
+
+def widened(
+    work: torch.dtype,
+    J_C: Tensor | ContactOperator,
+    Mhat_inv: Tensor | None,
+    *tensors: Tensor | None,
+) -> tuple[ContactOperator, ...]:
+    """A contact problem's operator and tensors cast to ``work`` (differentiable casts;
+    ``None`` and non-tensors kept): ``(op, *tensors)``.
+
+    Contact models resolve states narrower than their solver's compute dtype in that dtype
+    *from the rows on*, not only inside the solver: ``A = J_C Mhat^-1 J_C^T`` is singular
+    wherever a body has more contacts than freedoms; formed in float32 it is not, by
+    rounding, and the solver then picks the solution of the perturbed problem instead of
+    the canonical one (which impulse a body's contacts share feeds Poisson's bound, and
+    the LCP's pivoting), so a float32 rollout took another post-impact velocity and parted
+    from the float64 one (``tests/systems/test_simulate.py``)."""
+    op = as_operator(J_C, Mhat_inv)
+    op = op.to(work) if hasattr(op, "to") else op
+    cast = tuple(t.to(work) if isinstance(t, Tensor) else t for t in tensors)
+    return (op, *cast)
 
 
 def two_phase_impulse(
@@ -193,24 +220,17 @@ def two_phase_impulse(
 
     States in a narrower dtype than the solver's ``compute_dtype`` (float32 states, the
     default float64 solve) are resolved in the compute dtype from the rows on (``A``, the
-    contact velocity, both phases), not only inside the solver. ``A = J_C Mhat^-1 J_C^T``
-    is singular wherever a body has more contacts than freedoms; formed in float32 it is
-    not, by rounding, and the solver then picks the minimiser of the perturbed problem
-    instead of the canonical one (:mod:`~diffcontact.contact.cone_qp`). The compression
-    impulse's split among the contacts feeds Poisson's bound, so a float32 rollout took
-    another post-impact velocity and parted from the float64 one
-    (``tests/systems/test_simulate.py``).
+    contact velocity, both phases), not only inside the solver (:func:`widened` says
+    why; the canonical minimiser: :mod:`~diffcontact.contact.cone_qp`).
     """
-    work = _solve_dtype(v.dtype, settings)
+    work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
-        op = as_operator(J_C, Mhat_inv)
-        wide = two_phase_impulse(
-            op.to(work) if hasattr(op, "to") else op, None, v.to(work), mu.to(work),
-            cor.to(work), active, d,
-            v_C_star=None if v_C_star is None else v_C_star.to(work),
-            eps=eps.to(work) if isinstance(eps, Tensor) else eps, settings=settings,
-        )  # fmt: skip
-        return ImpulseResult(*(t.to(v.dtype) for t in (wide.v_plus, wide.f_c, wide.f_r)))
+        op, v_w, mu_w, cor_w, star_w, eps_w = widened(
+            work, J_C, Mhat_inv, v, mu, cor, v_C_star, eps
+        )
+        return two_phase_impulse(
+            op, None, v_w, mu_w, cor_w, active, d, v_C_star=star_w, eps=eps_w, settings=settings
+        ).to(v.dtype)
     op = as_operator(J_C, Mhat_inv)
     A = op.delassus()  # symmetric
     A_qp = A

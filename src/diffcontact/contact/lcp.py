@@ -122,7 +122,7 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
-from diffcontact.contact.impulse import ImpulseResult
+from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
 from diffcontact.contact.models import ContactParams
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
@@ -526,9 +526,25 @@ def lcp_impulse(
     Returns:
         :class:`~diffcontact.contact.ImpulseResult` with ``f_c`` the impulse ``(...,
         K*d)`` (normal then tangential per contact) and ``f_r`` zeros (one phase).
+
+    States narrower than ``compute_dtype`` (float32 states, the default float64 solve)
+    are resolved in ``compute_dtype`` from the rows on, as CM's
+    (:func:`~diffcontact.contact.impulse.widened`): Lemke's pivots on ``A`` formed in
+    float32 end at another solution where it is singular.
     """
     if d not in (1, 2, 3):
         raise ValueError(f"lcp_impulse: d must be 1, 2 or 3, got {d!r}")
+    work = wider_dtype(v.dtype, compute_dtype)
+    if work is not None:
+        op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)
+        out = lcp_impulse(
+            op, None, v_w, mu_w, cor_w, active, d, v_C_star=star_w, directions=directions,
+            max_pivots=max_pivots, tol=tol, compute_dtype=compute_dtype,
+            return_status=return_status,
+        )  # fmt: skip
+        if return_status:
+            return out[0].to(v.dtype), out[1]
+        return out.to(v.dtype)
     op = as_operator(J_C, Mhat_inv)
     v_C = op.contact_velocity(v)
     batch = v_C.shape[:-1]
