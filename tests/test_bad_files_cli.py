@@ -140,6 +140,36 @@ def test_deeply_nested_yaml_and_json(tmp_path, capsys):
         dc.load_config({**BALL, "walls": nested})
 
 
+def test_duplicate_keys_are_refused_and_exponent_numbers_read(tmp_path, capsys):
+    """A key given twice took its last value silently (yaml.safe_load, json.loads); YAML
+    1.1 read ``1e-3`` as a string, which validation then refused as not a number."""
+    dup = tmp_path / "dup.yaml"
+    dup.write_text("type: bouncing_masses\nmasses: [1.0]\nradii: [0.1]\nradii: [0.5]\n")
+    code, _, err = run_cli(capsys, "simulate", str(dup), "--out", str(tmp_path / "x.npz"))
+    assert_usage_error(code, err, "dup.yaml", "'radii' is given twice", "line 3 and line 4")
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("mu: {pairs: 0.1, walls: 0.2, pairs: 0.3}\n")
+    with pytest.raises(ValueError, match="'pairs' is given twice"):
+        dc.load_config(nested)
+    dup_json = tmp_path / "dup.json"
+    dup_json.write_text('{"type": "bouncing_masses", "dt": 0.01, "dt": 0.02}')
+    with pytest.raises(ValueError, match=r"dup\.json.*'dt' is given twice"):
+        dc.load_config(dup_json)
+    sci = tmp_path / "sci.yaml"
+    sci.write_text(
+        "type: bouncing_masses\nmasses: [1.0]\nradii: [1e-1]\nwalls: [[0, 1, 0]]\n"
+        "dt: 1e-2\nhorizon: 5e-1\ngravity: 9.81\nmu: 2E-1\n"
+    )
+    config = dc.load_config(sci)
+    assert (config.dt, config.horizon, config.radii, config.mu) == (0.01, 0.5, [0.1], 0.2)
+
+
+def test_a_step_or_horizon_that_overflows_their_ratio_is_a_clear_error():
+    for overrides in ({"dt": 1e-320}, {"horizon": 1e300, "dt": 1e-10}):
+        with pytest.raises(ValueError, match=r"horizon / dt .*ratio inf"):
+            dc.load_config("BP5", **overrides)
+
+
 def test_config_entry_of_arrays_file_nested_too_deeply(tmp_path, capsys, recorded):
     traj, _ = recorded
     path = tmp_path / "rec.npz"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 
 
@@ -31,3 +32,18 @@ def broadcast_shapes(*shapes: Sequence[int]) -> tuple[int, ...]:
                     f"against {current} at dimension {offset + i - len(out)}"
                 )
     return tuple(out)
+
+
+def contact_dimension(d: object, caller: str, allowed: tuple[int, ...] = (1, 2, 3)) -> int:
+    """``d`` as a Python ``int`` in ``allowed``: an integer, or anything integral that
+    converts exactly (``numpy.int64``, a 0-d integer tensor); a float, a bool or another
+    value is a ``ValueError`` naming ``caller``. (A 0-d tensor ``d`` compared equal to 2
+    but reached the fused solver as a tensor, where it corrupted memory.)"""
+    try:
+        value = None if isinstance(d, bool) else operator.index(d)  # type: ignore[arg-type]
+    except TypeError:
+        value = None
+    if value not in allowed:
+        names = ", ".join(map(str, allowed[:-1])) + f" or {allowed[-1]}"
+        raise ValueError(f"{caller}: d must be {names} (an integer), got {d!r}")
+    return int(value)

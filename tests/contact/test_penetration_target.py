@@ -119,3 +119,25 @@ def test_an_active_contact_with_a_zero_row_gets_no_target():
     want = (J[2] @ _pinv(J[2], v_d[2])).squeeze(-1)
     assert float(v_d[2, 2]) > 0 and float(got[2, 2]) == 0.0
     torch.testing.assert_close(got[2], want, rtol=1e-12, atol=1e-12)
+
+
+def test_mass_metric_target_is_the_desired_velocity_under_equality_constraints():
+    """With the constrained inverse inertia as the metric, the target of independent rows
+    is the desired velocity itself (zero tangential parts) whatever the constraints;
+    appendix G's Euclidean lift and projection (S.22-S.24) give it tangential parts."""
+    from diffcontact.mechanics import Mhat_inv
+
+    gen = torch.Generator().manual_seed(3)
+    n, D, E, K, d = 16, 9, 3, 2, 2
+    J = torch.randn(n, K * d, D, generator=gen, dtype=F64)
+    J_E = torch.randn(n, E, D, generator=gen, dtype=F64)
+    R = torch.randn(n, D, D, generator=gen, dtype=F64)
+    M_inv = R @ R.transpose(-1, -2) + D * torch.eye(D, dtype=F64)
+    Mh = Mhat_inv(M_inv, J_E)
+    depth = torch.rand(n, K, generator=gen, dtype=F64)
+    active = torch.ones(n, K, dtype=torch.bool)
+    mass = penetration_target(J, depth, active, 0.01, d, 0.125, J_E, Mh)
+    desired = torch.stack([0.125 * depth / 0.01, torch.zeros_like(depth)], -1).flatten(-2)
+    torch.testing.assert_close(mass, desired, rtol=1e-10, atol=1e-12)
+    euclid = penetration_target(J, depth, active, 0.01, d, 0.125, J_E)
+    assert float(euclid[:, 1::2].abs().min()) > 1e-6

@@ -239,6 +239,28 @@ def test_bad_parameter_tensors_are_rejected_at_simulate():
     assert system.simulate(z0, steps=1).shape == (2, 2, 2, 5, 2)
 
 
+def test_energies_and_gaps_check_their_states():
+    """Integer positions gave zero kinetic energy and a wrong potential (the masses were
+    cast to the states' dtype: 0.05 -> 0); a wrong point count a deep matmul error."""
+    system = dc.load_system("BP5")
+    z = (system.sample_initial_conditions(2, seed=1) * 10).round()
+    assert float(system.kinetic_energy(z).min()) > 0
+    for call, arg, name in (
+        (system.kinetic_energy, z.long(), "z"),
+        (system.potential, z[:, 0].long(), "x"),
+        (system.grad_potential, z[:, 0].int(), "x"),
+        (system.gaps, z[:, 0].long(), "x"),
+    ):
+        with pytest.raises(ValueError, match=rf"{name} must be a float32 or float64 tensor"):
+            call(arg)
+    with pytest.raises(ValueError, match=r"z must have shape \(\.\.\., \(2, 5, 2\)\)"):
+        system.kinetic_energy(z[:, :, :4])
+    with pytest.raises(ValueError, match=r"x must have shape \(\.\.\., 5, 2\) for BP5"):
+        system.potential(z[:, 0, :4])
+    with pytest.raises(ValueError, match=r"x must be a torch\.Tensor"):
+        system.gaps(z[:, 0].numpy())
+
+
 def test_bad_initial_states_are_rejected():
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(4, seed=0)

@@ -40,6 +40,19 @@ def test_energy_and_box_with_elastic_frictionless_walls_and_gravity():
     assert bool((x > 0.1 - 1e-12).all() and (x < 0.9 + 1e-12).all())
 
 
+def test_scaled_walls_are_the_same_walls():
+    """Walls are normalised on load (docs/config.md): a wall's line scaled by any positive
+    factor is the same wall. The event-driven simulator read them unnormalised, and a
+    ball under gravity over ``[0, 2, 0]`` gained 447 J and ended inside the ground."""
+    scaled = [[3, 0, 0], [0, 2, 0], [-0.5, 0, 0.5], [0, -4, 4]]
+    for settings in ({"cor": 1.0, "mu": 0.0, "gravity": 9.8}, {}):  # BOX: mu 0.3, e 0.7
+        unit = dc.load_system({**BOX, **settings})
+        other = dc.load_system({**BOX, **settings, "walls": scaled})
+        z0 = unit.sample_initial_conditions(8, seed=0)
+        a, b = simulate_event_driven(unit, z0), simulate_event_driven(other, z0)
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
 def test_velocities_match_coulomb_time_stepping_and_not_cm():
     """Between impacts the velocities are constant; after each impact the time-stepping
     Coulomb model gives the exact post-impact velocity (states that differ: impacts

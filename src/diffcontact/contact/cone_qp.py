@@ -87,9 +87,10 @@ from torch import Tensor
 from diffcontact.contact import fused
 from diffcontact.contact.closed_form import separating_guess, single_contact_minimiser
 from diffcontact.contact.cone import project_contact_set
+from diffcontact.contact.first_order import first_order_only
 from diffcontact.contact.interior_point import add_block_diag, interior_point_solve
 from diffcontact.fastops import lu_factor_ex
-from diffcontact.shapes import broadcast_shapes
+from diffcontact.shapes import broadcast_shapes, contact_dimension
 
 
 class ConeQPError(RuntimeError):
@@ -675,6 +676,7 @@ class _ConeQPFunction(torch.autograd.Function):
         ctx.mark_non_differentiable(*output[1:5])
 
     @staticmethod
+    @first_order_only
     def backward(ctx, grad_f, *_):
         f, P, dmu, dl, rho, LU, piv, act_c, active = ctx.saved_tensors
         d = ctx.d
@@ -810,8 +812,7 @@ def solve_cone_qp(
         ConeQPError: unbounded or unconverged problems (unless ``return_status``).
     """
     settings = settings or SolverSettings()
-    if d not in (1, 2, 3):
-        raise ValueError(f"solve_cone_qp: d must be 1, 2 or 3, got {d!r}")
+    d = contact_dimension(d, "solve_cone_qp")
     _check("A", A, finite=False)
     resolved = settings.resolved(A.dtype, A.device)
     finite = resolved.backend != "warp"  # else checked in the kernel

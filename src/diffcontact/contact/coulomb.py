@@ -86,11 +86,12 @@ from diffcontact.contact.cone_qp import (
     flatten_batch,
     solve_cone_qp,
 )
+from diffcontact.contact.first_order import first_order_only
 from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
 from diffcontact.contact.interior_point import add_block_diag
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
-from diffcontact.shapes import broadcast_shapes
+from diffcontact.shapes import broadcast_shapes, contact_dimension
 
 __all__ = [
     "CoulombSettings",
@@ -340,6 +341,7 @@ class _CoulombFunction(torch.autograd.Function):
         ctx.mark_non_differentiable(*output[1:5])
 
     @staticmethod
+    @first_order_only
     def backward(ctx, grad_f, *_):
         A, b, mu, lower, f, active = ctx.saved_tensors
         d = ctx.d
@@ -419,8 +421,7 @@ def solve_coulomb(
     """
     settings = settings or SolverSettings()
     coulomb = coulomb or CoulombSettings()
-    if d not in (1, 2, 3):
-        raise ValueError(f"solve_coulomb: d must be 1, 2 or 3, got {d!r}")
+    d = contact_dimension(d, "solve_coulomb")
     for name, x in (("A", A), ("b", b), ("mu", mu)):
         if not isinstance(x, Tensor) or not x.is_floating_point():
             raise ValueError(f"solve_coulomb: {name} must be a floating-point torch.Tensor")
@@ -521,6 +522,7 @@ def coulomb_two_phase_impulse(
     (:func:`~diffcontact.contact.impulse.widened`).
     """
     coulomb = coulomb or CoulombSettings()
+    d = contact_dimension(d, "coulomb_two_phase_impulse")
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)

@@ -67,6 +67,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from diffcontact.contact.first_order import first_order_only
+
 if TYPE_CHECKING:
     from diffcontact.contact.cone_qp import SolverSettings
     from diffcontact.contact.interior_point import InteriorPointResult
@@ -854,18 +856,22 @@ class FusedConeQP(torch.autograd.Function):
                 ("forward", C, d, work),
             )
         del work_buf
-        ctx.save_for_backward(keep)
+        f = _as(f, in_dtype)
+        # f: the output, which carries the graph a second derivative would go through
+        # (first_order_only); saved, never an attribute (no reference cycle)
+        ctx.save_for_backward(keep, f)
         ctx.shape = (n, C, d)
         ctx.dtypes = (in_dtype, work)
         ctx.mark_non_differentiable(converged, unbounded, iterations, res, flags)
         ctx.set_materialize_grads(False)
-        return _as(f, in_dtype), converged, unbounded, iterations, res, flags
+        return f, converged, unbounded, iterations, res, flags
 
     @staticmethod
+    @first_order_only
     def backward(ctx, grad_f, *_):
         if grad_f is None:  # f took no part in the loss
             return None, None, None, None, None, None, None, None
-        (keep,) = ctx.saved_tensors
+        keep, _ = ctx.saved_tensors
         n, C, d = ctx.shape
         K = C // d
         in_dtype, work = ctx.dtypes

@@ -24,8 +24,9 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
-from diffcontact.contact.operator import ContactOperator, as_operator
+from diffcontact.contact.operator import ContactOperator, DenseContact, as_operator
 from diffcontact.fastops import cholesky_solve, spd_solve
+from diffcontact.shapes import contact_dimension
 
 
 @dataclass
@@ -55,13 +56,28 @@ def penetration_target(
     d: int,
     fraction: float = 1 / 8,
     J_E: Tensor | None = None,
+    Mhat_inv: Tensor | None = None,
 ) -> Tensor:
     """Penetration-compensation target ``v_C^*`` (appendix G, S.22-S.24).
 
     The desired contact velocity has normal components ``fraction * depth / dt``
-    and zero tangential ones; it is lifted to Cartesian space with the
-    pseudo-inverse of ``J_C`` (S.24), projected onto the null space of ``J_E`` so that
-    it respects the equality constraints (S.22), and mapped back with ``J_C`` (S.23).
+    and zero tangential ones; it is lifted to Cartesian space with a pseudo-inverse of
+    ``J_C``, made to respect the equality constraints, and mapped back with ``J_C``.
+
+    With ``Mhat_inv`` (the constrained inverse inertia, S.12) the pseudo-inverse is the
+    mass metric's, ``Mhat^-1 J_C^T A^+`` with ``A = J_C Mhat^-1 J_C^T``: the velocity
+    change of the impulse that makes the contact velocities the desired ones, which
+    respects the equality constraints by construction. The target is then ``A A^+ v``,
+    the projection of the desired velocity onto the range of ``A``: the desired velocity
+    itself where ``A`` is non-singular, so tangential targets stay zero. Appendix G as
+    written (``Mhat_inv=None``: the Euclidean ``pinv(J_C)`` of S.24, then the Euclidean
+    projection onto the null space of ``J_E``, S.22-S.23) gives extended bodies a
+    tangential target that depends on how their points are laid out: a uniform disk
+    resting on a ground with friction drifted sideways by 2.6 mm/s at body angle 0,
+    by nothing at 45 degrees (config key ``penetration_metric``, docs/config.md).
+    Without equality constraints the two agree (the ranges of ``A`` and ``J_C`` are
+    the same) and ``Mhat_inv`` is not used.
+
     No gradient flows through it.
 
     ``pinv(J_C) v`` is ``J_C^T (J_C J_C^T)^-1 v`` where ``J_C`` has full row rank (padded
@@ -88,16 +104,23 @@ def penetration_target(
         d: contact-space dimension.
         fraction: share of the depth removed per step (the released code used 1/8).
         J_E: (..., E, D) equality-constraint Jacobian, or None.
+        Mhat_inv: (..., D, D) constrained inverse inertia for the mass metric, or None
+            (the Euclidean one of S.24).
 
     Returns:
         v_C_star: (..., K*d).
     """
+    d = contact_dimension(d, "penetration_target")
     op = as_operator(J_C, None)
     depth = torch.where(active, depth.clamp_min(0), 0)
     v_d = torch.stack([fraction * depth / dt, *[torch.zeros_like(depth)] * (d - 1)], -1)
     v_d = v_d.flatten(-2)
     if J_E is None or J_E.shape[-2] == 0:
         return _range_projection(op, v_d)
+    if Mhat_inv is not None:
+        if not isinstance(op, DenseContact):
+            raise ValueError("penetration_target: the mass metric needs the dense J_C")
+        return _range_projection(op, v_d, DenseContact(op.J_C, Mhat_inv).delassus())
     v_star = _pinv_apply(op, v_d)
     JJt = J_E @ J_E.transpose(-1, -2)
     corr = spd_solve(JJt, J_E @ v_star.unsqueeze(-1))
@@ -139,14 +162,15 @@ def _pinv_apply(J: Tensor | ContactOperator, v: Tensor) -> Tensor:
     return op.generalized_impulse(y.squeeze(-1))
 
 
-def _range_projection(op: ContactOperator, v: Tensor) -> Tensor:
+def _range_projection(op: ContactOperator, v: Tensor, G: Tensor | None = None) -> Tensor:
     """``J pinv(J) v`` for ``v: (..., m)``: ``v`` where ``J``'s rows are independent (zero
     on its zero rows, which its range does not reach), the damped pseudo-inverse's ``J
     J^T (J J^T + lambda I)^-1 v`` where they are dependent (see
     :func:`penetration_target`), from ``G = J J^T`` alone. Every state is solved and the
     dependent ones selected: no read of the device (a step reads it once, to select the
-    states in contact)."""
-    G = op.gram()
+    states in contact). With ``G`` given (``(..., m, m)``, e.g. ``A = J Mhat^-1 J^T``),
+    the projection onto its range instead."""
+    G = op.gram() if G is None else G
     _, dependent, damping, zero_rows = _gram_cholesky(G)
     y = cholesky_solve(v.unsqueeze(-1), _damped_cholesky(G, damping))
     independent = torch.where(zero_rows, 0.0, v)
@@ -223,6 +247,7 @@ def two_phase_impulse(
     contact velocity, both phases), not only inside the solver (:func:`widened` says
     why; the canonical minimiser: :mod:`~diffcontact.contact.cone_qp`).
     """
+    d = contact_dimension(d, "two_phase_impulse")
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w, eps_w = widened(

@@ -122,11 +122,12 @@ import torch
 from torch import Tensor
 
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
+from diffcontact.contact.first_order import first_order_only
 from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
 from diffcontact.contact.models import ContactParams
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
-from diffcontact.shapes import broadcast_shapes
+from diffcontact.shapes import broadcast_shapes, contact_dimension
 
 __all__ = [
     "LCP",
@@ -315,6 +316,7 @@ class _LCPFunction(torch.autograd.Function):
         ctx.mark_non_differentiable(*output[1:5])
 
     @staticmethod
+    @first_order_only
     def backward(ctx, grad_z, *_):
         z, LU, piv, in_S = ctx.saved_tensors
         g = torch.where(in_S, grad_z.to(z.dtype), 0)
@@ -532,8 +534,7 @@ def lcp_impulse(
     (:func:`~diffcontact.contact.impulse.widened`): Lemke's pivots on ``A`` formed in
     float32 end at another solution where it is singular.
     """
-    if d not in (1, 2, 3):
-        raise ValueError(f"lcp_impulse: d must be 1, 2 or 3, got {d!r}")
+    d = contact_dimension(d, "lcp_impulse")
     work = wider_dtype(v.dtype, compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)

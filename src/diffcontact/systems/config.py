@@ -189,6 +189,10 @@ class _SystemBase(_Strict):
     mu: PerContact = 0.0
     cor: PerContact = 1.0
     penetration_fraction: Annotated[float, Field(ge=0, le=1, strict=True)] = 0.125
+    # the metric of the pseudo-inverse that lifts the penetration target to Cartesian
+    # space where equality constraints exist: the constrained inverse inertia ("mass",
+    # tangential targets stay zero), or appendix G's Euclidean one as written (S.24)
+    penetration_metric: Literal["mass", "euclidean"] = "mass"
     # Gauss-Newton iterations of the position-level projection onto the admissible set of
     # the violated contacts after each step (systems/projection.py); 0 switches it off
     position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 0
@@ -226,6 +230,11 @@ class _SystemBase(_Strict):
     @model_validator(mode="after")
     def _common(self) -> _SystemBase:
         ratio = self.horizon / self.dt
+        if not math.isfinite(ratio):  # dt = 1e-320, horizon = 1e300
+            raise ValueError(
+                f"horizon / dt must be a whole number of states >= 2; got horizon="
+                f"{self.horizon}, dt={self.dt} (ratio {ratio:g})"
+            )
         if abs(ratio - round(ratio)) > 1e-6 * max(1.0, ratio) or round(ratio) < 2:
             raise ValueError(
                 f"horizon / dt must be a whole number of states >= 2; got horizon={self.horizon}, "

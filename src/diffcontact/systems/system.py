@@ -78,6 +78,7 @@ from diffcontact.systems.config import (
     RopeConfig,
     parse_config,
 )
+from diffcontact.systems.config_file import read_config_file
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import ReadFree, project_positions
@@ -139,33 +140,6 @@ def list_tasks() -> list[str]:
     return sorted(p.stem for p in _TASK_DIR.glob("*.yaml"))
 
 
-def _read_file(path: Path) -> Any:
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"cannot read config file {path}: {err}") from None
-    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
-    try:
-        if kind == "JSON":
-            import json
-
-            try:
-                return json.loads(text)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"cannot parse {path} as JSON: {err}") from None
-        import yaml
-
-        try:
-            return yaml.safe_load(text)
-        except yaml.YAMLError as err:
-            raise ValueError(f"cannot parse {path} as YAML: {err}") from None
-    except RecursionError:
-        raise ValueError(
-            f"cannot parse {path} as {kind}: nested too deeply (a config is a mapping of "
-            "numbers, lists and small mappings)"
-        ) from None
-
-
 def load_config(spec: Any, **overrides: Any):
     """Validated config from a built-in task name, a ``.yaml``/``.json`` path or a mapping.
 
@@ -183,11 +157,11 @@ def load_config(spec: Any, **overrides: Any):
         builtin = _TASK_DIR / f"{name}.yaml"
         path = Path(spec)
         if builtin.is_file() and "/" not in name and "\\" not in name:
-            data, source = _read_file(builtin), f" of built-in task {name!r}"
+            data, source = read_config_file(builtin), f" of built-in task {name!r}"
         elif path.suffix.lower() in (".yaml", ".yml", ".json"):
             if not path.is_file():
                 raise ValueError(f"config file {str(path)!r} does not exist")
-            data, source = _read_file(path), f" in {path}"
+            data, source = read_config_file(path), f" in {path}"
         elif path.is_file():
             raise ValueError(
                 f"{str(path)!r} is not a config file: a config is a .yaml, .yml or .json file "
@@ -341,8 +315,9 @@ class System:
       ``n_bodies``, ``body_points`` (first point of each body), ``n_contacts``
       (candidates K), ``d`` (contact-space dimension), ``contact_names``,
       ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
-      ``penetration_fraction``, ``position_projection``, ``dynamics``, ``integrator`` (``"rk4"`` or
-      ``"rk4_38"``, the config's Runge-Kutta rule);
+      ``penetration_fraction``, ``penetration_metric`` (``"mass"`` or ``"euclidean"``),
+      ``position_projection``, ``dynamics``, ``integrator`` (``"rk4"`` or ``"rk4_38"``,
+      the config's Runge-Kutta rule);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
       ``cor (K,)`` (a 0-d tensor broadcasts to all contacts), ``gravity ()``
@@ -358,6 +333,7 @@ class System:
         self.dt: float = float(cfg.dt)
         self.horizon: float = float(cfg.horizon)
         self.penetration_fraction: float = float(cfg.penetration_fraction)
+        self.penetration_metric: str = cfg.penetration_metric
         self.position_projection: int = int(cfg.position_projection)
         self.dynamics: str = cfg.dynamics
         self.integrator: str = cfg.integrator
@@ -746,14 +722,17 @@ class System:
         ``sum_k k (l_k - l0)^2`` over the segments, the first from the anchor,
         and ``params.potential`` when set. Batched ``params`` need ``x: (N, ..., P, dim)``.
         """
+        self._check_positions(x, "x")
         return self._potential(x, self._context(x, params, self._batch(x, params, 2)))
 
     def grad_potential(self, x: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Analytic ``grad_x V: (..., P, dim)`` of :meth:`potential` (what the dynamics use)."""
+        self._check_positions(x, "x")
         return self._grad_potential(x, self._context(x, params, self._batch(x, params, 2)))
 
     def kinetic_energy(self, z: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Kinetic energy ``0.5 sum_c v_c^T M v_c: (...)`` of states ``z: (..., 2, P, dim)``."""
+        self._check_state_shape(z, "z", batched=False)
         ctx = self._context(z, params, self._batch(z, params, 3))
         v = z[..., 1, :, :]
         return 0.5 * (v * (ctx.per_state(ctx.M, v, 2, 0) @ v)).sum((-2, -1))
@@ -778,6 +757,7 @@ class System:
 
     def gaps(self, x: Tensor) -> Tensor:
         """Signed gaps ``(..., K)`` of all candidate contacts at positions ``(..., P, dim)``."""
+        self._check_positions(x, "x")
         geometry = self._static_on(x.device)[0]
         return geometry.gaps(x)
 
@@ -806,12 +786,28 @@ class System:
                 f"{name} must have shape {want} for {self.name} (positions then velocities "
                 f"of {self.n_points} points in {self.dim}D); got {tuple(z.shape)}"
             )
-        if z.dtype not in (torch.float32, torch.float64):
+        self._check_values(z, name)
+
+    def _check_positions(self, x: Tensor, name: str) -> None:
+        """``x: (..., P, dim)`` positions, float32 or float64 (a ``ValueError`` naming
+        ``name`` else: integer positions had given zero masses, cast to their dtype)."""
+        if not isinstance(x, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+        if x.dim() < 2 or tuple(x.shape[-2:]) != (self.n_points, self.dim):
             raise ValueError(
-                f"{name} must be a float32 or float64 tensor (the dtypes of the contact "
-                f"solver), got {z.dtype}"
+                f"{name} must have shape (..., {self.n_points}, {self.dim}) for {self.name} "
+                f"(positions of {self.n_points} points in {self.dim}D); got {tuple(x.shape)}"
             )
-        if z.device.type == "meta":
+        self._check_values(x, name)
+
+    @staticmethod
+    def _check_values(t: Tensor, name: str) -> None:
+        if t.dtype not in (torch.float32, torch.float64):
+            raise ValueError(
+                f"{name} must be a float32 or float64 tensor (the dtypes diffcontact "
+                f"computes in), got {t.dtype}"
+            )
+        if t.device.type == "meta":
             raise ValueError(f"{name} is on the meta device, which holds no values")
 
     def _check_state(self, z: Tensor, name: str) -> None:
@@ -1005,7 +1001,8 @@ class System:
                 # above ran without): the target is differentiable like the rest of the step
                 graph = xs.requires_grad and torch.is_grad_enabled()
                 depth = -(ctx.geometry.gaps(xs) if graph else gaps[b]).gather(-1, idx)
-                v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E)
+                metric = Mh if self.penetration_metric == "mass" else None
+                v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E, metric)
         else:
             v_star = vs.new_zeros(n, Ka * d)
 
