@@ -154,3 +154,12 @@ def test_a_target_beyond_reach_is_warned_in_one_line(capsys, tmp_path):
         "0.2 s (at most 0.8 m at max_speed 4 m/s and max_spin 30 rad/s): the plan gets as "
         "close as it can"
     ], err
+
+
+def test_a_gif_of_another_name_is_refused(capsys, tmp_path):
+    """``--gif shot.png`` wrote GIF bytes under the .png name, after the planning."""
+    code, _, err = run(
+        capsys, "billiards", "BP5-e", "--target", "0.5", "0.5", "--gif", str(tmp_path / "s.png")
+    )
+    assert_usage_error(code, err, "--gif", "must end in .gif")
+    assert not (tmp_path / "s.png").exists()

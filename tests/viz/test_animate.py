@@ -260,3 +260,63 @@ def test_animate_simulated_bp5(tmp_path):
     traj = system.simulate(system.sample_initial_conditions(2, seed=0), steps=4)
     out = animate(traj, scene_from_system(system), tmp_path / "sim.gif", dt=system.dt)
     assert n_frames(out) == 5
+
+
+def test_files_take_the_format_their_name_says(tmp_path):
+    """``--energy-plot e.pdf`` had written PNG bytes under the .pdf name; ``animate`` to a
+    .png wrote a GIF, ``render_frame`` to a .gif a PNG."""
+    E = np.cumsum(np.random.default_rng(0).normal(size=(3, 50)), axis=1)
+    assert (plot_energy(E, 0.01, tmp_path / "e.pdf")).read_bytes().startswith(b"%PDF")
+    assert b"<svg" in (plot_energy(E, 0.01, tmp_path / "e.svg")).read_bytes()[:400]
+    traj = bouncing_points(2, 10)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    assert render_frame(traj, scene, tmp_path / "f.pdf").read_bytes().startswith(b"%PDF")
+    for call, name in (
+        (lambda p: animate(traj, scene, p), "a.png"),
+        (lambda p: render_frame(traj, scene, p), "f.gif"),
+        (lambda p: plot_energy(E, 0.01, p), "e.jpg"),
+    ):
+        with pytest.raises(ValueError, match="the file name must end in"):
+            call(tmp_path / name)
+        assert not (tmp_path / name).exists()
+    (tmp_path / "d.gif").mkdir()
+    with pytest.raises(ValueError, match="is a directory"):
+        animate(traj, scene, tmp_path / "d.gif")
+
+
+def test_bad_arguments_of_the_plots_are_named(tmp_path):
+    traj = bouncing_points(2, 10)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    E = np.ones((2, 5))
+    cases = [
+        (lambda: animate(traj[:0], scene, tmp_path / "a.gif"), "N = 0"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", fps=0), "fps must be"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", dpi=0), "dpi must be"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", overlay=traj, labels=["a"]), "labels"),
+        (lambda: render_frame(traj, scene, tmp_path / "f.png", frame=1000), "frame must be"),
+        (lambda: plot_energy(E, 0.0, tmp_path / "e.png"), "dt must be"),
+        (lambda: plot_energy(E, float("nan"), tmp_path / "e.png"), "dt must be"),
+        (lambda: plot_energy(E[:0], 0.01, tmp_path / "e.png"), "N, T >= 1"),
+        (lambda: plot_energy(E * np.nan, 0.01, tmp_path / "e.png"), "no finite value"),
+    ]
+    for call, needle in cases:
+        with pytest.raises(ValueError, match=needle):
+            call()
+    assert no_temp_files(tmp_path) and not list(tmp_path.iterdir())
+    render_frame(traj, scene, tmp_path / "last.png", frame=-1)  # from the end
+
+
+def test_a_diverging_overlay_does_not_set_the_axis_limits(tmp_path):
+    """One prediction running off to x = 20 zoomed every panel out until the true bodies
+    were dots in a corner: the limits come from traj and the scene."""
+    from diffcontact.viz.animation import _build_figure
+
+    traj = bouncing_points(2, 10)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    far = traj.copy()
+    far[:, :, 0, 0, 0] += np.linspace(0, 20, traj.shape[1])
+    kw = dict(max_trajectories=4, max_frames=40, labels=None, trail=0, panel_size=3.2)
+    plain, _, _ = _build_figure(traj, scene, overlay=None, **kw)
+    with_far, _, _ = _build_figure(traj, scene, overlay=far, **kw)
+    assert plain.axes[0].get_xlim() == with_far.axes[0].get_xlim()
+    assert with_far.axes[0].get_xlim()[1] < 2

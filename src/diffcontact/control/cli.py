@@ -10,6 +10,7 @@ import argparse
 import sys
 import time
 import warnings
+from pathlib import Path
 from typing import Any
 
 from diffcontact.cli_args import float_in, int_at_least, one_line, positive_float, report_errors
@@ -117,6 +118,8 @@ def _check_paths(args: argparse.Namespace) -> None:
     for flag, path in (("--json", args.json), ("--gif", None if args.no_gif else args.gif)):
         if path is None:
             continue
+        if flag == "--gif" and Path(path).suffix.lower() != ".gif":  # a .png got GIF bytes
+            raise _InputError(f"--gif {path!r}: the file name must end in .gif")
         try:
             check_writable(path)
         except OSError as err:

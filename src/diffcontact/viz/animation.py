@@ -79,6 +79,33 @@ def _as_batch(traj: Any, name: str) -> np.ndarray:
     return arr
 
 
+_FORMATS = {".png": "png", ".pdf": "pdf", ".svg": "svg", ".gif": "gif"}
+
+
+def _image_format(path: str | os.PathLike[str], allowed: tuple[str, ...]) -> str:
+    """The file format of ``path`` from its suffix, one of ``allowed`` (e.g. ``".png"``);
+    a ``ValueError`` naming the path otherwise (a ``.pdf`` had been given PNG bytes)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in allowed:
+        raise ValueError(f"{path}: the file name must end in {' or '.join(allowed)}")
+    if Path(path).is_dir():
+        raise ValueError(f"{path} is a directory; give a file name")
+    return _FORMATS[suffix]
+
+
+def _positive(name: str, value: Any, integer: bool = False) -> None:
+    """``value`` a finite number > 0 (an integer if ``integer``), else a ``ValueError``."""
+    kinds = (int,) if integer else (int, float)
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, kinds)
+        or not math.isfinite(value)
+        or value <= 0
+    ):
+        what = "a positive integer" if integer else "a finite number > 0"
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+
+
 def frame_indices(n_steps: int, max_frames: int) -> np.ndarray:
     """Indices of the states shown: all of them, or ``max_frames`` evenly spaced
     ones including the first and the last."""
@@ -543,6 +570,11 @@ def _build_figure(
 ):
     x = _as_batch(traj, "traj")[:, :, 0]  # (N, T, P, dim) positions
     n_total, n_steps, n_points, dim = x.shape
+    if n_total == 0:
+        raise ValueError("traj holds no trajectory (N = 0)")
+    _positive("panel_size", panel_size)
+    if labels is not None and (isinstance(labels, str) or len(labels) != 2):
+        raise ValueError(f"labels must be two names, for (traj, overlay); got {labels!r}")
     scene.check(n_points, dim)
     xo = None
     if overlay is not None:
@@ -563,10 +595,10 @@ def _build_figure(
     width = max(panel_size * ncols, MIN_WIDTH)
     fig = Figure(figsize=(width, panel_size * nrows + 0.35), layout="constrained")
     FigureCanvasAgg(fig)
+    # shared by all panels; from traj and the scene only: an overlay (a prediction) that
+    # leaves them is drawn clipped, rather than shrinking the truth of every panel to a dot
     shown = [x[:n, idx].reshape(-1, n_points, dim)]
-    if xo is not None:
-        shown.append(xo[:n, idx].reshape(-1, n_points, dim))
-    lims = (_limits_3d if dim == 3 else _limits_2d)(shown, scene)  # shared by all panels
+    lims = (_limits_3d if dim == 3 else _limits_2d)(shown, scene)
     panels = []
     for i in range(n):
         kw = {"projection": "3d"} if dim == 3 else {}
@@ -604,7 +636,10 @@ def render_frame(
     dpi: int = 100,
     panel_size: float = 3.2,
 ) -> Path:
-    """Save one state (index ``frame`` of the time axis) as a PNG, drawn as in :func:`animate`."""
+    """Save one state (index ``frame`` of the time axis, negative from the end) as a
+    ``.png``, ``.pdf`` or ``.svg`` (by the suffix), drawn as in :func:`animate`."""
+    fmt = _image_format(path, (".png", ".pdf", ".svg"))
+    _positive("dpi", dpi)
     fig, panels, _ = _build_figure(
         traj,
         scene,
@@ -616,12 +651,14 @@ def render_frame(
         panel_size=panel_size,
     )
     n_steps = panels[0].x.shape[0]
+    if isinstance(frame, bool) or not isinstance(frame, int) or not -n_steps <= frame < n_steps:
+        raise ValueError(f"frame must be an integer in [-{n_steps}, {n_steps}), got {frame!r}")
     k = frame % n_steps
     for p in panels:
         p.update(k)
     fig.suptitle(_title(scene, k, dt), fontsize=9)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi)
+        fig.savefig(tmp, format=fmt, dpi=dpi)
     return Path(path)
 
 
@@ -741,6 +778,9 @@ def animate(
     """
     if not isinstance(colors, int) or not 2 <= colors <= 256:
         raise ValueError(f"colors must be an integer in [2, 256], got {colors!r}")
+    _image_format(path, (".gif",))
+    _positive("fps", fps)
+    _positive("dpi", dpi)
     fig, panels, idx = _build_figure(
         traj,
         scene,
@@ -769,19 +809,27 @@ def plot_energy(
     max_lines: int = 32,
     dpi: int = 100,
 ) -> Path:
-    """Save a PNG of energy against time: ``E(t)`` and ``E(t) - E(0)``.
+    """Save a plot of energy against time: ``E(t)`` and ``E(t) - E(0)``.
 
     Args:
         E: ``(T,)`` or ``(N, T)`` energies (numpy or torch).
-        dt: time step.
-        path: output ``.png`` (written atomically).
-        max_lines: at most this many trajectories are drawn.
+        dt: time step (> 0).
+        path: output ``.png``, ``.pdf`` or ``.svg`` (by the suffix; written atomically).
+        max_lines: at most this many trajectories are drawn (the title says when
+            there were more).
     """
+    fmt = _image_format(path, (".png", ".pdf", ".svg"))
+    _positive("dt", dt)
+    _positive("dpi", dpi)
+    _positive("max_lines", max_lines, integer=True)
     e = _to_numpy(E)
     if e.ndim == 1:
         e = e[None]
-    if e.ndim != 2 or e.shape[1] == 0:
-        raise ValueError(f"E must have shape (T,) or (N, T), got {np.shape(E)}")
+    if e.ndim != 2 or e.shape[1] == 0 or e.shape[0] == 0:
+        raise ValueError(f"E must have shape (T,) or (N, T) with N, T >= 1, got {np.shape(E)}")
+    if not np.isfinite(e).any():
+        raise ValueError("E holds no finite value (every trajectory diverged)")
+    n_given = len(e)
     e = e[:max_lines]
     t = np.arange(e.shape[1]) * float(dt)
     fig = Figure(figsize=(8.0, 3.2))
@@ -798,9 +846,11 @@ def plot_energy(
     for ax in (ax1, ax2):
         ax.set_xlabel("time (s)")
         ax.grid(True, lw=0.3)
+    if n_given > max_lines:
+        title = f"{title}   ({max_lines} of {n_given} trajectories)".strip()
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi)
+        fig.savefig(tmp, format=fmt, dpi=dpi)
     return Path(path)

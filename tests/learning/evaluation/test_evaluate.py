@@ -260,3 +260,16 @@ def test_an_evaluation_stopped_midway_can_run_again_in_its_folder(tmp_path, data
     other = shutil.copytree(dataset, tmp_path / "other")
     with pytest.raises(ev.EvaluationInputError, match="of another evaluation"):
         ev.evaluate(None, out, model=system, data_dir=other, n_gif=0, steps=5)
+
+
+def test_the_error_plot_says_when_no_rollout_is_finite(tmp_path):
+    """With every rollout diverged the plot had drawn the NaN errors' first steps as a
+    perfect model on a 1e-16 floor."""
+    import numpy as np
+    from PIL import Image
+
+    from diffcontact.learning.evaluation.plots import plot_rel_error
+
+    out = plot_rel_error(np.zeros((0, 50)), 0.01, tmp_path / "r.png", "t", n_left_out=4)
+    with Image.open(out) as im:
+        assert im.format == "PNG"

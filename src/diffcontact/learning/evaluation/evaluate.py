@@ -557,7 +557,7 @@ def evaluate(
         t=np.arange(steps + 1, dtype=np.float64) * dt,
     )
     title = f"{task}: {label}"
-    plot_rel_error(err_ok if len(err_ok) else err, dt, out / "rel_error.png", title)
+    plot_rel_error(err_ok, dt, out / "rel_error.png", title, n_left_out=n_bad)
     files.append("rel_error.png")
     if known:
         plot_energy(E_pred, E_true, scale, dt, out / "energy.png", title)

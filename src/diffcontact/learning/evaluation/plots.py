@@ -37,14 +37,28 @@ def _save(fig: Figure, path: Path, dpi: int = 110) -> Path:
     return path
 
 
-def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str) -> Path:
+def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str, n_left_out: int = 0) -> Path:
     """Mean relative error per step with its 95% band (log y), faint single runs.
 
-    Values at or below the bottom of the axis (a tenth of the smallest positive
-    mean, e.g. exact zeros before the first contact) are drawn on the bottom edge.
+    ``err: (N, T)``: the finite rollouts' errors; ``n_left_out`` rollouts that diverged
+    (non-finite) are named in the legend. With no finite rollout the figure says so
+    instead of drawing anything. Exact zeros (e.g. before the first contact) cannot be
+    drawn on a log axis: they sit on the bottom edge, at most 1e-6 (or a tenth of the
+    smallest positive mean, if lower), which the figure labels.
     """
     fig = _figure(6.4, 3.8)
     ax = fig.subplots()
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(r"$\|z_{pred} - z_{true}\| \,/\, \|z_{true}\|$")
+    if len(err) == 0:
+        ax.text(
+            0.5, 0.5, f"no finite rollout: all {n_left_out} diverged (NaN or infinite)",
+            ha="center", va="center", transform=ax.transAxes, fontsize=11, color="#b00000",
+        )  # fmt: skip
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return _save(fig, path)
     t = np.arange(err.shape[1]) * dt
     sl = slice(1, None) if err.shape[1] > 1 else slice(None)  # step 0 is exact
     mean, half = mean_ci95(err, axis=0)
@@ -53,6 +67,9 @@ def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str) -> Path:
     t = t[sl]
     positive = mean[mean > 0]
     floor = 0.1 * float(positive.min()) if positive.size else 1e-16
+    zeros = bool((mean <= 0).any())
+    if zeros:  # far enough below anything measured not to read as a value
+        floor = min(floor, 1e-6)
     for e in err[:30]:
         ax.plot(t, np.maximum(e[sl], floor), color="#9aa6b2", lw=0.5, alpha=0.6)
     ax.fill_between(
@@ -64,13 +81,13 @@ def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str) -> Path:
         lw=0,
         label="95% CI of the mean",
     )
-    ax.plot(t, np.maximum(mean, floor), color="#1f77b4", lw=2.0, label=f"mean ({len(err)} runs)")
+    runs = f"mean ({len(err)} runs" + (f"; {n_left_out} diverged, left out)" if n_left_out else ")")
+    ax.plot(t, np.maximum(mean, floor), color="#1f77b4", lw=2.0, label=runs)
     ax.plot([], [], color="#9aa6b2", lw=0.8, label="single trajectories")
+    if zeros:
+        ax.plot([], [], ls="none", label=f"exact zeros drawn at the bottom edge ({floor:.0e})")
     ax.set_yscale("log")
     ax.set_ylim(bottom=floor)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel(r"$\|z_{pred} - z_{true}\| \,/\, \|z_{true}\|$")
-    ax.set_title(title, fontsize=10)
     ax.grid(True, which="major", lw=0.3, alpha=0.6)
     ax.legend(fontsize=8, loc="lower right")
     return _save(fig, path)
@@ -217,9 +234,10 @@ def plot_training(
         if len(series) <= 6:
             ax.legend(fontsize=7)
         else:
+            what = "ratios" if cat == "mass_ratios" else "contacts"  # (not "9 contacts")
             ax.text(
-                0.98, 0.98, f"{len(series)} contacts", transform=ax.transAxes,
-                ha="right", va="top", fontsize=7,
+                0.98, 1.01, f"{len(series)} {what}", transform=ax.transAxes,
+                ha="right", va="bottom", fontsize=7,
             )  # fmt: skip
         ax.set_title(_PANEL_TITLES.get(cat, cat), fontsize=10)
         ax.set_xlabel("epoch")
