@@ -61,10 +61,9 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -79,10 +78,10 @@ from reproduce import (
     _e,
     _f,
     _finished,
-    _InlineExecutor,
     _minutes,
     _set_threads,
     _training_seconds,
+    job_pool,
 )
 
 OURS = "CM-CD-CLNN"
@@ -623,13 +622,14 @@ def render_mismatch(results: dict[str, Any], meta: dict[str, Any], figure: str |
         cm, lcp = results.get(f"{task}/{OURS}"), results.get(f"{task}_LCP/{OURS}")
         true = (cm or lcp)["mu"]["true"][0], (cm or lcp)["cor"]["true"][0]
 
-        def cell(r: dict[str, Any] | None, paper: tuple[float, float]) -> str:
+        def cell(r: dict[str, Any] | None, paper: tuple[float, float] | None) -> str:
             got = "not run" if r is None else f"{_f(_first(r['mu']), 3)}, {_f(_first(r['cor']), 3)}"
-            return f"{got} ({_f(paper[0], 3)}, {_f(paper[1], 3)})"
+            # a task beyond the paper's four has no paper value (it raised a KeyError)
+            return got if paper is None else f"{got} ({_f(paper[0], 3)}, {_f(paper[1], 3)})"
 
         lines.append(
-            f"| {task} | {_f(true[0], 3)}, {_f(true[1], 3)} | {cell(cm, PAPER_CONTACT[task])} "
-            f"| {cell(lcp, PAPER_CONTACT_LCP[task])} |"
+            f"| {task} | {_f(true[0], 3)}, {_f(true[1], 3)} | "
+            f"{cell(cm, PAPER_CONTACT.get(task))} | {cell(lcp, PAPER_CONTACT_LCP.get(task))} |"
         )
     lines += [
         "",
@@ -643,8 +643,8 @@ def render_mismatch(results: dict[str, Any], meta: dict[str, Any], figure: str |
         on_cm = lcp and lcp["also_on"].get(task)
         for label, got, paper, r in (
             ("CM / CM", cm, PAPER_REL_ERR.get(task), cm),
-            ("LCP / CM", on_cm, PAPER_LCP_ON_CM[task], lcp),
-            ("LCP / LCP", lcp, PAPER_LCP_ON_LCP[task], lcp),
+            ("LCP / CM", on_cm, PAPER_LCP_ON_CM.get(task), lcp),
+            ("LCP / LCP", lcp, PAPER_LCP_ON_LCP.get(task), lcp),
         ):
             t = _times(r) if r and label != "LCP / CM" else "(next row)" if r else "-"
             lines.append(
@@ -786,17 +786,14 @@ def section_markers(experiment: str) -> tuple[str, str]:
     )
 
 
-def write_section(doc: Path, experiment: str, body: str) -> None:
-    """Replace (or append) the experiment's marked section of ``doc``."""
+def write_section(doc: Path, experiment: str, body: str, check_only: bool = False) -> None:
+    """Replace (or append) the experiment's marked section of ``doc``; a stray marker is a
+    ``ValueError`` (``diffcontact.io.replace_marked_section``)."""
+    from diffcontact.io import replace_marked_section
+
     begin, end = section_markers(experiment)
     block = f"{begin}\n{body.rstrip()}\n{end}"
-    text = doc.read_text() if doc.is_file() else ""
-    if begin in text and end in text.split(begin, 1)[1]:
-        head, rest = text.split(begin, 1)
-        text = head + block + rest.split(end, 1)[1]
-    else:
-        text = text.rstrip("\n") + ("\n\n" if text else "") + block + "\n"
-    _atomic_write(doc, text)
+    replace_marked_section(doc, begin, end, block, check_only=check_only)
 
 
 def write_report(out: Path, experiment: str, doc: str | None, data: dict[str, Any]) -> str:
@@ -926,6 +923,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out = Path(args.out)
     experiment = args.experiment
+    if args.doc:  # before any work: a stray marker or an unwritable file
+        try:
+            write_section(Path(args.doc), experiment, "", check_only=True)
+        except (ValueError, OSError) as err:
+            parser.error(f"--doc: {err}")
     results_file = out / f"results-{experiment}.json"
     if args.report_only:
         if not results_file.is_file():
@@ -956,7 +958,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     cpus = os.cpu_count() or 1
     threads = args.threads or max(1, cpus // args.jobs)
     sizes = (args.n_train, args.n_val, args.n_test)
-    ctx = get_context("spawn")
     t0 = time.perf_counter()
     print(
         f"{experiment}: {len(runs)} run(s) on {len(datasets)} dataset(s), {args.jobs} job(s) x "
@@ -966,12 +967,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stored = json.loads(results_file.read_text()) if results_file.is_file() else {}
     results: dict[str, Any] = stored.get("runs", {})
     failed: list[str] = []
-    pool_cm = (
-        _InlineExecutor()
-        if args.jobs == 1
-        else ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx)
-    )
-    with pool_cm as pool:
+    with job_pool(args.jobs) as pool:
         futures = {
             pool.submit(
                 make_dataset, asdict(d), str(out / "data" / d.key), threads, sizes

@@ -202,16 +202,12 @@ def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = Non
     return "\n".join(lines)
 
 
-def write_doc(doc: Path, section: str) -> None:
-    """Replace the marked section of ``doc`` (or append it), keeping the rest."""
-    text = doc.read_text() if doc.is_file() else ""
-    if BEGIN in text and END in text:
-        head, rest = text.split(BEGIN, 1)
-        tail = rest.split(END, 1)[1]
-        text = head + section + tail
-    else:
-        text = text.rstrip() + "\n\n" + section + "\n"
-    _write(doc, text)
+def write_doc(doc: Path, section: str, check_only: bool = False) -> None:
+    """Replace the marked section of ``doc`` (or append it), keeping the rest; a stray
+    marker is a ``ValueError`` (``diffcontact.io.replace_marked_section``)."""
+    from diffcontact.io import replace_marked_section
+
+    replace_marked_section(doc, BEGIN, END, section, check_only=check_only)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -224,6 +220,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--radius", type=float, default=0.05, help="success radius, m")
     parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
     args = parser.parse_args(argv)
+    for flag, value in (("--targets", args.targets), ("--epochs", args.epochs),
+                        ("--iterations", args.iterations)):  # fmt: skip
+        if value < 1:  # (a 0 failed after the training, with the settings saved)
+            parser.error(f"{flag} must be >= 1, got {value}")
+    if not 0 < args.radius < float("inf"):
+        parser.error(f"--radius must be a positive number, got {args.radius}")
+    if args.doc:  # before any work: a stray marker or an unwritable file
+        try:
+            write_doc(Path(args.doc), "", check_only=True)
+        except (ValueError, OSError) as err:
+            parser.error(f"--doc: {err}")
     import torch
 
     torch.set_num_threads(1)

@@ -39,10 +39,12 @@ import math
 import os
 import platform
 import shutil
+import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from multiprocessing import get_context
 from pathlib import Path
@@ -402,7 +404,7 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
     by = {(r["task"], r["model"]): r for r in results.values()}
     lines: list[str] = []
     add = lines.append
-    add("# Results: reproducing the paper's learning experiments")
+    add(REPORT_TITLE)
     add("")
     add(
         "Every number on this page was produced by `python experiments/reproduce.py "
@@ -653,6 +655,32 @@ def _atomic_write(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
+@contextmanager
+def job_pool(jobs: int) -> Iterator[Any]:
+    """An executor of ``jobs`` spawned worker processes (``--jobs 1``: this process).
+
+    A SIGTERM to this process (``timeout``, a batch scheduler) is passed on to the
+    workers, whose training runs then stop at a checkpoint as after Ctrl-C; before, the
+    workers were left running, orphaned, and a rerun trained the same runs beside them.
+    """
+    if jobs == 1:
+        yield _InlineExecutor()
+        return
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
+
+    def stop(signum: int, _frame: Any) -> None:
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            process.terminate()
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        with pool:
+            yield pool
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class _InlineExecutor:
     """``--jobs 1``: run each job in this process when it is submitted."""
 
@@ -708,6 +736,29 @@ KEPT_SECTIONS = [
 ]
 
 
+REPORT_TITLE = "# Results: reproducing the paper's learning experiments"
+
+
+def check_doc(doc: Path) -> None:
+    """``--doc`` must be a new file or a report of this script (whose first line is
+    :data:`REPORT_TITLE`): the report replaces the file, keeping only other scripts'
+    marked sections, so any other Markdown file would lose its text."""
+    from diffcontact.io import check_writable
+
+    if doc.is_dir():
+        raise ValueError(f"{doc} is a directory; give a Markdown file")
+    if not doc.is_file():
+        check_writable(doc)
+        return
+    first = doc.read_text().lstrip().split("\n", 1)[0].strip()
+    if first != REPORT_TITLE:
+        raise ValueError(
+            f"{doc} is not a report of this script (its first line is not {REPORT_TITLE!r}); "
+            "the report replaces the whole file, so give a new file or the report's own "
+            "(docs/results.md)"
+        )
+
+
 def _kept_sections(doc: Path) -> str:
     """The marked sections of other scripts in ``doc`` (with their markers), or ``""``."""
     text = doc.read_text() if doc.is_file() else ""
@@ -757,6 +808,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="only rewrite the report from OUT/results.json (no training)",
     )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.doc:  # before any work
+        try:
+            check_doc(Path(args.doc))
+        except (ValueError, OSError) as err:
+            parser.error(f"--doc: {err}")
     if args.report_only:
         return _report_only(Path(args.out), args.doc)
 
@@ -789,16 +845,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     threads = max(1, cpus // args.jobs)
     t0 = time.perf_counter()
     tasks = sorted({t for t, _ in runs})
-    ctx = get_context("spawn")
     sizes = (args.n_train, args.n_val, args.n_test)
 
     print(f"{len(runs)} run(s) on {len(tasks)} task(s), {args.jobs} job(s) x {threads} thread(s)")
-    pool_cm = (
-        _InlineExecutor()
-        if args.jobs == 1
-        else ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx)
-    )
-    with pool_cm as pool:
+    with job_pool(args.jobs) as pool:
         futures = [
             pool.submit(make_dataset, t, str(out / "data" / t), threads, *sizes) for t in tasks
         ]

@@ -190,15 +190,12 @@ def section(results: list[dict[str, Any]], meta: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_doc(doc: Path, text: str) -> None:
-    """Replace the marked section of ``doc`` (or append it), keeping the rest."""
-    old = doc.read_text() if doc.is_file() else ""
-    if BEGIN in old and END in old:
-        head, rest = old.split(BEGIN, 1)
-        old = head + text + rest.split(END, 1)[1]
-    else:
-        old = old.rstrip() + "\n\n" + text + "\n"
-    _write(doc, old)
+def write_doc(doc: Path, text: str, check_only: bool = False) -> None:
+    """Replace the marked section of ``doc`` (or append it), keeping the rest; a stray
+    marker is a ``ValueError`` (``diffcontact.io.replace_marked_section``)."""
+    from diffcontact.io import replace_marked_section
+
+    replace_marked_section(doc, BEGIN, END, text, check_only=check_only)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -207,6 +204,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--doc", default=None, help="Markdown file to put the tables into")
     parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
     args = parser.parse_args(argv)
+    if args.doc:  # before any work: a stray marker or an unwritable file
+        try:
+            write_doc(Path(args.doc), "", check_only=True)
+        except (ValueError, OSError) as err:
+            parser.error(f"--doc: {err}")
     import torch
 
     torch.set_num_threads(1)

@@ -97,6 +97,15 @@ def test_mismatch_evaluates_lcp_runs_on_both_test_sets(compare, shared, capsys):
         assert row in body
     assert "5.46e-03 (2.30e-03)" in body and "1.57e-02 (5.00e-03)" in body  # paper S.5
     assert "(0.000, 1.000)" in body  # paper S.4
+    # a task beyond the paper's four renders without paper values (it was a KeyError
+    # after the training, and --report-only could never report it)
+    stored = json.loads((out / "results-mismatch.json").read_text())
+    renamed = {k.replace("BP5-e", "BP5"): v for k, v in stored["runs"].items()}
+    for r in renamed.values():
+        r["also_on"] = {k.replace("BP5-e", "BP5"): v for k, v in r.get("also_on", {}).items()}
+    meta = {**stored["meta"], "tasks": ["BP5"]}
+    text = compare.render_mismatch(renamed, meta, None)
+    assert "| BP5 | LCP / LCP |" in text and "| BP5 | LCP / CM |" in text
     capsys.readouterr()
 
 

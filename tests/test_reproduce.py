@@ -2,6 +2,11 @@
 
 import importlib.util
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -16,6 +21,7 @@ EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 def _load(name):
     spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # (dataclasses look their module up)
     spec.loader.exec_module(module)
     return module
 
@@ -131,6 +137,38 @@ def test_report_rewrite_keeps_the_control_section(repro, tmp_path):
     assert repro._kept_sections(tmp_path / "missing.md") == ""
 
 
+def test_a_doc_is_never_cut_at_a_stray_marker(repro, tmp_path, capsys):
+    """A begin marker without its end marker: the section was appended, and the next run
+    replaced everything from the stray marker on, hand-written text included. Now the
+    scripts refuse before any work, and reproduce.py refuses a file that is not its own
+    report (it replaced any file given to --doc)."""
+    control, uncertainty, compare = _load("control"), _load("uncertainty"), _load("compare")
+    doc = tmp_path / "notes.md"
+    for begin in (control.BEGIN, uncertainty.BEGIN, compare.section_markers("models")[0]):
+        original = f"intro\n{begin}\nhand-written A\n## Another section\nhand-written B\n"
+        doc.write_text(original)
+        with pytest.raises(ValueError, match="mend the file by hand"):
+            if begin == control.BEGIN:
+                control.write_doc(doc, f"{control.BEGIN}\nnew\n{control.END}")
+            elif begin == uncertainty.BEGIN:
+                uncertainty.write_doc(doc, f"{uncertainty.BEGIN}\nnew\n{uncertainty.END}")
+            else:
+                compare.write_section(doc, "models", "new")
+        assert doc.read_text() == original
+    # the command line refuses before any work
+    doc.write_text(f"intro\n{control.BEGIN}\nhand-written\n")
+    with pytest.raises(SystemExit):
+        control.main(["--out", str(tmp_path / "c"), "--doc", str(doc), "--tasks", "throw"])
+    assert "mend the file by hand" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+    notes = tmp_path / "mine.md"
+    notes.write_text("# My notes\nimportant text\n")
+    with pytest.raises(SystemExit):
+        repro.main(["--report-only", "--out", str(tmp_path / "r"), "--doc", str(notes)])
+    assert "is not a report of this script" in capsys.readouterr().err
+    assert notes.read_text() == "# My notes\nimportant text\n"
+
+
 def test_chaos_floor_script(tmp_path, capsys):
     """The true system reproduces its own test set (rel 0: error 0); a mass off is not 0."""
     from diffcontact.learning.data.generate import generate_dataset
@@ -164,3 +202,48 @@ def test_learned_physics_with_the_true_parameters_reproduces_the_test_set(tmp_pa
     assert script.learned_physics(data, off)["mean"] > 1e-6
     per_contact = {**truth, "mu": [0.5] * (K - 1) + [0.4]}
     assert script.learned_physics(data, per_contact) is None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped) counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+def test_sigterm_stops_the_worker_processes(tmp_path):
+    """SIGTERM (timeout, a batch scheduler) to compare.py / reproduce.py with --jobs 2 left
+    their spawned workers training, orphaned."""
+    script = tmp_path / "pool.py"
+    script.write_text(
+        "import sys, time\n"
+        f"sys.path.insert(0, {str(EXPERIMENTS)!r})\n"
+        "from reproduce import job_pool\n"
+        "if __name__ == '__main__':\n"
+        "    with job_pool(2) as pool:\n"
+        "        futures = [pool.submit(time.sleep, 120) for _ in range(2)]\n"
+        "        while len(pool._processes) < 2:\n"
+        "            time.sleep(0.1)\n"
+        "        print(' '.join(map(str, pool._processes)), flush=True)\n"
+        "        futures[0].result()\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        assert len(workers) == 2 and all(_alive(p) for p in workers)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 20
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(_alive(p) for p in workers)
+    finally:
+        proc.kill()
+        for pid in locals().get("workers", []):
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)

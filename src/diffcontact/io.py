@@ -48,6 +48,7 @@ __all__ = [
     "read_json_object",
     "read_npz",
     "remove_orphan_temporaries",
+    "replace_marked_section",
 ]
 
 # Fixed zip entry timestamp so the same arrays always give the same bytes.
@@ -237,6 +238,51 @@ def json_bytes(data: Any) -> bytes:
 def atomic_write_json(path: str | os.PathLike[str], data: Any) -> Path:
     """Write ``data`` (through :func:`jsonable`) as indented JSON atomically; return the path."""
     return atomic_write_bytes(path, json_bytes(data))
+
+
+def _section_span(text: str, begin: str, end: str, where: str) -> tuple[int, int] | None:
+    """``(start, stop)`` of the block ``begin ... end`` in ``text``, ``None`` where neither
+    marker is there; a ``ValueError`` for a marker without its partner, or twice."""
+    n_begin, n_end = text.count(begin), text.count(end)
+    if n_begin == n_end == 0:
+        return None
+    start = text.find(begin)
+    stop = text.find(end, start + len(begin)) if start >= 0 else -1
+    if n_begin != 1 or n_end != 1 or stop < 0:
+        raise ValueError(
+            f"{where} holds the markers of this section {n_begin} and {n_end} times or in "
+            f"the wrong order ({begin!r} ... {end!r}); mend the file by hand (nothing was "
+            "written): replacing from a stray marker would delete the text after it"
+        )
+    return start, stop + len(end)
+
+
+def replace_marked_section(
+    path: str | os.PathLike[str], begin: str, end: str, block: str, *, check_only: bool = False
+) -> None:
+    """Put ``block`` (which starts with ``begin`` and ends with ``end``) into the Markdown
+    file ``path`` in place of its marked section, or append it where the file has none
+    (a new file holds the block alone); the rest of the file is kept. Written atomically.
+
+    Raises:
+        ValueError: ``path`` is a directory, or holds one marker without the other, one of
+            them twice, or in the wrong order (nothing is written). ``check_only``: only
+            these checks (before a long computation).
+    """
+    target = Path(path)
+    if target.is_dir():
+        raise ValueError(f"{target} is a directory; give a Markdown file")
+    text = target.read_text() if target.is_file() else ""
+    span = _section_span(text, begin, end, str(target))
+    if check_only:
+        if not target.is_file():
+            check_writable(target)
+        return
+    if span is None:
+        text = text.rstrip("\n") + ("\n\n" if text.strip() else "") + block.rstrip("\n") + "\n"
+    else:
+        text = text[: span[0]] + block.rstrip("\n") + text[span[1] :]
+    atomic_write_bytes(target, text.encode())
 
 
 def _physical_memory() -> int | None:
