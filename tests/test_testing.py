@@ -37,3 +37,14 @@ def test_check_gradients_with_an_input_the_function_ignores():
     with pytest.raises(AssertionError, match="input 1"):
         assert_gradients_close(lambda x, y: 2 * x + (y.detach() ** 2).sum(), [a, b])
     assert check_gradients(lambda x, y: (2 * x).detach(), [a, b])[0].rel_error > 0.5  # missed
+
+
+def test_a_check_that_would_check_nothing_is_an_error():
+    """Complex inputs only: the default wrt was empty and the check passed vacuously."""
+    x = torch.randn(3, dtype=torch.complex128)
+    with pytest.raises(ValueError, match="no real floating-point input"):
+        assert_gradients_close(lambda a: a.abs(), [x])
+    with pytest.raises(ValueError, match="out of range"):
+        assert_gradients_close(lambda a: a, [torch.ones(2, dtype=torch.float64)], wrt=[3])
+    with pytest.raises(ValueError, match="not torch tensors"):
+        assert_gradients_close(lambda a: a, [[1.0]])

@@ -70,8 +70,23 @@ def check_gradients(
     """
     gen = torch.Generator().manual_seed(seed)
     directions = directions or {}
+    bad = [i for i, x in enumerate(inputs) if not isinstance(x, Tensor)]
+    if bad:
+        raise ValueError(f"check_gradients: inputs {bad} are not torch tensors")
     inputs = [x.detach() for x in inputs]
     wrt = [i for i, x in enumerate(inputs) if x.is_floating_point()] if wrt is None else list(wrt)
+    out_of_range = [i for i in wrt if not -len(inputs) <= i < len(inputs)]
+    if out_of_range:
+        n = len(inputs)
+        raise ValueError(f"check_gradients: wrt {out_of_range} out of range for {n} inputs")
+    if not wrt:  # (complex inputs only: it returned [] and a check passed without checking)
+        raise ValueError(
+            "check_gradients: no real floating-point input to check (give wrt= or float "
+            "inputs; complex ones are not checked)"
+        )
+    not_real = [i for i in wrt if not inputs[i].is_floating_point()]
+    if not_real:
+        raise ValueError(f"check_gradients: inputs {not_real} are not real floating point")
 
     with torch.no_grad():
         out0 = fn(*inputs)

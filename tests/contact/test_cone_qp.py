@@ -681,3 +681,33 @@ def test_torch_func_grad_through_the_torch_backend_matches_autograd():
     (want,) = torch.autograd.grad(final(mu), mu)
     assert want != 0
     torch.testing.assert_close(torch.func.grad(final)(mu.detach()), want, rtol=0, atol=0)
+
+
+def test_public_impulse_functions_check_restitution_and_take_empty_batches():
+    """cor = 1.5 had sent a ball away faster than it came, silently; a batch of 0 states
+    failed in a reshape (two_phase_impulse, the exact Coulomb model)."""
+    from diffcontact.contact import two_phase_impulse
+    from diffcontact.contact.coulomb import coulomb_two_phase_impulse
+    from diffcontact.contact.lcp import lcp_impulse
+
+    J = torch.tensor([[[0.0, 1.0], [1.0, 0.0]]], dtype=F64)
+    M = torch.eye(2, dtype=F64)[None]
+    v = torch.tensor([[1.0, -2.0]], dtype=F64)
+    mu = torch.zeros(1, 1, dtype=F64)
+    active = torch.ones(1, 1, dtype=torch.bool)
+    for fn in (two_phase_impulse, lcp_impulse, coulomb_two_phase_impulse):
+        with pytest.raises(ValueError, match=r"cor \(e_P\) must lie in \[0, 1\]"):
+            fn(J, M, v, mu, torch.full((1, 1), 1.5, dtype=F64), active, 2)
+        cor = torch.full((0, 1), 0.5, dtype=F64)
+        out = fn(J[:0], M[:0], v[:0], mu[:0], cor, active[:0], 2)
+        assert out.v_plus.shape == (0, 2) and out.f_c.shape == (0, 2)
+
+
+def test_solver_settings_are_checked_where_given():
+    for dtype in (torch.float16, torch.int32, "float64"):
+        with pytest.raises(ValueError, match=r"compute_dtype must be torch\.float32"):
+            SolverSettings(compute_dtype=dtype)
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=0)
+    with pytest.raises(ValueError, match="solver_settings must be a diffcontact"):
+        system.simulate(z0, 3, solver_settings={"backend": "torch"})

@@ -163,6 +163,14 @@ class SolverSettings:
     canonical: bool = True
 
     def __post_init__(self) -> None:
+        if self.compute_dtype is not None and self.compute_dtype not in (
+            torch.float32,
+            torch.float64,
+        ):  # half precision has no Cholesky/LU; "float64" a string failed as a device
+            raise ValueError(
+                "SolverSettings.compute_dtype must be torch.float32, torch.float64 or None "
+                f"(the inputs' dtype), got {self.compute_dtype!r}"
+            )
         if not isinstance(self.canonical, bool):
             raise ValueError(f"SolverSettings.canonical must be a bool, got {self.canonical!r}")
         if self.backend not in fused.BACKENDS:

@@ -87,7 +87,13 @@ from diffcontact.contact.cone_qp import (
     solve_cone_qp,
 )
 from diffcontact.contact.first_order import first_order_only
-from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
+from diffcontact.contact.impulse import (
+    ImpulseResult,
+    _no_states,
+    check_impulse_inputs,
+    widened,
+    wider_dtype,
+)
 from diffcontact.contact.interior_point import add_block_diag
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
@@ -523,6 +529,10 @@ def coulomb_two_phase_impulse(
     """
     coulomb = coulomb or CoulombSettings()
     d = contact_dimension(d, "coulomb_two_phase_impulse")
+    if (settings or SolverSettings()).check_inputs:
+        check_impulse_inputs(cor, v, "coulomb_two_phase_impulse")
+    if v.numel() == 0:  # batch 0
+        return _no_states(v, active, d)
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)

@@ -177,6 +177,28 @@ def _range_projection(op: ContactOperator, v: Tensor, G: Tensor | None = None) -
     return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), independent)
 
 
+def check_impulse_inputs(cor: Tensor, v: Tensor, caller: str) -> None:
+    """The public impulse functions' checks (with ``SolverSettings.check_inputs``, off
+    inside a simulation step, whose boundary checks once): ``cor`` a tensor in [0, 1] (a
+    ``cor`` of 1.5 had sent a body away faster than it came), ``v`` a floating tensor."""
+    if not isinstance(v, Tensor) or not v.is_floating_point():
+        raise ValueError(f"{caller}: v must be a floating-point torch.Tensor, got {type(v)}")
+    if not isinstance(cor, Tensor):
+        raise ValueError(f"{caller}: cor must be a torch.Tensor, got {type(cor).__name__}")
+    c = cor.detach()
+    if c.numel() and not bool(((c >= 0) & (c <= 1)).all()):
+        raise ValueError(
+            f"{caller}: cor (e_P) must lie in [0, 1], got values in "
+            f"[{float(c.min()):g}, {float(c.max()):g}]"
+        )
+
+
+def _no_states(v: Tensor, active: Tensor, d: int) -> ImpulseResult:
+    """The impulses of an empty batch: ``v`` unchanged, no impulse."""
+    f = v.new_zeros(*v.shape[:-1], active.shape[-1] * d)
+    return ImpulseResult(v.clone(), f, f.clone())
+
+
 def wider_dtype(dtype: torch.dtype, work: torch.dtype | None) -> torch.dtype | None:
     """``work`` where it is a floating dtype wider than ``dtype``, else ``None``: the
     dtype a contact model resolves states of ``dtype`` in (``work``: its solver's
@@ -248,6 +270,10 @@ def two_phase_impulse(
     why; the canonical minimiser: :mod:`~diffcontact.contact.cone_qp`).
     """
     d = contact_dimension(d, "two_phase_impulse")
+    if (settings or SolverSettings()).check_inputs:
+        check_impulse_inputs(cor, v, "two_phase_impulse")
+    if v.numel() == 0:  # batch 0 (it failed in a reshape)
+        return _no_states(v, active, d)
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w, eps_w = widened(

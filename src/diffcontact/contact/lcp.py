@@ -123,7 +123,12 @@ from torch import Tensor
 
 from diffcontact.contact.cone_qp import ConeQPError, SolverSettings, SolverStatus
 from diffcontact.contact.first_order import first_order_only
-from diffcontact.contact.impulse import ImpulseResult, widened, wider_dtype
+from diffcontact.contact.impulse import (
+    ImpulseResult,
+    check_impulse_inputs,
+    widened,
+    wider_dtype,
+)
 from diffcontact.contact.models import ContactParams
 from diffcontact.contact.operator import ContactOperator, as_operator
 from diffcontact.fastops import lu_factor_ex
@@ -508,6 +513,7 @@ def lcp_impulse(
     tol: float | None = None,
     compute_dtype: torch.dtype | None = torch.float64,
     return_status: bool = False,
+    check_inputs: bool = True,
 ) -> ImpulseResult | tuple[ImpulseResult, SolverStatus]:
     """Resolve all active contacts of a batch of states with the Newton LCP.
 
@@ -524,6 +530,8 @@ def lcp_impulse(
         v_C_star: (..., K*d) penetration-compensation target, or None.
         directions: friction-cone directions when ``d = 3``.
         max_pivots, tol, compute_dtype, return_status: as in :func:`solve_lcp`.
+        check_inputs: check ``cor`` in [0, 1] (a host read; off inside a simulation step,
+            whose boundary checks once).
 
     Returns:
         :class:`~diffcontact.contact.ImpulseResult` with ``f_c`` the impulse ``(...,
@@ -535,13 +543,17 @@ def lcp_impulse(
     float32 end at another solution where it is singular.
     """
     d = contact_dimension(d, "lcp_impulse")
+    if check_inputs:
+        check_impulse_inputs(cor, v, "lcp_impulse")
+    if not isinstance(active, Tensor) or active.dtype != torch.bool:
+        raise ValueError("lcp_impulse: active must be a bool tensor")
     work = wider_dtype(v.dtype, compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)
         out = lcp_impulse(
             op, None, v_w, mu_w, cor_w, active, d, v_C_star=star_w, directions=directions,
             max_pivots=max_pivots, tol=tol, compute_dtype=compute_dtype,
-            return_status=return_status,
+            return_status=return_status, check_inputs=False,
         )  # fmt: skip
         if return_status:
             return out[0].to(v.dtype), out[1]
@@ -686,6 +698,7 @@ class NewtonLCP:
             max_pivots=self.max_pivots,
             tol=self.tol,
             compute_dtype=compute_dtype,
+            check_inputs=True if settings is None else settings.check_inputs,
         )
 
 

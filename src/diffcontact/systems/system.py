@@ -1101,6 +1101,11 @@ class System:
         stays (a rollout that blew up is reported as NaN input).
         """
         settings = settings or SolverSettings()
+        if not isinstance(settings, SolverSettings):  # a dict had given an AttributeError
+            raise ValueError(
+                "solver_settings must be a diffcontact.contact.SolverSettings, got "
+                f"{type(settings).__name__} (e.g. SolverSettings(backend='torch'))"
+            )
         return settings if not settings.check_inputs else replace(settings, check_inputs=False)
 
     def _options(
@@ -1421,6 +1426,7 @@ class System:
         """
         if on_tunnelling not in ON_TUNNELLING:
             raise ValueError(f"on_tunnelling must be one of {ON_TUNNELLING}, got {on_tunnelling!r}")
+        self._inner_settings(solver_settings)  # a SolverSettings (a dict: one clear error)
         self._check_state(z0, "z0")
         if steps is None:
             steps = self.default_steps
@@ -1582,6 +1588,15 @@ class System:
             bad = ~torch.isfinite(traj).flatten(2).all(-1)  # (N, T)
             rows = bad.any(-1).nonzero().flatten().tolist()
             first = bad.to(torch.int8).argmax(-1).tolist()
+        if not rows:  # finite states whose contact problem overflowed (it said "0 of N")
+            largest = float(traj.abs().amax()) if traj.numel() else 0.0
+            return NonFiniteRolloutError(
+                f"simulate {self.name}: the contact problem at step {at} holds NaN or "
+                f"infinite values although the states are finite (largest |value| "
+                f"{largest:.3g}): positions or velocities too large for float arithmetic; "
+                "check the units and scale of z0",
+                [],
+            )
         where = ", ".join(f"state {r} at step {first[r]}" for r in rows[:8])
         more = "" if len(rows) <= 8 else f" and {len(rows) - 8} more"
         if self.constraints is not None:
