@@ -399,6 +399,10 @@ def contact_names(task: str) -> list[str]:
     return pairs + walls
 
 
+def _count(n: int) -> str:
+    return {2: "two", 3: "three", 4: "four"}.get(int(n), str(n))
+
+
 def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
     """The Markdown report (docs/results.md) from the run summaries."""
     by = {(r["task"], r["model"]): r for r in results.values()}
@@ -406,25 +410,36 @@ def render(results: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
     add = lines.append
     add(REPORT_TITLE)
     add("")
+    n_train, n_val, n_test = meta.get("sizes") or (800, 100, 100)
+    per_run = max(1, int(meta["cpus"]) // int(meta["jobs"]))
+    threads = "one torch thread" if per_run == 1 else f"{per_run} torch threads"
+    jobs = int(meta["jobs"])
+    at_a_time = "one run at a time" if jobs == 1 else f"{_count(jobs)} runs at a time"
+    command = f"--out {meta['out']} --doc {meta.get('doc') or 'docs/results.md'}"
+    if meta.get("only"):  # (a one-run report said it was the whole command's)
+        command += f" --only {meta['only']}"
+    if (n_train, n_val, n_test) != (800, 100, 100):
+        command += f" --n-train {n_train} --n-val {n_val} --n-test {n_test}"
     add(
         "Every number on this page was produced by `python experiments/reproduce.py "
-        f"--out {meta['out']} --doc docs/results.md` ({meta['date']}; diffcontact "
+        f"{command}` ({meta['date']}; diffcontact "
         f"{meta['version']}, torch {meta['torch']}, {meta['cpus']} CPU cores, "
         f"`--jobs {meta['jobs']}`). One table alone: `python experiments/reproduce.py TABLE "
         f"--out {meta['out']}` with TABLE one of {', '.join(f'`{t}`' for t in TABLES)}."
     )
     add("")
     add(
-        "Set-up: `diffcontact generate TASK` (800 / 100 / 100 trajectories, seed 0, chunks "
+        f"Set-up: `diffcontact generate TASK` ({n_train} / {n_val} / {n_test} trajectories, "
+        "seed 0, chunks "
         "of 5 states, about half with a contact), `diffcontact train` with the package "
         "defaults (AdamW, batch 200, potential-network lr 1e-3 with weight decay 1e-4, "
         "physical-parameter lr 3e-2, cosine decay to zero, float64) with the potential MLP "
         "in float32 (`--potential-dtype float32`) for the epochs listed, then for "
         "CM-CD-CLNN on the paper's rollout-error tasks (BP5-e, CP3-e, CP3, Gyro) "
         f"`diffcontact refit` ({REFIT} Gauss-Newton iterations), "
-        "`diffcontact evaluate` on the 100 test trajectories (rollouts of max(horizon, 100 dt))."
-        " Training times are on this machine's CPU, one torch thread per run, two runs at a "
-        "time; other work shared the CPU at times, so they are upper bounds."
+        f"`diffcontact evaluate` on the {n_test} test trajectories (rollouts of max(horizon, "
+        f"100 dt)). Training times are on this machine's CPU, {threads} per run, {at_a_time}; "
+        "other work shared the CPU at times, so they are upper bounds."
     )
     add("")
     total_train = sum(r["train_seconds"] for r in results.values())
@@ -918,6 +933,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "torch": torch.__version__,
         "cpus": cpus,
         "jobs": args.jobs,
+        "sizes": [args.n_train, args.n_val, args.n_test],
+        "doc": args.doc,
+        "only": args.only,
         "wall_seconds": sum(c["wall_seconds"] for c in calls) if calls else wall,
         "invocations": calls,
         "python": platform.python_version(),

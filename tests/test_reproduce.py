@@ -71,6 +71,9 @@ def test_one_tiny_run_end_to_end(repro, tmp_path, capsys):
     assert "| truth | 2.0000 | 6.0000 | 8.0000 | 10.0000 |" in report
     assert "## Per-contact friction and restitution" in report
     assert "## Test rollout relative error" in report
+    # the provenance is this command's (it named the full reproduction's and 800 / 100 / 100)
+    assert f"--doc {tmp_path / 'r.md'} --only BP5:CM-CD-CLNN --n-train 6" in report
+    assert "(6 / 2 / 2 trajectories" in report and "one run at a time" in report
     # the run is reused: a second invocation trains nothing and gives the same numbers
     assert repro.main(["--only", "BP5:CM-CD-CLNN", "--epochs", "1", "--jobs", "1",
                        "--out", str(out), "--n-train", "6", "--n-val", "2",
