@@ -16,7 +16,6 @@ output; ``tests/systems/test_event_driven.py`` runs a small version (slow marker
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -136,6 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cor", type=float, default=0.7)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.n < 10 or args.epochs < 1:  # (both failed after the data were made)
+        p.error(f"--n must be >= 10 and --epochs >= 1, got {args.n} and {args.epochs}")
+    if args.out.exists() and any(args.out.iterdir()):  # (a TrainingInputError traceback)
+        p.error(f"--out {args.out} is not empty: this script does not resume; give a new folder")
     torch.set_num_threads(max(1, torch.get_num_threads()))
     t0 = time.perf_counter()
     res = run(args.out, n=args.n, epochs=args.epochs, mu=args.mu, cor=args.cor, seed=args.seed)
@@ -149,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{abs(r['mu'] - args.mu):8.4f}{'yes' if ok else 'no':>13}{r['seconds']:8.1f}"
         )
     print(f"total {time.perf_counter() - t0:.1f} s")
-    (args.out / "results.json").write_text(json.dumps(res, indent=2))
+    from diffcontact.io import atomic_write_json
+
+    atomic_write_json(args.out / "results.json", res)
     return 0
 
 
