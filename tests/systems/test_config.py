@@ -261,6 +261,23 @@ def test_energies_and_gaps_check_their_states():
         system.gaps(z[:, 0].numpy())
 
 
+def test_counts_and_seeds_take_integers_of_any_kind_and_nothing_else():
+    """numpy integers were refused ("got np.int64(2)"); seed=None was a TypeError, 1.5
+    silently 1, 2**70 an overflow."""
+    import numpy as np
+
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(np.int64(2), seed=np.int64(3))
+    assert torch.equal(z0, system.sample_initial_conditions(2, seed=3))
+    assert system.simulate(z0, np.int64(3), progress=False).shape[1] == 4
+    for seed in (None, 1.5, 2**70, -1, True):
+        with pytest.raises(ValueError, match=r"seed must be an integer in \[0, 2\*\*63\)"):
+            system.sample_initial_conditions(2, seed=seed)
+    for steps in (1.5, True, "3"):
+        with pytest.raises(ValueError, match="steps must be a non-negative integer"):
+            system.simulate(z0, steps)
+
+
 def test_bad_initial_states_are_rejected():
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(4, seed=0)

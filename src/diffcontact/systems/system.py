@@ -31,6 +31,7 @@ States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 from __future__ import annotations
 
 import math
+import operator
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
@@ -133,6 +134,17 @@ class _ZeroGradient(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         zeros = (torch.zeros(shape, dtype=dt, device=dev) for shape, dt, dev in ctx.inputs)
         return (None, *zeros)
+
+
+def _integer(value: Any) -> int | None:
+    """``value`` as an ``int`` where it is integral (``numpy.int64`` too), else ``None``
+    (floats and bools included)."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        return None
 
 
 def list_tasks() -> list[str]:
@@ -861,9 +873,13 @@ class System:
         Returns:
             ``(n, 2, P, dim)`` float64.
         """
-        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
-        gen = torch.Generator().manual_seed(int(seed))
+        given, n = n, _integer(n)
+        if n is None or n < 1:
+            raise ValueError(f"n must be a positive integer, got {given!r}")
+        given, seed = seed, _integer(seed)
+        if seed is None or not 0 <= seed < 2**63:  # (None: TypeError; 1.5 was read as 1)
+            raise ValueError(f"seed must be an integer in [0, 2**63), got {given!r}")
+        gen = torch.Generator().manual_seed(seed)
         drawer = ics.DRAWERS[self.type]
         geometry = self._static_on(torch.device("cpu"))[0]
 
@@ -1430,8 +1446,9 @@ class System:
         self._check_state(z0, "z0")
         if steps is None:
             steps = self.default_steps
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-            raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
+        given, steps = steps, _integer(steps)  # numpy integers too
+        if steps is None or steps < 0:
+            raise ValueError(f"steps must be a non-negative integer, got {given!r}")
         model, dynamics, fraction, params = self._options(
             contact_model, dynamics, penetration_fraction, params, eps
         )
