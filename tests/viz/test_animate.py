@@ -320,3 +320,12 @@ def test_a_diverging_overlay_does_not_set_the_axis_limits(tmp_path):
     with_far, _, _ = _build_figure(traj, scene, overlay=far, **kw)
     assert plain.axes[0].get_xlim() == with_far.axes[0].get_xlim()
     assert with_far.axes[0].get_xlim()[1] < 2
+
+
+def test_non_finite_states_are_warned_about(tmp_path):
+    """A body with NaN states vanished from the GIF without a word."""
+    traj = bouncing_points(1, 10)
+    traj[0, 5:, :, 1] = np.nan
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    with pytest.warns(RuntimeWarning, match="NaN or infinite states"):
+        animate(traj, scene, tmp_path / "nan.gif")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -613,11 +614,20 @@ def _build_figure(
         panels.append(cls(ax, scene, xi, xoi, trail, lims))
     if xo is not None:
         names = tuple(labels) if labels is not None else ("traj", "overlay")
-        names = (f"{names[0]} (filled)", f"{names[1]} (dashed; colour per body)")
-        handles = [
-            Line2D([], [], color=_PALETTE[0], lw=0, marker="o", ms=7, alpha=0.75),
-            Line2D([], [], color=_PALETTE[0], lw=1.4, ls="--"),
-        ]
+        if scene.circles:  # bodies: filled, their prediction a dashed outline of their colour
+            names = (f"{names[0]} (filled)", f"{names[1]} (dashed; colour per body)")
+            handles = [
+                Line2D([], [], color=_PALETTE[0], lw=0, marker="o", ms=7, alpha=0.75),
+                Line2D([], [], color=_PALETTE[0], lw=1.4, ls="--"),
+            ]
+        else:  # chains and ropes only: lines, the prediction a dark dashed line
+            rope = any(ch.style == "rope" for ch in scene.chains)
+            names = (f"{names[0]} (solid)", f"{names[1]} (dashed)")
+            handles = [
+                Line2D([], [], color="#8c564b" if rope else "#444444", lw=1.5,
+                       marker="o" if rope else None, ms=3),
+                Line2D([], [], color=_OVERLAY, lw=1.2, ls="--"),
+            ]  # fmt: skip
         fig.legend(handles, names, loc="outside lower center", ncol=2, fontsize=7, frameon=False)
     return fig, panels, idx
 
@@ -781,6 +791,13 @@ def animate(
     _image_format(path, (".gif",))
     _positive("fps", fps)
     _positive("dpi", dpi)
+    if not np.isfinite(_as_batch(traj, "traj")[:max_trajectories]).all():
+        warnings.warn(
+            "animate: traj holds NaN or infinite states; their bodies are not drawn in those "
+            "frames",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     fig, panels, idx = _build_figure(
         traj,
         scene,
