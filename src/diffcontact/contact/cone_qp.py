@@ -163,13 +163,12 @@ class SolverSettings:
     canonical: bool = True
 
     def __post_init__(self) -> None:
-        if self.compute_dtype is not None and self.compute_dtype not in (
-            torch.float32,
-            torch.float64,
-        ):  # half precision has no Cholesky/LU; "float64" a string failed as a device
+        cd = self.compute_dtype
+        if cd is not None and not (isinstance(cd, torch.dtype) and cd.is_floating_point):
+            # ("float64", a string, failed as a device; an integer dtype in torch.finfo)
             raise ValueError(
-                "SolverSettings.compute_dtype must be torch.float32, torch.float64 or None "
-                f"(the inputs' dtype), got {self.compute_dtype!r}"
+                "SolverSettings.compute_dtype must be a floating torch.dtype (torch.float64, "
+                f"torch.float32) or None (the inputs' dtype), got {cd!r}"
             )
         if not isinstance(self.canonical, bool):
             raise ValueError(f"SolverSettings.canonical must be a bool, got {self.canonical!r}")
