@@ -46,6 +46,14 @@ def test_impossible_box_is_reported():
         system.sample_initial_conditions(2)  # five balls of radius 0.1 in a 0.05 box
 
 
+def test_a_config_whose_draws_all_touch_names_the_contact():
+    """A chain pivot below its ground loads, and sampling only said "widen the box or make
+    the bodies smaller": the error names the contact the draws run into."""
+    system = dc.load_system("CP3", pivot=[0.0, -2.0])
+    with pytest.raises(ValueError, match=r"most often closed in the draws is 'joint 0 pen"):
+        system.sample_initial_conditions(2)
+
+
 def test_bouncing_distributions():
     system = dc.load_system("BP5")
     z = system.sample_initial_conditions(1000, seed=0)

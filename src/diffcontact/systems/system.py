@@ -889,7 +889,17 @@ class System:
         def valid(z: Tensor) -> Tensor:
             return (geometry.gaps(z[:, 0]) > 0).all(-1)
 
-        z = ics.rejection_sample(draw, valid, n, gen)
+        try:
+            z = ics.rejection_sample(draw, valid, n, gen)
+        except ValueError as err:  # name what the draws run into (a pivot below the ground)
+            probe = draw(1024, torch.Generator().manual_seed(int(seed)))
+            share = (geometry.gaps(probe[:, 0]) <= 0).double().mean(0)  # (K,)
+            k = int(share.argmax())
+            raise ValueError(
+                f"{err}; the candidate contact most often closed in the draws is "
+                f"{self.contact_names[k]!r} ({100 * float(share[k]):.0f} % of them): check "
+                "its geometry (walls, pivot, anchor) against the initial_conditions"
+            ) from None
         return z if device is None else z.to(device)
 
     # -------------------------------------------------------------- simulation
