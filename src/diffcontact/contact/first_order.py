@@ -4,9 +4,10 @@ The solvers' autograd Functions differentiate their solution implicitly (through
 optimality conditions at the solution); that backward pass is not itself differentiable.
 Under ``create_graph`` (a Hessian, ``torch.autograd.functional.hessian``, a gradient
 penalty) autograd would still build a graph around it, with the solver's own curvature
-missing: Hessians through a simulation came back wrong (on BP5, ``d2L/dmu2`` 40.5 against
--9.3 by finite differences) without a word. :func:`first_order_only` makes that case an
-error instead, while first derivatives under a graph (``torch.func.grad``) still work.
+missing: Hessians through a simulation came back wrong, without a word (on BP5 not even
+the sign of ``d2L/dmu2`` agreed with finite differences of the gradient).
+:func:`first_order_only` makes that case an error instead, while first derivatives under
+a graph (``torch.func.grad``) still work.
 """
 
 from __future__ import annotations

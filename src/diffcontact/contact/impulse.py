@@ -73,8 +73,8 @@ def penetration_target(
     written (``Mhat_inv=None``: the Euclidean ``pinv(J_C)`` of S.24, then the Euclidean
     projection onto the null space of ``J_E``, S.22-S.23) gives extended bodies a
     tangential target that depends on how their points are laid out: a uniform disk
-    resting on a ground with friction drifted sideways by 2.6 mm/s at body angle 0,
-    by nothing at 45 degrees (config key ``penetration_metric``, docs/config.md).
+    resting on a ground with friction drifted sideways by millimetres per second at body
+    angle 0, by nothing at 45 degrees (config key ``penetration_metric``, docs/config.md).
     Without equality constraints the two agree (the ranges of ``A`` and ``J_C`` are
     the same) and ``Mhat_inv`` is not used.
 
