@@ -711,3 +711,21 @@ def test_solver_settings_are_checked_where_given():
     z0 = system.sample_initial_conditions(2, seed=0)
     with pytest.raises(ValueError, match="solver_settings must be a diffcontact"):
         system.simulate(z0, 3, solver_settings={"backend": "torch"})
+
+
+@pytest.mark.parametrize("model", ["LCP", "Coulomb"])
+def test_second_derivatives_through_the_other_models_are_a_clear_error(model):
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(3, seed=0)
+    params = system.parameters()
+
+    def loss(theta):
+        p = params.replace(mu=theta[0], cor=theta[1])
+        return (
+            system.simulate(z0, 30, params=p, contact_model=model, progress=False)[:, -1]
+            .square()
+            .sum()
+        )
+
+    with pytest.raises(RuntimeError, match="second derivatives through the contact solver"):
+        torch.autograd.functional.hessian(loss, torch.tensor([0.35, 0.55], dtype=F64))
