@@ -61,7 +61,6 @@ import shutil
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -81,6 +80,7 @@ from reproduce import (
     _minutes,
     _set_threads,
     _training_seconds,
+    completed,
     job_pool,
 )
 
@@ -974,7 +974,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ): d.key
             for d in datasets
         }  # fmt: skip
-        for fut in as_completed(futures):
+        for fut in completed(futures):
             print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
         # slow ones first (rigid bodies, many contacts, large data), so the pool ends evenly
         slow = ("Gyro", "BD5", "BP5", "Rope-D400", "Rope-D200")
@@ -986,7 +986,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ): r.key
             for r in order
         }  # fmt: skip
-        for i, fut in enumerate(as_completed(futures), start=1):
+        for i, fut in enumerate(completed(futures), start=1):
             key = futures[fut]
             try:
                 r = fut.result()

@@ -696,8 +696,26 @@ def job_pool(jobs: int) -> Iterator[Any]:
         signal.signal(signal.SIGTERM, previous)
 
 
+class _LazyFuture(Future):
+    """A job of :class:`_InlineExecutor`: run in this process by :meth:`run`."""
+
+    def __init__(self, fn: Any, args: tuple[Any, ...]) -> None:
+        super().__init__()
+        self._job = (fn, args)
+
+    def run(self) -> None:
+        if self.done():
+            return
+        fn, args = self._job
+        try:
+            self.set_result(fn(*args))
+        except Exception as err:  # reported by the caller, like a worker's exception
+            self.set_exception(err)
+
+
 class _InlineExecutor:
-    """``--jobs 1``: run each job in this process when it is submitted."""
+    """``--jobs 1``: each job runs in this process when :func:`completed` reaches it (it
+    ran at submission, so nothing was stored until every job had run)."""
 
     def __enter__(self) -> _InlineExecutor:
         return self
@@ -706,12 +724,19 @@ class _InlineExecutor:
         return None
 
     def submit(self, fn: Any, *args: Any) -> Future:
-        fut: Future = Future()
-        try:
-            fut.set_result(fn(*args))
-        except Exception as err:  # reported by the caller, like a worker's exception
-            fut.set_exception(err)
-        return fut
+        return _LazyFuture(fn, args)
+
+
+def completed(futures: Any) -> Iterator[Future]:
+    """``as_completed`` for both executors: the inline one's jobs run one by one as they
+    are reached, so the caller stores each result as it finishes."""
+    lazy = [f for f in futures if isinstance(f, _LazyFuture)]
+    if not lazy:
+        yield from as_completed(futures)
+        return
+    for fut in lazy:
+        fut.run()
+        yield fut
 
 
 def _report_only(out: Path, doc: str | None) -> int:
@@ -867,7 +892,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         futures = [
             pool.submit(make_dataset, t, str(out / "data" / t), threads, *sizes) for t in tasks
         ]
-        for fut in as_completed(futures):
+        for fut in completed(futures):
             print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
         # longest first (most epochs, then rigid bodies and many contacts), so that the
         # two workers finish close together
@@ -887,7 +912,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             stored = json.loads(results_file.read_text())
             results, old_meta = stored.get("runs", {}), stored.get("meta", {})
         failed = []
-        for i, fut in enumerate(as_completed(futures), start=1):
+        for i, fut in enumerate(completed(futures), start=1):
             t, m = futures[fut]
             try:
                 r = fut.result()

@@ -250,3 +250,19 @@ def test_sigterm_stops_the_worker_processes(tmp_path):
         for pid in locals().get("workers", []):
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_inline_jobs_run_one_by_one_as_they_are_reached(repro):
+    """--jobs 1 ran every job at submission, so the caller stored no result until all had
+    run (an interrupted command left nothing to report)."""
+    calls = []
+    with repro.job_pool(1) as pool:
+        futures = [pool.submit(calls.append, k) for k in range(3)]
+        assert calls == []  # nothing runs at submission
+        for k, fut in enumerate(repro.completed(futures)):
+            assert calls == list(range(k + 1))  # this job, and no later one, has run
+            assert fut.result() is None
+    failing = repro._InlineExecutor().submit(int, "x")
+    (fut,) = list(repro.completed([failing]))
+    with pytest.raises(ValueError):
+        fut.result()
