@@ -66,3 +66,42 @@ def test_point_masses_are_the_same_under_both_metrics():
 def test_an_unknown_metric_is_a_clear_error():
     with pytest.raises(ValueError, match="penetration_metric"):
         dc.load_system("BD5", penetration_metric="inertia")
+
+
+def test_files_written_before_the_key_keep_the_euclidean_target(tmp_path):
+    """A dataset's metadata and a model file store the config as a complete dump; one
+    without ``penetration_metric`` predates the key, when every system ran the Euclidean
+    target. Read with the new default it would simulate its own data differently."""
+    import json
+
+    from diffcontact.learning.data.format import Dataset, load_dataset
+    from diffcontact.learning.data.generate import generate_dataset
+    from diffcontact.learning.models.registry import create_model
+    from diffcontact.learning.models.storage import (
+        load_model,
+        model_checkpoint,
+        model_from_checkpoint,
+        save_model,
+    )
+    from diffcontact.systems.config import stored_config
+
+    dump = dc.load_system("BD1-ground").config.model_dump(mode="json")
+    assert dump["penetration_metric"] == "mass"  # dumps of this version carry the key
+    old = {k: v for k, v in dump.items() if k != "penetration_metric"}
+    assert stored_config(old)["penetration_metric"] == "euclidean"
+    assert stored_config(dump) == dump
+    data = tmp_path / "data"
+    generate_dataset("BD1-ground", data, n_train=2, n_val=1, n_test=1, progress=False)
+    dataset = load_dataset(data)
+    assert dataset.system.penetration_metric == "mass"
+    meta = json.loads((data / "metadata.json").read_text())
+    meta["config"].pop("penetration_metric")  # (as written before the key existed)
+    earlier = Dataset(dataset.path, meta, dataset.config)
+    assert earlier.system.penetration_metric == "euclidean"
+    for name in ("CM-CD-CLNN", "MLP-CD-CLNN"):
+        model = create_model(name, dump)
+        save_model(model, tmp_path / "model.pt")
+        assert load_model(tmp_path / "model.pt").system.penetration_metric == "mass"
+        stored = model_checkpoint(model)
+        stored["config"].pop("penetration_metric")  # (a file of an earlier version)
+        assert model_from_checkpoint(stored).system.penetration_metric == "euclidean"

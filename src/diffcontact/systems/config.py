@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
@@ -37,6 +38,7 @@ __all__ = [
     "large_allowed",
     "parse_config",
     "state_bytes",
+    "stored_config",
 ]
 
 # strict: a number must be a number (YAML's "5" or true is an error, not 5.0 or 1.0);
@@ -554,6 +556,16 @@ def _depth(data: Any, stop: int) -> int:
                 return deepest
             todo.extend((v, level) for v in (item.values() if isinstance(item, dict) else item))
     return deepest
+
+
+def stored_config(data: Any) -> Any:
+    """A config as this library stored it (a dataset's metadata, a model file), ready for
+    :func:`parse_config`. Stored configs are complete dumps; one without
+    ``penetration_metric`` was written before that key existed, when every system ran
+    appendix G's Euclidean target, and keeps it (the key's default became ``mass``)."""
+    if isinstance(data, Mapping) and "type" in data and "penetration_metric" not in data:
+        return {**data, "penetration_metric": "euclidean"}
+    return data
 
 
 def parse_config(

@@ -44,6 +44,7 @@ from torch import Tensor
 from diffcontact.cli_args import one_line
 from diffcontact.io import jsonable, read_json_object, read_npz
 from diffcontact.systems import System, load_config, load_system
+from diffcontact.systems.config import stored_config
 
 __all__ = [
     "ARRAYS",
@@ -288,7 +289,7 @@ class Dataset:
 
     @cached_property
     def system(self) -> System:
-        return load_system(self.metadata["config"])
+        return load_system(stored_config(self.metadata["config"]))
 
     @property
     def task(self) -> str:
@@ -531,7 +532,7 @@ def load_dataset(data_dir: str | os.PathLike[str]) -> Dataset:
         )
     verified = verify_files(folder, meta)
     try:
-        config = load_config(meta["config"])
+        config = load_config(stored_config(meta["config"]))
     except ValueError as err:
         raise DatasetError(f"{meta_path}: invalid config: {err}") from None
     return Dataset(folder, meta, config, verified)

@@ -29,6 +29,7 @@ import torch
 from diffcontact.cli_args import one_line
 from diffcontact.io import atomic_write_bytes
 from diffcontact.learning.models.registry import create_model, is_physical_model
+from diffcontact.systems.config import stored_config
 
 __all__ = [
     "UnsafeFileError",
@@ -119,6 +120,7 @@ def model_from_checkpoint(data: Mapping[str, Any]) -> Any:
     """
     if not isinstance(data, Mapping) or "options" not in data or "config" not in data:
         raise ValueError("not a diffcontact model file: missing config or options")
+    data = {**data, "config": stored_config(data["config"])}  # files of earlier versions
     name = data.get("model_name") or dict(data["options"]).get("model")
     if name is None:
         raise ValueError("not a diffcontact model file: no model name")

@@ -87,6 +87,7 @@ from diffcontact.learning.training.stopping import (
     StopAfter,
     Stopped,
 )
+from diffcontact.systems.config import stored_config
 from diffcontact.threads import parse_threads
 
 __all__ = [
@@ -520,7 +521,7 @@ def train(
             f"{given}: option(s) of the built-in models only; {model} takes model_options"
         )
     try:
-        learned = create_model(model, meta["config"], **options)
+        learned = create_model(model, stored_config(meta["config"]), **options)
     except ValueError as err:
         raise TrainingInputError(str(err)) from None
     if tuple(train_chunks.shape[2:]) != learned.state_shape:
