@@ -327,5 +327,5 @@ def test_non_finite_states_are_warned_about(tmp_path):
     traj = bouncing_points(1, 10)
     traj[0, 5:, :, 1] = np.nan
     scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
-    with pytest.warns(RuntimeWarning, match="NaN or infinite states"):
+    with pytest.warns(RuntimeWarning, match="NaN or infinite positions"):
         animate(traj, scene, tmp_path / "nan.gif")

@@ -89,8 +89,8 @@ from diffcontact.contact.cone_qp import (
 from diffcontact.contact.first_order import first_order_only
 from diffcontact.contact.impulse import (
     ImpulseResult,
-    _no_states,
     check_impulse_inputs,
+    empty_impulse,
     widened,
     wider_dtype,
 )
@@ -532,7 +532,7 @@ def coulomb_two_phase_impulse(
     if (settings or SolverSettings()).check_inputs:
         check_impulse_inputs(cor, v, "coulomb_two_phase_impulse")
     if v.numel() == 0:  # batch 0
-        return _no_states(v, active, d)
+        return empty_impulse(v, active, d)
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w = widened(work, J_C, Mhat_inv, v, mu, cor, v_C_star)

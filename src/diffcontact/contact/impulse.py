@@ -193,7 +193,7 @@ def check_impulse_inputs(cor: Tensor, v: Tensor, caller: str) -> None:
         )
 
 
-def _no_states(v: Tensor, active: Tensor, d: int) -> ImpulseResult:
+def empty_impulse(v: Tensor, active: Tensor, d: int) -> ImpulseResult:
     """The impulses of an empty batch: ``v`` unchanged, no impulse."""
     f = v.new_zeros(*v.shape[:-1], active.shape[-1] * d)
     return ImpulseResult(v.clone(), f, f.clone())
@@ -273,7 +273,7 @@ def two_phase_impulse(
     if (settings or SolverSettings()).check_inputs:
         check_impulse_inputs(cor, v, "two_phase_impulse")
     if v.numel() == 0:  # batch 0 (it failed in a reshape)
-        return _no_states(v, active, d)
+        return empty_impulse(v, active, d)
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w, eps_w = widened(

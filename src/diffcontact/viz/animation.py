@@ -589,6 +589,12 @@ def _build_figure(
     if max_trajectories < 1:
         raise ValueError(f"max_trajectories must be >= 1, got {max_trajectories}")
     n = min(n_total, max_trajectories)
+    if not np.isfinite(x[:n]).all():
+        warnings.warn(
+            "traj holds NaN or infinite positions; those bodies are not drawn in those frames",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     idx = frame_indices(n_steps, max_frames)
     ncols = math.ceil(math.sqrt(n))
     nrows = math.ceil(n / ncols)
@@ -791,13 +797,6 @@ def animate(
     _image_format(path, (".gif",))
     _positive("fps", fps)
     _positive("dpi", dpi)
-    if not np.isfinite(_as_batch(traj, "traj")[:max_trajectories]).all():
-        warnings.warn(
-            "animate: traj holds NaN or infinite states; their bodies are not drawn in those "
-            "frames",
-            RuntimeWarning,
-            stacklevel=2,
-        )
     fig, panels, idx = _build_figure(
         traj,
         scene,
