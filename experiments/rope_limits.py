@@ -2,7 +2,7 @@
 
     python experiments/rope_limits.py [--task Rope-D200] [--horizon 5] [--n 2]
                                       [--dt 0.01 0.005 0.0025] [--fraction 0.125]
-                                      [--projection 10]
+                                      [--projection 10] [--positions-only]
 
 The rope's limits (each segment within ``[min_ratio, max_ratio]`` of its rest length,
 each joint's bend within ``+-max_angle``; docs/config.md) are inelastic contacts
@@ -10,7 +10,9 @@ resolved at the velocity level. Without a position-level correction
 (``position_projection: 0``) only the penetration-compensation target removes
 ``fraction`` of a violation per step (appendix G); with it (the rope tasks' default,
 ``position_projection: 10``) the positions are projected back onto the limits after
-every step (systems/projection.py). This script simulates ``--n`` trajectories over
+every step (systems/projection.py), and the velocities onto the limits closed there
+(``velocity_projection``; ``--positions-only`` adds runs without it, the behaviour
+before that key, whose energy can rise). This script simulates ``--n`` trajectories over
 ``--horizon`` seconds for every time step, once per setting, and prints the largest
 and smallest segment-length ratio, the largest bend beyond ``max_angle`` (radians),
 the energy change (mean over trajectories of ``E(T) - E(0)``, and the largest rise
@@ -20,6 +22,7 @@ the energy change (mean over trajectories of ``E(T) - E(0)``, and the largest ri
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -62,7 +65,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--projection", type=int, nargs="+", default=[10],
         help="position_projection (iterations) of the runs with it",
     )  # fmt: skip
+    parser.add_argument(
+        "--positions-only", action="store_true",
+        help="also run each projection setting without the velocities' projection",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if not all(math.isfinite(v) and v > 0 for v in args.dt):
+        parser.error(f"--dt must be positive numbers, got {args.dt}")
+    if not all(0 <= v <= 1 for v in args.fraction):
+        parser.error(f"--fraction must lie in [0, 1], got {args.fraction}")
+    if args.n < 1 or not math.isfinite(args.horizon) or args.horizon <= 0:
+        parser.error("--n must be at least 1 and --horizon a positive number")
+    if any(k < 1 for k in args.projection):
+        parser.error(f"--projection must be at least 1 iteration, got {args.projection}")
     torch.set_num_threads(1)
     base = dc.load_system(args.task)
     cfg = base.config
@@ -71,19 +86,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad"
     )
     print(
-        f"{'dt':>7} {'setting':>14} {'steps':>5} {'max ratio':>10} {'min ratio':>9} "
+        f"{'dt':>7} {'setting':>16} {'steps':>5} {'max ratio':>10} {'min ratio':>9} "
         f"{'max bend-lim':>12} {'mean dE':>9} {'max rise':>9} {'s':>5}"
     )
-    settings = [(f"projection {k}", {"position_projection": k}) for k in args.projection]
+    # (label, config keys, simulate options)
+    settings = [(f"projection {k}", {}, {"position_projection": k}) for k in args.projection]
+    if args.positions_only:
+        settings += [
+            (f"positions only {k}", {"velocity_projection": False}, {"position_projection": k})
+            for k in args.projection
+        ]
     settings += [
-        (f"fraction {f:g}", {"position_projection": 0, "penetration_fraction": f})
+        (f"fraction {f:g}", {}, {"position_projection": 0, "penetration_fraction": f})
         for f in args.fraction
     ]
     for dt in args.dt:
-        system = dc.load_system(args.task, dt=dt, horizon=args.horizon)
-        z0 = system.sample_initial_conditions(args.n, seed=0)
-        steps = round(args.horizon / dt)
-        for label, options in settings:
+        for label, keys, options in settings:
+            system = dc.load_system(args.task, dt=dt, horizon=args.horizon, **keys)
+            z0 = system.sample_initial_conditions(args.n, seed=0)
+            steps = round(args.horizon / dt)
             start = time.perf_counter()
             traj = system.simulate(z0, steps, on_tunnelling="ignore", **options)
             seconds = time.perf_counter() - start
@@ -93,7 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             change = float((E[:, -1] - E[:, 0]).mean())
             rise = float((E - E[:, :1]).amax())
             print(
-                f"{dt:>7g} {label:>14} {steps:>5} {float(r.max()):>10.4g} {float(r.min()):>9.4g} "
+                f"{dt:>7g} {label:>16} {steps:>5} {float(r.max()):>10.4g} {float(r.min()):>9.4g} "
                 f"{float(bend.max()):>12.3g} {change:>9.3g} {rise:>9.3g} {seconds:>5.0f}",
                 flush=True,
             )

@@ -27,7 +27,13 @@ so the rope the config describes is a different trajectory, not a rounding chang
 off). Rope (two states) was rewritten once more when the projection began to stop each
 state at its own convergence (it iterated both while either had a limit left): it moved
 by 3.8e-10, and now equals each state's rollout alone (the one-state rope entries did not
-move).
+move). All four were rewritten again when the projection began to project the velocities
+too (``velocity_projection``, on by default): the positions' projection alone left
+velocities pointing into the limits it closed, and the rope gained energy (a rope with a
+heavy tip up to 10.4 J over 4.4 J in 0.5 s; ``tests/systems/test_velocity_projection.py``).
+They moved by up to 1.3 (Rope), 0.035, 0.0045 and 0.0073 (Rope-D100, -D200, -D400); with
+``velocity_projection: false`` they are those of the code before, bitwise (compared on
+one machine, where both stand 9e-16 off the entries before in Rope-D100).
 
 ``tests/test_reference_values.py`` compares against it.
 """

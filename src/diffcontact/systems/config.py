@@ -198,6 +198,10 @@ class _SystemBase(_Strict):
     # Gauss-Newton iterations of the position-level projection onto the admissible set of
     # the violated contacts after each step (systems/projection.py); 0 switches it off
     position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 0
+    # with the position projection on: the velocities too, inelastically onto the limits
+    # closed at the projected positions (which a step's impulse then treats as active);
+    # false: the positions only, as before this key (the energy can then rise)
+    velocity_projection: Annotated[bool, Field(strict=True)] = True
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
     # the fourth-order Runge-Kutta rule of the smooth dynamics: classic, or the 3/8 rule
     # (torchdiffeq's "rk4", used by the paper's released code)
@@ -558,13 +562,21 @@ def _depth(data: Any, stop: int) -> int:
     return deepest
 
 
+STORED_BEFORE: dict[str, Any] = {"penetration_metric": "euclidean", "velocity_projection": False}
+"""Keys added to the configs with a default unlike the behaviour before them: the value
+that a stored config without the key stands for."""
+
+
 def stored_config(data: Any) -> Any:
     """A config as this library stored it (a dataset's metadata, a model file), ready for
-    :func:`parse_config`. Stored configs are complete dumps; one without
-    ``penetration_metric`` was written before that key existed, when every system ran
-    appendix G's Euclidean target, and keeps it (the key's default became ``mass``)."""
-    if isinstance(data, Mapping) and "type" in data and "penetration_metric" not in data:
-        return {**data, "penetration_metric": "euclidean"}
+    :func:`parse_config`. Stored configs are complete dumps; one without a key of
+    :data:`STORED_BEFORE` was written before that key existed and keeps the behaviour it
+    was made with: ``penetration_metric`` appendix G's Euclidean target (the default
+    became ``mass``), ``velocity_projection`` off (the default became on)."""
+    if isinstance(data, Mapping) and "type" in data:
+        missing = {k: v for k, v in STORED_BEFORE.items() if k not in data}
+        if missing:
+            return {**data, **missing}
     return data
 
 

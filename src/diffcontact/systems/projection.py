@@ -41,17 +41,32 @@ Making it robust on a whipping rope (violations of 0.1-0.4 rad per step at
 - a backtracking line search over :data:`STEPS` keeps the step with the least
   violation (``0`` if none improves).
 
-Limitation: on a long whipping rope (Rope-D200) the per-step violations grow beyond
-what the iterations resolve and the limits are not held (docs/config.md, ``rope``).
+With the positions projected alone, the per-step violations of a long whipping rope
+(Rope-D200 at ``dt = 0.01``) grew beyond what the iterations resolve; with the velocities
+projected too (below) the limits hold there (docs/config.md, ``rope``).
 
 Each state stops iterating once its gaps are above ``-tol`` and its ``Phi`` is within
 ``tol`` (its positions are then kept, whatever the other states of its batch still do:
 a state's projection does not depend on its batch), and the iterations end when every
-state has stopped. Velocities are not changed (the impulse already made them admissible).
-Everything but the discrete choices (rows, step length, early stop) is
+state has stopped. Everything but the discrete choices (rows, step length, early stop) is
 differentiable; with the projection on, ``System`` drops the penetration target
 (it would add a velocity for a violation the projection already removed, which
 pumped energy into a hanging rope).
+
+Velocities (:func:`project_state`, the config's ``velocity_projection``). The step's
+impulse made the velocities admissible for the limits violated before the projection,
+at those positions; the projection closes further limits, active only at the projected
+positions, and left the velocities pointing into them: the next step turned potential
+energy into that speed and the projection put it back, so an inelastic rope gained
+energy. After the positions, the velocities of the projected states get the smallest
+change in the mass metric that stops them approaching the limits closed at the projected
+positions ``x_p`` (gap below :data:`CLOSED`; ``J`` their rows at ``x_p``):
+
+    v+ = v + Mhat^-1 J^T lambda,
+    lambda = argmin_{lambda >= 0} 0.5 lambda^T A lambda + lambda^T J v,   A = J Mhat^-1 J^T,
+
+an inelastic, frictionless impulse (the same QP as an iteration above, with ``J v`` for
+the gaps): ``J v+ >= 0`` on every closed limit, and the kinetic energy never rises.
 
 With point masses (the ropes) each iteration needs only ``J_s = J M^-1/2``: ``A = J_s
 J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp, where the dense
@@ -87,13 +102,14 @@ from diffcontact.geometry.base import (
     SparseJacobian,
     assemble_jacobian,
     at_points,
+    jacobian_matvec,
     jacobian_rmatvec,
     take_rows,
 )
 from diffcontact.geometry.sparse_gram import MIN_DENSE_SIZE, sparse_gram, sparse_gram_available
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
-__all__ = ["ReadFree", "project_positions"]
+__all__ = ["ReadFree", "project_positions", "project_state"]
 
 STEPS = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Step lengths tried along each Gauss-Newton direction (the one with the least violation wins)."""
@@ -101,6 +117,19 @@ MARGIN = 0.25
 """A limit enters an iteration's problem once its distance (mass metric) is below
 ``MARGIN`` times the state's largest violation: the limits a correction can reach
 (0 converged too slowly on whipping ropes, 0.5 and more doubled the problem size)."""
+CLOSED = 1e-6
+"""A limit whose gap is below ``CLOSED`` is closed (:func:`closed_below`):
+:func:`project_state` projects the velocities onto it at the projected positions, and
+with the velocity projection on, a step's impulse treats it as active (``System``). A
+limit the projection corrected ends within its tolerance of gap 0; one it released (a
+neighbour's correction moved it away) ends farther out."""
+
+
+def closed_below(dtype: torch.dtype) -> float:
+    """The gap below which a limit is closed: :data:`CLOSED`, the same in float32 and
+    float64 (a step in either then treats the same limits), or eight rounding units of a
+    coarser ``dtype``."""
+    return max(CLOSED, 8 * torch.finfo(dtype).eps)
 
 
 @dataclass
@@ -201,6 +230,94 @@ def _metric_norms(
     return (gram * w).sum((-1, -2)).clamp_min(0).sqrt()
 
 
+def _minv_rows(rows: Tensor, Minv_b: Tensor, P: int, dim: int, diagonal: bool) -> Tensor:
+    """``rows M^-1`` for ``rows: (n, R, P * dim)``, ``M^-1 = kron(M_inv, I_dim)`` (symmetric;
+    ``Minv_b: (P, P)`` or ``(n, P, P)``; ``diagonal``: point masses, no dense product)."""
+    r = rows.reshape(*rows.shape[:-1], P, dim)
+    if diagonal:
+        w = Minv_b.diagonal(dim1=-2, dim2=-1)
+        out = r * (w[:, None, :, None] if w.dim() == 2 else w[:, None])
+    else:
+        Mi = Minv_b if Minv_b.dim() == 3 else Minv_b.unsqueeze(0)
+        out = torch.einsum("nrpd,nqp->nrqd", r, Mi.expand(rows.shape[0], P, P))
+    return out.reshape(rows.shape)
+
+
+def _smallest_correction(
+    rows: SparseJacobian,
+    mask: Tensor,
+    rhs: Tensor,
+    Minv_b: Tensor,
+    *,
+    diagonal: bool,
+    sparse: bool,
+    settings: SolverSettings,
+    Mh: Tensor | None = None,
+    base: Tensor | None = None,
+) -> Tensor:
+    """The smallest correction in the mass metric that meets ``R`` linear rows:
+    ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= 0} 0.5 lambda^T A lambda +
+    lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh`` (``Mhat^-1``, with equality
+    constraints) or ``M^-1``: the frictionless cone QP of one projection iteration
+    (``rhs`` the gaps) or of the velocity projection (``rhs = J v``).
+
+    Args:
+        rows: the rows' sparse entries, ``points (n, R, m)`` and ``values (n, R, 1, m,
+            dim)``, signed and zero on padded rows.
+        mask: ``(n, R)`` bool, the real rows.
+        rhs: ``(n, R)``.
+        Minv_b: ``(P, P)`` or ``(n, P, P)`` inverse mass matrix over points.
+        diagonal: point masses (a diagonal ``Minv_b``).
+        sparse: ``A`` from the rows' entries where large (point masses, Warp on the CPU).
+        settings: the cone QP's settings.
+        Mh: ``(n, D, D)`` ``Mhat^-1`` with equality constraints, else ``None``.
+        base: ``(n, D)`` a fixed part of the correction (the equality constraints' drift).
+
+    Returns:
+        ``(n, P, dim)``.
+    """
+    n, R = mask.shape
+    P, dim = Minv_b.shape[-1], rows.values.shape[-1]
+    D = P * dim
+    values, root = rows.values, None
+    if diagonal and Mh is None:
+        # point masses: the rows scaled by sqrt(M^-1), J_s = J M^-1/2, so that A = J_s J_s^T
+        # and the correction M^-1 J^T lambda = M^-1/2 J_s^T lambda need only J_s, not J and
+        # J M^-1 (scaled on the few sparse entries, not on dense rows)
+        root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
+        values = values * at_points(root, rows.points)[:, :, None, :, None]
+    if root is not None and sparse and n * R * D >= MIN_DENSE_SIZE:
+        # A = J_s J_s^T from the rows' few entries (sparse_gram): no dense rows
+        J = JM = None
+        A = sparse_gram(rows.points, values[:, :, 0])
+    else:
+        J = assemble_jacobian(SparseJacobian(rows.points, values), P).reshape(n, R, D)
+        if root is not None:
+            JM = J  # (J_s)
+        elif Mh is not None:
+            JM = J @ Mh  # (n, R, D)
+        else:
+            JM = _minv_rows(J, Minv_b, P, dim, diagonal)
+        A = JM @ J.transpose(-1, -2)
+        A = 0.5 * (A + A.transpose(-1, -2))
+    if base is not None:
+        rhs = rhs + (J @ base.unsqueeze(-1)).squeeze(-1)
+    rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
+    lam, status = solve_cone_qp(
+        A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=settings, return_status=True
+    )
+    # a problem the solver did not finish still gives a direction (the projection's line
+    # search keeps only steps that reduce the violation); an unbounded one does not
+    usable = ~status.unbounded & torch.isfinite(lam).all(-1)
+    lam = torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
+    if JM is None:  # J_s^T lambda from the entries
+        dx = jacobian_rmatvec(SparseJacobian(rows.points, values), lam.unsqueeze(-1), P)
+    else:
+        dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
+        dx = (dx if base is None else dx + base).reshape(n, P, dim)
+    return dx if root is None else dx * root.unsqueeze(-1)
+
+
 def project_positions(
     x: Tensor,
     geometry: Any,
@@ -235,12 +352,59 @@ def project_positions(
         ``(N, P, dim)``: ``x`` with the states that violated a candidate projected;
         the others are returned unchanged (the same values, no extra graph).
     """
+    args = (constraints, gaps, settings, tol, read_free)
+    return _project(x, None, geometry, M_inv, iterations, *args)[0]
+
+
+def project_state(
+    x: Tensor,
+    v: Tensor,
+    geometry: Any,
+    M_inv: Tensor,
+    iterations: int,
+    *,
+    constraints: EqualityConstraints | None = None,
+    gaps: Tensor | None = None,
+    settings: SolverSettings | None = None,
+    tol: float | None = None,
+    read_free: ReadFree | None = None,
+) -> tuple[Tensor, Tensor]:
+    """:func:`project_positions`, then the velocities of the projected states onto the
+    limits closed at their new positions (module docstring, "Velocities").
+
+    Args:
+        x: ``(N, P, dim)`` positions after a step.
+        v: ``(N, P, dim)`` velocities after the step's impulse.
+        geometry, M_inv, iterations, constraints, gaps, settings, tol, read_free: as
+            :func:`project_positions` (``read_free`` pads the velocities' problem to the
+            same rows, and records the rows it needed in ``read_free.needed`` too).
+
+    Returns:
+        ``x, v``: ``(N, P, dim)`` each; the states without a violated candidate unchanged.
+    """
+    x, v1 = _project(x, v, geometry, M_inv, iterations, constraints, gaps, settings, tol, read_free)
+    return x, v if v1 is None else v1
+
+
+def _project(
+    x: Tensor,
+    v: Tensor | None,
+    geometry: Any,
+    M_inv: Tensor,
+    iterations: int,
+    constraints: EqualityConstraints | None,
+    gaps: Tensor | None,
+    settings: SolverSettings | None,
+    tol: float | None,
+    read_free: ReadFree | None,
+) -> tuple[Tensor, Tensor | None]:
+    """:func:`project_state` (``v``: ``None`` projects the positions only, and returns
+    ``None`` for the velocities)."""
     if iterations <= 0:
-        return x
+        return x, v
     P, dim = x.shape[-2:]
     if tol is None:
         tol = 1e-10 if x.dtype == torch.float64 else 1e-5
-    D = P * dim
     widths = geometry.gap_widths() if hasattr(geometry, "gap_widths") else None
     with torch.no_grad():
         g0 = geometry.gaps(x.detach()) if gaps is None else gaps.detach()
@@ -259,24 +423,13 @@ def project_positions(
         else:
             n, diagonal, two_sided = x.shape[0], read_free.diagonal, read_free.two_sided
     if n == 0:
-        return x
+        return x, v
     if read_free is None:
         b = torch.argsort((~has).to(torch.uint8), stable=True)[:n]  # (n,) states to project
         x_pred = x[b]  # (n, P, dim)
         Minv_b = M_inv if M_inv.dim() == 2 else M_inv[b]
     else:  # every state (those without a violation select no rows: no correction)
         x_pred, Minv_b = x, M_inv
-
-    def minv_rows(rows: Tensor) -> Tensor:
-        """``rows M^-1`` for ``rows: (n, R, D)``, ``M^-1 = kron(M_inv, I_dim)`` (symmetric)."""
-        r = rows.reshape(*rows.shape[:-1], P, dim)
-        if diagonal:  # point masses: no dense product
-            w = Minv_b.diagonal(dim1=-2, dim2=-1)
-            out = r * (w[:, None, :, None] if w.dim() == 2 else w[:, None])
-        else:
-            Mi = Minv_b if Minv_b.dim() == 3 else Minv_b.unsqueeze(0)
-            out = torch.einsum("nrpd,nqp->nrqd", r, Mi.expand(rows.shape[0], P, P))
-        return out.reshape(rows.shape)
 
     if constraints is not None and constraints.num_equations == 0:
         constraints = None
@@ -296,6 +449,21 @@ def project_positions(
     def row_gaps(g: Tensor) -> Tensor:  # (..., K) -> (..., R_all): each side of each limit
         return torch.cat([g, width - g], -1) if width is not None else g
 
+    def signed_rows(
+        rows: SparseJacobian, selected: Tensor, R: int
+    ) -> tuple[SparseJacobian, Tensor, Tensor]:
+        """The ``selected: (n, R_all)`` rows of ``rows`` (every candidate's), at most ``R``
+        a state: their entries signed (the other side of a two-sided limit) and zero where
+        padded, and the ``(n, R)`` row indices and mask (applied to the few sparse entries,
+        before any dense ``(n, R, P * dim)`` rows are assembled)."""
+        idx, mask = _gather_rows(selected, R)
+        taken = take_rows(rows, idx % K)
+        values = taken.values[:, :, :1]  # (n, R, 1, m, dim): the normal rows
+        sign = torch.where(idx < K, 1.0, -1.0).to(values)[:, :, None, None, None]
+        keep = mask[:, :, None, None, None]
+        values = torch.where(keep, sign * values, torch.zeros_like(values))
+        return SparseJacobian(taken.points, values), idx, mask
+
     # the step M^-1 J^T lambda is the same for every minimiser lambda (two differ by a null
     # vector g of A = J M^-1 J^T, and g^T A g = 0 makes M^-1 J^T g = 0): any will do, which
     # spares the fused solver's interior point at the many kinks of these problems (rows
@@ -303,6 +471,27 @@ def project_positions(
     any_minimiser = replace(settings or SolverSettings(), canonical=False)
     # point masses on the CPU with Warp: A = J_s J_s^T and J_s^T lambda from the rows' entries
     sparse = bool(diagonal) and phi0 is None and sparse_gram_available(settings, x.dtype, x.device)
+
+    def correction(
+        rows: SparseJacobian, mask: Tensor, rhs: Tensor, x_at: Tensor, base: bool
+    ) -> Tensor:
+        """:func:`_smallest_correction` at positions ``x_at`` (``base``: with the equality
+        constraints' drift back to ``phi0``)."""
+        Mh = drift = None
+        if phi0 is not None:
+            # Mhat^-1 keeps the correction tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1
+            # J_E^T)^-1 r takes Phi back to its value at x_pred
+            J_E = constraints.jacobian(x_at)  # (n, E, D)
+            Mh = Mhat_inv(Minv_b, J_E)
+            if base:
+                r = (constraints.phi(x_at) - phi0).unsqueeze(-1)  # (n, E, 1)
+                B = _minv_rows(J_E, Minv_b, P, dim, bool(diagonal)).transpose(-1, -2)
+                drift = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
+        return _smallest_correction(
+            rows, mask, rhs, Minv_b, diagonal=bool(diagonal), sparse=sparse,
+            settings=any_minimiser, Mh=Mh, base=drift,
+        )  # fmt: skip
+
     x_i = x_pred
     dist = None  # after the first iteration: the line search's distances at x_i
     going = None  # after the first iteration: (n,) bool, the states not converged yet
@@ -332,65 +521,9 @@ def project_positions(
             mask_rows = rows
         if it > 0:
             gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)  # with the graph
-        gaps_i = row_gaps(gaps_raw)  # (n, R_all)
-        idx, mask = _gather_rows(mask_rows, int(R))
-        cand = idx % K  # (n, R) the candidate of each row
-        R = idx.shape[-1]
-        gap = gaps_i.gather(-1, idx)  # (n, R)
-        # each row's sign (the other side of a two-sided limit) and mask, applied to its
-        # few sparse entries (before any dense (n, R, P * dim) rows are assembled)
-        taken = take_rows(rows_i, cand)
-        values = taken.values[:, :, :1]  # (n, R, 1, m, dim): the normal rows
-        sign = torch.where(idx < K, 1.0, -1.0).to(values)[:, :, None, None, None]
-        keep = mask[:, :, None, None, None]
-        values = torch.where(keep, sign * values, torch.zeros_like(values))
-        root = None
-        if diagonal and phi0 is None:
-            # point masses: the rows scaled by sqrt(M^-1), J_s = J M^-1/2, so that A = J_s
-            # J_s^T and the step M^-1 J^T lambda = M^-1/2 J_s^T lambda need only J_s, not J
-            # and J M^-1 (scaled on the few sparse entries, not on dense rows)
-            root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
-            values = values * at_points(root, taken.points)[:, :, None, :, None]
-        gap = torch.where(mask, gap, torch.zeros_like(gap))
-        base = None
-        if root is not None and sparse and n * R * D >= MIN_DENSE_SIZE:
-            # A = J_s J_s^T from the rows' few entries (sparse_gram): no dense rows
-            J = JM = None
-            A = sparse_gram(taken.points, values[:, :, 0])
-        else:
-            J = assemble_jacobian(SparseJacobian(taken.points, values), P).reshape(n, R, D)
-            if root is not None:
-                JM = J  # (J_s)
-            elif constraints is not None and phi0 is not None:
-                # Mhat^-1 keeps the step tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1
-                # J_E^T)^-1 r takes Phi back to its value at x_pred
-                J_E = constraints.jacobian(x_i)  # (n, E, D)
-                Mh = Mhat_inv(Minv_b, J_E)
-                r = (constraints.phi(x_i) - phi0).unsqueeze(-1)  # (n, E, 1)
-                B = minv_rows(J_E).transpose(-1, -2)  # (n, D, E) = M^-1 J_E^T
-                base = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
-                JM = J @ Mh  # (n, R, D)
-            else:
-                JM = minv_rows(J)
-            A = JM @ J.transpose(-1, -2)
-            A = 0.5 * (A + A.transpose(-1, -2))
-        rhs = gap if base is None else gap + (J @ base.unsqueeze(-1)).squeeze(-1)
-        rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
-        lam, status = solve_cone_qp(
-            A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=any_minimiser,
-            return_status=True,
-        )  # fmt: skip
-        # a problem the solver did not finish still gives a direction (the line search
-        # below keeps only steps that reduce the violation); an unbounded one does not
-        usable = ~status.unbounded & torch.isfinite(lam).all(-1)
-        lam = torch.where(usable.unsqueeze(-1), lam, torch.zeros_like(lam))
-        if JM is None:  # J_s^T lambda from the entries
-            dx = jacobian_rmatvec(SparseJacobian(taken.points, values), lam.unsqueeze(-1), P)
-        else:
-            dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
-            dx = (dx if base is None else dx + base).reshape(n, P, dim)
-        if root is not None:
-            dx = dx * root.unsqueeze(-1)
+        taken, idx, mask = signed_rows(rows_i, mask_rows, int(R))
+        gap = row_gaps(gaps_raw).gather(-1, idx)  # (n, R)
+        dx = correction(taken, mask, gap, x_i, base=True)
         with torch.no_grad():  # backtracking: the step length with the least violation
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
@@ -404,6 +537,28 @@ def project_positions(
             dist = trial_dist.gather(0, choice.view(1, n, 1).expand(1, *trial_dist.shape[1:]))[0]
         x_next = x_i + best[:, None, None] * dx
         x_i = x_next if going is None else torch.where(going[:, None, None], x_next, x_i)
+
+    v_i = None
+    if v is not None:  # the velocities onto the limits closed at the projected positions
+        v_b = v if read_free is not None else v[b]
+        gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)
+        with torch.no_grad():
+            closed = row_gaps(gaps_raw.detach()) < closed_below(x.dtype)  # (n, R_all)
+            if read_free is not None:
+                closed = closed & has[:, None]
+            R = closed.sum(-1).max()
+            if read_free is None:
+                R = int(R)  # one read
+            else:
+                read_free.needed.copy_(torch.maximum(read_free.needed, R))
+                R = min(read_free.rows, closed.shape[-1])
+        if R > 0:
+            taken, _, mask = signed_rows(rows_i, closed, R)
+            approach = jacobian_matvec(taken, v_b)[..., 0]  # (n, R): J v
+            v_i = v_b + correction(taken, mask, approach, x_i, base=False)
+        else:
+            v_i = v_b
     if read_free is not None:
-        return torch.where(has[:, None, None], x_i, x)
-    return x.index_put((b,), x_i)
+        keep = has[:, None, None]
+        return torch.where(keep, x_i, x), None if v_i is None else torch.where(keep, v_i, v)
+    return x.index_put((b,), x_i), None if v_i is None else v.index_put((b,), v_i)

@@ -211,11 +211,12 @@ class Rollout:
             read_free.needed.zero_()
             self._rows_fitting.zero_()
 
-    def _count(self, gaps: Tensor, read_free: ReadFree | None) -> None:
-        """After a step's projection (``gaps: (N, K)``, the contact resolution's): update
-        the counts of :meth:`_track` in place, without a read of the device."""
+    def _count(self, gaps: Tensor, read_free: ReadFree | None, margin: float) -> None:
+        """After a step's projection (``gaps: (N, K)``, the contact resolution's, active
+        below ``margin``): update the counts of :meth:`_track` in place, without a read of
+        the device."""
         if gaps.shape[0]:
-            torch.maximum(self._most, (gaps < 0).sum(-1).amax(), out=self._most)
+            torch.maximum(self._most, (gaps < margin).sum(-1).amax(), out=self._most)
         over = self._most > self._padded
         if read_free is not None:
             # the rows needed while the contacts fit, up to the first step that overflowed
@@ -251,6 +252,7 @@ class Rollout:
         rows and early stop) and raises at once."""
         system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
         model, dynamics, fraction, iterations, solver_settings, target_gradient = self.options
+        margin = system._contact_margin(iterations, ctx.dtype)
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         overflow = torch.zeros((), dtype=torch.bool, device=device)
@@ -273,11 +275,11 @@ class Rollout:
                     try:
                         res = system._resolve(
                             z1, ctx, model, fraction, solver_settings, padded,
-                            target_gradient=target_gradient,
+                            target_gradient=target_gradient, margin=margin,
                         )  # fmt: skip
                         z = system._project(res, ctx, iterations, solver_settings, read_free)
                         if padded is not None:
-                            self._count(res.gaps, read_free)
+                            self._count(res.gaps, read_free, margin)
                         if gaps is not None:
                             gaps.append(res.gaps)
                     except (ValueError, torch.linalg.LinAlgError) as err:
@@ -434,6 +436,7 @@ class Rollout:
         more rows; one read of the device."""
         system, ctx, z0, steps = self.system, self.ctx, self.z0, self.steps
         model, dynamics, fraction, iterations, solver_settings, target_gradient = self.options
+        margin = system._contact_margin(iterations, ctx.dtype)
         device = z0.device
         flags = torch.zeros(len(SOLVER_FLAGS), dtype=torch.int32, device=device)
         self._track(z0, contacts, read_free)
@@ -444,12 +447,12 @@ class Rollout:
                 z1 = system._integrate(z_in, ctx, dynamics)
                 res = system._resolve(
                     z1, ctx, model, fraction, solver_settings, contacts,
-                    target_gradient=target_gradient,
+                    target_gradient=target_gradient, margin=margin,
                 )  # fmt: skip
                 if res.z.requires_grad:
                     raise _NeedsGradient
                 z_in.copy_(system._project(res, ctx, iterations, solver_settings, read_free))
-                self._count(res.gaps, read_free)
+                self._count(res.gaps, read_free, margin)
             return res.gaps
 
         if capture:

@@ -22,7 +22,9 @@ One step of :meth:`System.simulate` (paper-facts.md, "Time stepping"):
    (CM or CMr) give the post-impact velocities;
 4. with ``position_projection > 0`` (the config's key; default for the rope only),
    the positions of the states that violate a candidate are projected onto the
-   admissible set (:func:`~diffcontact.systems.projection.project_positions`).
+   admissible set, and (``velocity_projection``, default on) their velocities,
+   inelastically, onto the limits closed at the projected positions
+   (:func:`~diffcontact.systems.projection.project_state`).
 
 States are ``z: (N, 2, P, dim)``: positions then velocities of the P points
 (``docs/conventions.md``); trajectories are ``(N, T, 2, P, dim)``.
@@ -82,7 +84,12 @@ from diffcontact.systems.config import (
 from diffcontact.systems.config_file import read_config_file
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
-from diffcontact.systems.projection import ReadFree, project_positions
+from diffcontact.systems.projection import (
+    ReadFree,
+    closed_below,
+    project_positions,
+    project_state,
+)
 from diffcontact.systems.rollout import PROJECTION_ROWS, Rollout, RolloutOptions
 
 __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
@@ -328,8 +335,8 @@ class System:
       (candidates K), ``d`` (contact-space dimension), ``contact_names``,
       ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
       ``penetration_fraction``, ``penetration_metric`` (``"mass"`` or ``"euclidean"``),
-      ``position_projection``, ``dynamics``, ``integrator`` (``"rk4"`` or ``"rk4_38"``,
-      the config's Runge-Kutta rule);
+      ``position_projection``, ``velocity_projection``, ``dynamics``, ``integrator``
+      (``"rk4"`` or ``"rk4_38"``, the config's Runge-Kutta rule);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
       ``cor (K,)`` (a 0-d tensor broadcasts to all contacts), ``gravity ()``
@@ -347,6 +354,7 @@ class System:
         self.penetration_fraction: float = float(cfg.penetration_fraction)
         self.penetration_metric: str = cfg.penetration_metric
         self.position_projection: int = int(cfg.position_projection)
+        self.velocity_projection: bool = bool(cfg.velocity_projection)
         self.dynamics: str = cfg.dynamics
         self.integrator: str = cfg.integrator
         self.second_moments: Tensor | None = None
@@ -962,6 +970,7 @@ class System:
         static_contacts: int | None = None,
         dense_rows: bool = False,
         target_gradient: bool = True,
+        margin: float = 0.0,
     ) -> ContactResult:
         """The contact resolution of a step: the states with an active contact, padded to
         the largest active count (one read of the device). With ``static_contacts``:
@@ -972,13 +981,15 @@ class System:
         (:meth:`~diffcontact.systems.rollout.Rollout.graphed`). The result's ``J_C`` is
         ``None`` where the impulse took the rows' sparse entries (:meth:`_sparse_contact`),
         unless ``dense_rows``. ``target_gradient``: differentiate the penetration
-        compensation target (else a constant of the gradient, as appendix G)."""
+        compensation target (else a constant of the gradient, as appendix G).
+        ``margin``: a candidate is active below this gap (:meth:`_contact_margin`; 0:
+        where it is violated)."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         P, dim, d = self.n_points, self.dim, self.d
         D = P * dim
         with torch.no_grad():
             gaps = ctx.geometry.gaps(x.detach())
-            active = gaps < 0
+            active = gaps < margin
             counts = active.sum(-1)  # (N,) contacts per state
             static = static_contacts is not None and gaps.shape[-1] > 0
             if static:
@@ -1153,6 +1164,16 @@ class System:
             params = (self.parameters() if params is None else params).replace(eps=eps)
         return model, dynamics, fraction, params
 
+    def _contact_margin(self, iterations: int, dtype: torch.dtype) -> float:
+        """The gap below which a step's impulse treats a candidate as active: 0 (violated)
+        without the velocity projection; with it, the limits closed
+        (:func:`~diffcontact.systems.projection.closed_below`), those the velocity
+        projection acts on. A limit resting at gap 0 (a rope locked at a bending limit)
+        otherwise entered the impulse or not by rounding, and the two sequences of
+        projections differ by far more than rounding (a state alone and inside a batch
+        then parted after 40 steps)."""
+        return closed_below(dtype) if iterations and self.velocity_projection else 0.0
+
     def _projection_iterations(self, iterations: int | None) -> int:
         if iterations is None:
             return self.position_projection
@@ -1170,22 +1191,41 @@ class System:
         settings: SolverSettings | None = None,
         read_free: ReadFree | None = None,
     ) -> Tensor:
-        """``res.z`` with its positions projected (``iterations`` Gauss-Newton steps;
-        ``read_free``: without reading the device,
-        :class:`~diffcontact.systems.projection.ReadFree`)."""
+        """``res.z`` with its positions projected (``iterations`` Gauss-Newton steps) and,
+        with ``velocity_projection``, its velocities onto the limits closed there
+        (:func:`~diffcontact.systems.projection.project_state`; ``read_free``: without
+        reading the device, :class:`~diffcontact.systems.projection.ReadFree`)."""
         if iterations == 0 or res.batch_index.shape[0] == 0:
             return res.z
-        x = project_positions(
-            res.z[..., 0, :, :],
-            ctx.geometry,
-            ctx.M_inv,
-            iterations,
-            constraints=ctx.constraints,
-            gaps=res.gaps,
-            settings=self._inner_settings(settings),
-            read_free=read_free,
+        return self._project_state(
+            res.z, ctx, iterations, settings, self.velocity_projection, res.gaps, read_free
         )
-        return torch.stack([x, res.z[..., 1, :, :]], dim=-3)
+
+    def _project_state(
+        self,
+        z: Tensor,
+        ctx: _Context,
+        iterations: int,
+        settings: SolverSettings | None,
+        velocities: bool,
+        gaps: Tensor | None = None,
+        read_free: ReadFree | None = None,
+    ) -> Tensor:
+        """``z: (N, 2, P, dim)`` with its positions projected, and its velocities where
+        ``velocities`` (``gaps``: at ``z``'s positions, if known)."""
+        x, v = z[..., 0, :, :], z[..., 1, :, :]
+        args = (ctx.geometry, ctx.M_inv, iterations)
+        kwargs = {
+            "constraints": ctx.constraints,
+            "gaps": gaps,
+            "settings": self._inner_settings(settings),
+            "read_free": read_free,
+        }
+        if velocities:
+            x, v = project_state(x, v, *args, **kwargs)
+        else:
+            x = project_positions(x, *args, **kwargs)
+        return torch.stack([x, v], dim=-3)
 
     def _read_free_projection(self, device: torch.device, iterations: int) -> ReadFree | None:
         """A :class:`~diffcontact.systems.projection.ReadFree` for one rollout (``None``
@@ -1234,14 +1274,18 @@ class System:
         params: PhysicalParams | None = None,
         iterations: int | None = None,
         solver_settings: SolverSettings | None = None,
+        velocities: bool | None = None,
     ) -> Tensor:
         """Project the positions of ``z`` onto the admissible set of its violated candidates.
 
         The states with a candidate gap < 0 get the positions nearest in the mass
         metric with every such gap >= 0 and the equality constraints' values kept
-        (:mod:`diffcontact.systems.projection`); velocities are unchanged. What
-        :meth:`step` and :meth:`simulate` do after the impulse when
-        ``position_projection > 0``. Differentiable (the active set aside).
+        (:mod:`diffcontact.systems.projection`), and then their velocities the smallest
+        change in the mass metric that stops them from approaching the limits closed at
+        the new positions (an inelastic impulse on those limits; unless ``velocities``
+        is false, default the config's ``velocity_projection``). What :meth:`step` and
+        :meth:`simulate` do after the impulse when ``position_projection > 0``.
+        Differentiable (the active set aside).
 
         Args:
             z: ``(N, 2, P, dim)``.
@@ -1249,6 +1293,8 @@ class System:
             iterations: Gauss-Newton iterations (default: the config's
                 ``position_projection``, or 3 where that is 0).
             solver_settings: :class:`~diffcontact.contact.SolverSettings` of the cone QP.
+            velocities: project the velocities too (default: the config's
+                ``velocity_projection``, as a step does).
 
         Returns:
             ``(N, 2, P, dim)``.
@@ -1257,16 +1303,12 @@ class System:
         if iterations is None:
             iterations = self.position_projection or 3
         iterations = self._projection_iterations(iterations)
+        if velocities is None:
+            velocities = self.velocity_projection
+        if not isinstance(velocities, bool):
+            raise ValueError(f"velocities must be True, False or None, got {velocities!r}")
         ctx = self._context(z, params, z.shape[0])
-        x = project_positions(
-            z[..., 0, :, :],
-            ctx.geometry,
-            ctx.M_inv,
-            iterations,
-            constraints=ctx.constraints,
-            settings=self._inner_settings(solver_settings),
-        )
-        return torch.stack([x, z[..., 1, :, :]], dim=-3)
+        return self._project_state(z, ctx, iterations, solver_settings, velocities)
 
     def integrate(
         self, z: Tensor, *, params: PhysicalParams | None = None, dynamics: str | None = None
@@ -1343,7 +1385,8 @@ class System:
             fraction = 0.0
         ctx = self._context(z, params, z.shape[0])
         z1 = self._integrate(z, ctx, dynamics)
-        res = self._resolve(z1, ctx, model, fraction, solver_settings)
+        margin = self._contact_margin(iterations, ctx.dtype)
+        res = self._resolve(z1, ctx, model, fraction, solver_settings, margin=margin)
         return self._project(res, ctx, iterations, solver_settings)
 
     def simulate(

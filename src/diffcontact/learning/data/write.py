@@ -9,6 +9,7 @@ arguments never overwrite them (``ValueError``).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -53,10 +54,17 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-# config keys added after datasets were first written, with the value that stands for
-# the behaviour of a dataset made before the key existed: a request with that value
-# matches such a dataset (another value, e.g. the rope's position projection, does not)
-ADDED_CONFIG_KEYS: dict[str, Any] = {"position_projection": 0, "integrator": "rk4"}
+# config keys added after datasets were first written, each with whether a requested
+# config (a dump) behaves as a dataset made before the key existed: such a request matches
+# that dataset (another, e.g. the rope's position projection, does not)
+ADDED_CONFIG_KEYS: dict[str, Callable[[dict[str, Any]], bool]] = {
+    "position_projection": lambda config: config["position_projection"] == 0,
+    "integrator": lambda config: config["integrator"] == "rk4",
+    # the velocities are projected only where the positions are
+    "velocity_projection": lambda config: (
+        not config["velocity_projection"] or not config.get("position_projection")
+    ),
+}
 
 
 def _differences(old: Any, new: Any, name: str = "") -> list[str]:
@@ -67,7 +75,7 @@ def _differences(old: Any, new: Any, name: str = "") -> list[str]:
         for key in keys:
             sub = f"{name}.{key}" if name else str(key)
             added = name == "config" and key in ADDED_CONFIG_KEYS
-            if key not in old and added and new[key] == ADDED_CONFIG_KEYS[key]:
+            if key not in old and added and ADDED_CONFIG_KEYS[key](new):
                 continue  # made before the key existed, with the behaviour requested
             if key not in old:
                 out.append(f"{sub} (not recorded there, requested {_short(new[key])})")

@@ -1,0 +1,211 @@
+"""The velocities' projection after the positions' (``velocity_projection``, on by default).
+
+The position projection closes limits that the step's impulse did not treat (those
+violated only at the projected positions) and, alone, left the velocities pointing into
+them: the next step turned potential energy into that speed, and the projection put the
+potential energy back, so an inelastic rope gained energy (docs/config.md, ``rope``).
+``projection.project_state`` also projects the velocities, inelastically in the mass
+metric, onto the limits closed at the projected positions, and a step's impulse treats
+closed limits as active (``System._contact_margin``).
+"""
+
+import pytest
+import torch
+
+import diffcontact as dc
+from diffcontact.systems.projection import CLOSED, ReadFree, project_state
+from diffcontact.testing import assert_gradients_close
+
+
+def _energy_rise(system, n: int = 4) -> tuple[float, float]:
+    """The largest ``E(t) - E(0)`` of ``n`` rollouts over the system's horizon, and ``E(0)``'s
+    mean."""
+    traj = system.simulate(system.sample_initial_conditions(n, seed=0))
+    energy = system.energy(traj)
+    return float((energy - energy[:, :1]).max()), float(energy[:, 0].mean())
+
+
+@pytest.mark.parametrize("mass", [None, [0.1] * 9 + [1.0]], ids=["uniform", "heavy tip"])
+def test_the_inelastic_rope_gains_no_energy(mass):
+    """The limits are inelastic and there is no other source: the energy must not rise.
+    With the positions' projection alone it rose by 1.17 J over 1.64 J (uniform) and by
+    10.4 J over 4.4 J (a heavy tip) within 0.5 s."""
+    kwargs = {"horizon": 0.5} | ({} if mass is None else {"mass": mass})
+    rise, e0 = _energy_rise(dc.load_system("Rope", **kwargs))
+    assert rise < 1e-6 * e0
+    before, _ = _energy_rise(dc.load_system("Rope", velocity_projection=False, **kwargs))
+    assert before > 0.1 * e0  # the defect this key removes (kept reachable by the key)
+
+
+def _pre_projection_states(task: str = "Rope", n: int = 8, steps: int = 30):
+    """States as a step hands them to the projection (after the impulse), many past a
+    limit: ``(system, z)``."""
+    system = dc.load_system(task)
+    traj = system.simulate(system.sample_initial_conditions(n, seed=2), steps)
+    z = traj[:, 5:].flatten(0, 1)
+    res = system.resolve_contacts(system.integrate(z), penetration_fraction=0.0)
+    keep = (system.gaps(res.z[:, 0]) < 0).any(-1)
+    return system, res.z[keep]
+
+
+def test_no_velocity_points_into_a_limit_closed_by_the_projection():
+    system, z = _pre_projection_states()
+    for velocities, approaching in ((False, True), (True, False)):
+        out = system.project_positions(z, velocities=velocities)
+        closed = system.gaps(out[:, 0]) < CLOSED
+        assert bool(closed.any())
+        rate = system.contact_velocities(out)[..., 0]  # (N, K) the gaps' rates
+        worst = float(rate[closed].min())
+        # without the velocities' projection they approach at up to tens of rad/s
+        assert (worst < -1.0) if approaching else (worst > -1e-9), (velocities, worst)
+    # inelastic in the mass metric: no state's kinetic energy rises
+    kinetic = system.kinetic_energy(out)
+    assert bool((kinetic <= system.kinetic_energy(z) + 1e-12).all())
+    # positions: those of the positions' projection alone
+    torch.testing.assert_close(out[:, 0], system.project_positions(z, velocities=False)[:, 0])
+
+
+def test_a_state_without_a_violated_limit_is_untouched():
+    system, z = _pre_projection_states(n=4)
+    traj = system.simulate(system.sample_initial_conditions(4, seed=5), 3)
+    free = traj[:, 0][(system.gaps(traj[:, 0, 0]) > 0).all(-1)]
+    assert free.shape[0] > 0
+    both = torch.cat([free, z[:3]])
+    out = system.project_positions(both)
+    assert torch.equal(out[: free.shape[0]], free)
+
+
+def test_gradients_of_the_velocity_projection():
+    """Masses and the state, through the positions' and the velocities' projection, against
+    finite differences (states whose closed limits are not at a kink: every closed limit
+    either clearly pushed or clearly released)."""
+    system, z = _pre_projection_states(n=6)
+    out = system.project_positions(z)
+    moved = (out[:, 1] - z[:, 1]).flatten(1).norm(dim=-1) > 1e-2
+    gaps = system.gaps(out[:, 0])
+    near = (gaps.abs() < 1e-3) & (gaps.abs() > CLOSED)  # limits near the closed threshold
+    pick = z[moved & ~near.any(-1)][:2]
+    assert pick.shape[0] == 2
+    base = system.parameters()
+
+    def project(mass, z):
+        return system.project_positions(z, params=base.replace(mass=mass))
+
+    assert_gradients_close(project, [base.mass.clone(), pick], n_directions=2, rtol=1e-4)
+
+
+@pytest.mark.parametrize("task", ["Rope", "Rope-D100"])
+def test_read_free_gives_the_reading_velocities(task):
+    pytest.importorskip("warp")
+    system, z = _pre_projection_states(task, n=6, steps=12)
+    z = torch.cat([z, system.sample_initial_conditions(2, seed=9)])  # and states at rest
+    geometry, M_inv = system.geometry, system.inverse_mass_matrix()
+    x, v = z[:, 0], z[:, 1]
+    want = project_state(x, v, geometry, M_inv, 10)
+
+    def read_free(rows: int) -> ReadFree:
+        needed = torch.zeros((), dtype=torch.long)
+        return ReadFree(rows, needed, system._point_masses, system._two_sided)
+
+    wide = read_free(system._projection_rows_all())
+    got = project_state(x, v, geometry, M_inv, 10, read_free=wide)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    assert not bool(wide.overflowed)
+    few = read_free(1)
+    project_state(x, v, geometry, M_inv, 10, read_free=few)
+    assert bool(few.overflowed)
+
+
+def test_the_step_treats_closed_limits_as_active():
+    """A limit resting at gap 0 (a rope locked at a bending limit) entered a step's impulse
+    or not by rounding; with the velocity projection, closed limits are active (the
+    batch-invariance test of the rope failed at step 40 without this)."""
+    rope = dc.load_system("Rope")
+    assert rope._contact_margin(10, torch.float64) == CLOSED
+    assert rope._contact_margin(10, torch.float32) == CLOSED
+    assert rope._contact_margin(0, torch.float64) == 0.0
+    assert dc.load_system("Rope", velocity_projection=False)._contact_margin(10, torch.float64) == 0
+    # a state with a limit just short of closing: its approach is stopped this step
+    system, z = _pre_projection_states(n=4)
+    out = system.step(z)
+    gaps = system.gaps(out[:, 0])
+    rate = system.contact_velocities(out)[..., 0]
+    assert float(rate[gaps < CLOSED].min()) > -1e-9
+
+
+def test_the_key_and_files_of_earlier_versions():
+    from diffcontact.learning.data.write import _differences
+    from diffcontact.systems.config import stored_config
+
+    assert dc.load_system("Rope").velocity_projection is True
+    assert dc.load_system("BP5").velocity_projection is True  # (no effect without projection)
+    for bad in (1, "yes", None):
+        with pytest.raises(ValueError, match="velocity_projection"):
+            dc.load_system("Rope", velocity_projection=bad)
+    with pytest.raises(ValueError, match="velocities must be True, False or None"):
+        dc.load_system("Rope").project_positions(torch.zeros(1, 2, 10, 2), velocities=1)
+    # a stored config without the key was written before it: the velocities were not projected
+    dump = dc.load_system("Rope").config.model_dump(mode="json")
+    old = {k: v for k, v in dump.items() if k != "velocity_projection"}
+    assert stored_config(old)["velocity_projection"] is False
+    assert stored_config(dump) == dump
+    # an earlier dataset: reused where the key cannot matter (no position projection) only
+    bp5 = dc.load_system("BP5").config.model_dump(mode="json")
+    before = {k: v for k, v in bp5.items() if k != "velocity_projection"}
+    assert _differences({"config": before}, {"config": bp5}) == []
+    assert _differences({"config": old}, {"config": dump}) == [
+        "config.velocity_projection (not recorded there, requested true)"
+    ]
+    positions_only = dump | {"velocity_projection": False}
+    assert _differences({"config": old}, {"config": positions_only}) == []
+
+
+def _rope_limits_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "experiments" / "rope_limits.py"
+    spec = importlib.util.spec_from_file_location("rope_limits", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_rope_limits_script_compares_with_the_positions_only(capsys):
+    """experiments/rope_limits.py --positions-only: the row without the velocities'
+    projection gains energy, the default's does not (docs/config.md's rope tables)."""
+    script = _rope_limits_script()
+    argv = ["--task", "Rope", "--horizon", "0.5", "--dt", "0.01", "--n", "4", "--positions-only"]
+    assert script.main(argv) == 0
+    rows = {}
+    for line in capsys.readouterr().out.splitlines()[2:]:
+        label = " ".join(line.split()[1:-7])
+        rows[label] = [float(v) for v in line.split()[-7:]]
+    assert set(rows) == {"projection 10", "positions only 10", "fraction 0.125"}
+    rise = {label: values[-2] for label, values in rows.items()}
+    assert rise["projection 10"] < 1e-6 < 0.1 < rise["positions only 10"]
+    # limits: ratio within [0.8, 1.2] and no bend past the limit with the projection
+    steps, max_ratio, min_ratio, bend = rows["projection 10"][:4]
+    assert steps == 50 and max_ratio < 1.2 + 1e-8 and min_ratio > 0.8 - 1e-8 and bend < 1e-8
+    for bad in (["--dt", "0"], ["--n", "0"], ["--fraction", "2"], ["--projection", "0"]):
+        with pytest.raises(SystemExit) as exit_info:
+            script.main(["--task", "Rope", *bad])
+        assert exit_info.value.code == 2
+
+
+def test_long_ropes_keep_their_limits_at_a_coarse_step():
+    """Rope-D200 (100 points) at dt = 0.01 for 1 s: with the positions' projection alone
+    the whipping rope's violations outgrew the iterations (stretch ratios up to 2.8 within
+    1 s, docs/config.md); the velocities' projection stops the energy that drove them."""
+    system = dc.load_system("Rope-D200", dt=0.01, horizon=1.0)
+    cfg = system.config
+    z0 = system.sample_initial_conditions(2, seed=0)
+    script = _rope_limits_script()
+    traj = system.simulate(z0, 100, on_tunnelling="ignore")
+    ratios = script.segment_ratios(system, traj)
+    assert cfg.min_ratio - 1e-8 < float(ratios.min()) and float(ratios.max()) < cfg.max_ratio + 1e-8
+    assert float(script.bending_excess(system, traj).max()) < 1e-8
+    before = dc.load_system("Rope-D200", dt=0.01, horizon=1.0, velocity_projection=False)
+    loose = before.simulate(z0, 50, on_tunnelling="ignore")
+    assert float(script.segment_ratios(before, loose).max()) > cfg.max_ratio + 0.01
