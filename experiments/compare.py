@@ -209,11 +209,13 @@ MISMATCH_NOTES = (
 )
 
 SCALABILITY_NOTES = (
-    "A failed run is reported in the command's output and shows here as `not run`. In "
-    "the --quick run of 2026-11-24, CM-CD-CLNN at N = 100 trained but its evaluation "
-    "failed: the learned model's contact solve did not converge for 1 of the 100 test "
-    "trajectories (step 65; solve_cone_qp residual 3.3e-4 against 1e-7), and evaluate "
-    "raises instead of counting the trajectory as diverged.",
+    "A failed run is reported in the command's output and shows here as `not run`; so do "
+    "rows a stopped command did not reach. The --quick run of 2026-11-27 was stopped after "
+    "18 of its 24 runs; other work shared the CPU at times, so its times are upper bounds. "
+    "Its data are of the rope with its velocities projected after its positions "
+    "(docs/config.md, `velocity_projection`); in the run of 2026-11-24, on rope data made "
+    "before that, CM-CD-CLNN at N = 100 trained but its evaluation failed (the learned "
+    "model's contact solve did not converge for 1 of the 100 test trajectories).",
     "On the 10-point rope the baselines' rollouts diverge (errors far above 1): with "
     "batches of 200 chunks, N <= 200 is one optimiser step per epoch, 60 in all.",
 )
