@@ -30,7 +30,8 @@ import time
 
 import torch
 
-from common import machine_header, median_time
+from common import check_device, machine_header, median_time
+from diffcontact.cli_args import non_negative_int, positive_int
 
 BATCHES = (1, 64, 1024)
 
@@ -192,10 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions, batches 1 and 64")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--batches", type=int, nargs="+", default=None)
-    ap.add_argument("--spatial-contacts", type=int, nargs="+", default=[4, 10])
-    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--batches", type=positive_int, nargs="+", default=None)
+    ap.add_argument("--spatial-contacts", type=positive_int, nargs="+", default=[4, 10])
+    ap.add_argument("--threads", type=positive_int, default=None, help="torch intra-op threads")
+    ap.add_argument("--seed", type=non_negative_int, default=0)
     ap.add_argument(
         "--cold-cache",
         action="store_true",
@@ -203,8 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         "first solve then times the compilation a new install pays once per dtype and device)",
     )
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
     from diffcontact.contact import fused
 
     if not fused.warp_installed():

@@ -1,7 +1,9 @@
-"""Pieces shared by the benchmarks: device sync and the machine description."""
+"""Pieces shared by the benchmarks: device sync, the machine description and checks of
+the command-line arguments (argument types: ``diffcontact.cli_args``)."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import statistics
@@ -9,6 +11,31 @@ import time
 from pathlib import Path
 
 import torch
+
+
+def check_tasks(ap: argparse.ArgumentParser, option: str, tasks) -> None:
+    """``ap.error`` (exit status 2) unless every name in ``tasks`` is a built-in task."""
+    from diffcontact.systems import list_tasks
+
+    known = list_tasks()
+    if unknown := [t for t in tasks if t not in known]:
+        ap.error(f"{option}: unknown task(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+
+
+def check_device(ap: argparse.ArgumentParser, device: str) -> None:
+    """``ap.error`` for ``--device cuda`` without a CUDA device."""
+    if device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: no CUDA device available")
+
+
+def settings(args: argparse.Namespace, default: dict, quick: dict | None = None) -> dict:
+    """The suite's settings: ``quick`` (with ``--quick``) or ``default``, where every
+    option given on the command line (not ``None`` in ``args``) wins over the preset."""
+    chosen = dict(quick if quick is not None and args.quick else default)
+    for key in chosen:
+        if getattr(args, key, None) is not None:
+            chosen[key] = getattr(args, key)
+    return chosen
 
 
 def sync(device: str) -> None:

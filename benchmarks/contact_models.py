@@ -22,7 +22,8 @@ import warnings
 import torch
 
 import diffcontact as dc
-from common import machine_header, sync
+from common import check_device, check_tasks, machine_header, settings, sync
+from diffcontact.cli_args import positive_int
 from diffcontact.contact import create_contact_model
 
 MODELS = ("CM", "CMr", "LCP", "Coulomb")
@@ -93,19 +94,21 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="one small batch (seconds)")
     ap.add_argument("--tasks", nargs="+", default=None, help="default BP5 BD5")
-    ap.add_argument("--n", type=int, default=None, help="trajectories simulated (default 256)")
-    ap.add_argument("--steps", type=int, default=None, help="steps simulated (default 100)")
-    ap.add_argument("--repeats", type=int, default=None, help="timed repeats, best kept")
+    ap.add_argument(
+        "--n", type=positive_int, default=None, help="trajectories simulated (default 256)"
+    )
+    ap.add_argument(
+        "--steps", type=positive_int, default=None, help="steps simulated (default 100)"
+    )
+    ap.add_argument("--repeats", type=positive_int, default=None, help="timed repeats, best kept")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
+    if args.tasks is not None:
+        check_tasks(ap, "--tasks", args.tasks)
     dtype = getattr(torch, args.dtype)
-    opts = dict(QUICK if args.quick else DEFAULT)
-    for key in ("tasks", "n", "steps", "repeats"):
-        if getattr(args, key) is not None:
-            opts[key] = getattr(args, key)
+    opts = settings(args, DEFAULT, QUICK)
 
     print("contact models: one resolve() of every pre-impact state in contact, per model")
     for line in machine_header(args.device, dtype):

@@ -20,7 +20,8 @@ import time
 import torch
 
 import diffcontact as dc
-from common import machine_header, sync
+from common import check_device, machine_header, settings, sync
+from diffcontact.cli_args import positive_int
 from diffcontact.control import Spin, Velocity, as_planner
 from diffcontact.control.tasks import billiards_scene, throw_scene
 
@@ -86,13 +87,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="20-step rollouts, 2 iterations")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--iterations", type=int, default=3, help="timed iterations per case")
+    ap.add_argument(
+        "--iterations", type=positive_int, default=None,
+        help="timed iterations per case (default 3, quick 2)",
+    )  # fmt: skip
     ap.add_argument("--no-learned", action="store_true", help="only the true-system rows")
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
     dtype = torch.float64
-    steps, iterations = (20, 2) if args.quick else (100, args.iterations)
+    steps = 20 if args.quick else 100
+    iterations = settings(args, {"iterations": 3}, {"iterations": 2})["iterations"]
     print("planning: one optimize iteration (rollout of every start + backward + Adam step)")
     for line in machine_header(args.device, dtype):
         print(line)

@@ -41,7 +41,8 @@ import importlib.util
 
 import torch
 
-from common import machine_header, median_time
+from common import check_device, machine_header, median_time
+from diffcontact.cli_args import positive_int
 from diffcontact.fastops import _unrolled_spd_solve, dot_last, left_matmul
 
 SUM_SHAPES = ((1024, 10, 2), (1024, 30, 3), (64, 10, 2))
@@ -170,9 +171,10 @@ def _range_row(shape: tuple, dtype: torch.dtype, device: str, reps: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="run.py fastops", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    parser.add_argument("--threads", type=positive_int, default=None, help="torch threads")
     args = parser.parse_args(argv)
+    check_device(parser, args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     reps = 20 if args.quick else 200

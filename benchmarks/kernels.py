@@ -18,7 +18,8 @@ from typing import Any
 
 import torch
 
-from common import machine_header
+from common import machine_header, settings
+from diffcontact.cli_args import positive_int
 
 
 def _kernels():
@@ -106,15 +107,19 @@ def _time(wp, kernel, args: list, batch: int, reps: int) -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="n = 20 only, 3 launches")
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10, 20, 60])
-    parser.add_argument("--batch", type=int, default=1024)
+    parser.add_argument(
+        "--sizes", type=positive_int, nargs="+", default=None,
+        help="matrix sizes n (default 10 20 60, quick 20)",
+    )  # fmt: skip
+    parser.add_argument("--batch", type=positive_int, default=1024)
     args = parser.parse_args(argv)
     try:
         wp, kernels = _kernels()
     except ImportError:
         print("kernels: needs NVIDIA Warp (pip install warp-lang)")
         return 0
-    sizes, reps = ([20], 3) if args.quick else (args.sizes, 9)
+    sizes = settings(args, {"sizes": [10, 20, 60]}, {"sizes": [20]})["sizes"]
+    reps = 3 if args.quick else 9
     print("Cholesky factorisation + solve per problem, the solver's C++ vs Warp indexing")
     print("\n".join(machine_header("cpu", torch.float64)))
     print(f"{'n':>4} {'dtype':>8} | {'Warp us':>8} {'C++ us':>8} {'ratio':>6} | {'copy us':>8}")

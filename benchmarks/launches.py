@@ -28,7 +28,16 @@ import torch
 
 import diffcontact as dc
 from backends import count_dispatches
-from common import READ_FREE_HELP, choose_read_free_projection, machine_header, sync
+from common import (
+    READ_FREE_HELP,
+    check_device,
+    check_tasks,
+    choose_read_free_projection,
+    machine_header,
+    settings,
+    sync,
+)
+from diffcontact.cli_args import positive_int
 from train import make_chunks
 
 SIM_TASK = "BP5"
@@ -144,7 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="64 scenes, batch 32, BP5 only")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--scenes", type=int, default=1024, help="BP5 scenes of the simulate row")
+    ap.add_argument(
+        "--scenes", type=positive_int, default=None,
+        help="BP5 scenes of the simulate row (default 1024, quick 64)",
+    )  # fmt: skip
     ap.add_argument("--tasks", nargs="+", default=None, help="training rows (default BP5 CP3 Rope)")
     ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
     ap.add_argument(
@@ -154,16 +166,15 @@ def main(argv: list[str] | None = None) -> int:
         help="the potential MLP's dtype in the training rows (LearnedModel's potential_dtype)",
     )
     args = ap.parse_args(argv)
+    check_device(ap, args.device)
+    if args.tasks is not None:
+        check_tasks(ap, "--tasks", args.tasks)
     choose_read_free_projection(args.read_free_projection)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
-    if args.scenes < 1:
-        ap.error(f"--scenes must be >= 1, got {args.scenes}")
-    tasks = args.tasks or (["BP5"] if args.quick else ["BP5", "CP3", "Rope"])
-    unknown = sorted(set(tasks) - set(dc.list_tasks()))
-    if unknown:
-        ap.error(f"unknown task(s) {', '.join(unknown)}; choose from {', '.join(dc.list_tasks())}")
-    scenes, batch = (64, 32) if args.quick else (args.scenes, 200)
+    chosen = settings(
+        args, {"tasks": ["BP5", "CP3", "Rope"], "scenes": 1024}, {"tasks": ["BP5"], "scenes": 64}
+    )
+    tasks, scenes = chosen["tasks"], chosen["scenes"]
+    batch = 32 if args.quick else 200
 
     print("work per step: torch operations (and CUDA launches and synchronisations)")
     for line in machine_header(args.device, torch.float64):

@@ -20,7 +20,8 @@ from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 import diffcontact as dc
-from common import machine_header
+from common import check_device, check_tasks, machine_header, settings
+from diffcontact.cli_args import positive_int
 from diffcontact.systems.rollout import Rollout, RolloutOptions
 
 
@@ -70,22 +71,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="BP5, 256 states, 3 steps")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--tasks", nargs="+", default=["BP5", "BD5"])
-    ap.add_argument("--scenes", type=int, default=4096)
-    ap.add_argument("--steps", type=int, default=10)
-    ap.add_argument("--rows", type=int, default=12, help="operations listed per task")
+    ap.add_argument("--tasks", nargs="+", default=None, help="default BP5 BD5 (quick BP5)")
+    ap.add_argument("--scenes", type=positive_int, default=None, help="default 4096 (quick 256)")
+    ap.add_argument("--steps", type=positive_int, default=None, help="default 10 (quick 3)")
+    ap.add_argument("--rows", type=positive_int, default=12, help="operations listed per task")
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
-    unknown = sorted(set(args.tasks) - set(dc.list_tasks()))
-    if unknown:
-        ap.error(f"unknown task(s) {', '.join(unknown)}; choose from {', '.join(dc.list_tasks())}")
-    if args.scenes < 1 or args.steps < 1:
-        ap.error("--scenes and --steps must be >= 1")
-    if args.quick:
-        tasks, scenes, steps = ["BP5"], 256, 3
-    else:
-        tasks, scenes, steps = args.tasks, args.scenes, args.steps
+    check_device(ap, args.device)
+    if args.tasks is not None:
+        check_tasks(ap, "--tasks", args.tasks)
+    chosen = settings(
+        args,
+        {"tasks": ["BP5", "BD5"], "scenes": 4096, "steps": 10},
+        {"tasks": ["BP5"], "scenes": 256, "steps": 3},
+    )
+    tasks, scenes, steps = chosen["tasks"], chosen["scenes"], chosen["steps"]
     print("the read-free simulation step (what a CUDA graph replays), profiled")
     for line in machine_header(args.device, torch.float64):
         print(line)

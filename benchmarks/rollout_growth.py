@@ -26,7 +26,8 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 import diffcontact as dc
-from common import machine_header
+from common import check_device, check_tasks, machine_header, settings
+from diffcontact.cli_args import positive_int
 from diffcontact.systems import projection
 from diffcontact.systems import rollout as rollout_module
 
@@ -73,23 +74,30 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="Rope, 64 states, 2 and 5 steps")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    ap.add_argument("--task", default="Rope-D400")
-    ap.add_argument("--scenes", type=int, default=4096)
-    ap.add_argument("--first", type=int, default=3)
-    ap.add_argument("--steps", type=int, default=None, help="default: the task's horizon")
-    ap.add_argument("--rows", type=int, default=12, help="operations listed")
+    ap.add_argument("--task", default=None, help="default Rope-D400 (quick Rope)")
+    ap.add_argument("--scenes", type=positive_int, default=None, help="default 4096 (quick 64)")
+    ap.add_argument("--first", type=positive_int, default=None, help="default 3 (quick 2)")
+    ap.add_argument(
+        "--steps", type=positive_int, default=None,
+        help="default: the task's horizon (quick 5)",
+    )  # fmt: skip
+    ap.add_argument("--rows", type=positive_int, default=12, help="operations listed")
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
-    if args.task not in dc.list_tasks():
-        ap.error(f"unknown task {args.task!r}; choose from {', '.join(dc.list_tasks())}")
-    task, scenes, first, steps = args.task, args.scenes, args.first, args.steps
-    if args.quick:
-        task, scenes, first, steps = "Rope", 64, 2, 5
+    check_device(ap, args.device)
+    if args.task is not None:
+        check_tasks(ap, "--task", [args.task])
+    chosen = settings(
+        args,
+        {"task": "Rope-D400", "scenes": 4096, "first": 3, "steps": None},
+        {"task": "Rope", "scenes": 64, "first": 2, "steps": 5},
+    )
+    task, scenes, first, steps = chosen["task"], chosen["scenes"], chosen["first"], chosen["steps"]
+    if steps is not None and first > steps:
+        ap.error(f"--first ({first}) must be at most --steps ({steps}, the steps timed)")
     system = dc.load_system(task)
     steps = system.default_steps if steps is None else steps
-    if scenes < 1 or not 1 <= first <= steps:
-        ap.error("need --scenes >= 1 and 1 <= --first <= --steps")
+    if first > steps:
+        ap.error(f"--first ({first}) must be at most the task's {steps} steps (--steps)")
     print("a step-by-step rollout's time along its steps, states selected or padded")
     for line in machine_header(args.device, torch.float64):
         print(line)

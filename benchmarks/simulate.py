@@ -33,11 +33,13 @@ import diffcontact as dc
 from common import (
     CONTACT_ROWS_HELP,
     SPARSE_GRAM_CUDA_HELP,
+    check_device,
     choose_contact_rows,
     choose_sparse_gram_cuda,
     machine_header,
     sync,
 )
+from diffcontact.cli_args import positive_int
 
 DEFAULT_CASES = [("BP5", 1024, 100), ("Rope-D400", 1024, 19)]
 QUICK_CASES = [("BP5", 256, 20), ("Rope-D400", 128, 5)]
@@ -275,10 +277,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--all-tasks", action="store_true", help="also BD5, CP3, Gyro and Rope")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
-    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    ap.add_argument("--threads", type=positive_int, default=None, help="torch intra-op threads")
     ap.add_argument(
         "--scenes",
-        type=int,
+        type=positive_int,
         default=None,
         help="scenes per row instead of each row's default (e.g. 4096 on a GPU)",
     )
@@ -314,22 +316,29 @@ def main(argv: list[str] | None = None) -> int:
         help=f"time {COMPARE_TASK} against mujoco.rollout on a matched scene",
     )
     # sizes of the --compare run (tests use tiny ones)
-    ap.add_argument("--n", type=int, default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--steps", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=positive_int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--steps", type=positive_int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
+    # options of one mode only (they were ignored in the other)
+    table_only = {
+        "--scenes": args.scenes is not None, "--tasks": args.tasks is not None,
+        "--all-tasks": args.all_tasks, "--again": args.again, "--grad": args.grad,
+        "--cuda-graph": args.cuda_graph != "auto",
+    }  # fmt: skip
+    if args.compare is not None and (given := [k for k, v in table_only.items() if v]):
+        ap.error(f"{', '.join(given)}: not with --compare {args.compare} (its sizes: --quick)")
+    if args.compare is None and (args.n is not None or args.steps is not None):
+        ap.error("--n and --steps are the sizes of --compare mujoco; the table takes --scenes")
+    if args.quick and args.all_tasks:
+        ap.error("--all-tasks adds rows to the full run, not to --quick's two rows")
     if args.threads is not None:
-        if args.threads < 1:
-            ap.error(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
     choose_contact_rows(args.contact_rows)
     if args.compare == "mujoco":
         return main_compare(args, dtype)
-    if args.scenes is not None and args.scenes < 1:
-        ap.error(f"--scenes must be >= 1, got {args.scenes}")
     cases = QUICK_CASES if args.quick else DEFAULT_CASES + (EXTRA_CASES if args.all_tasks else [])
     if args.scenes is not None:
         cases = [(task, args.scenes, steps) for task, _, steps in cases]

@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import machine_header, sync
+from common import check_device, machine_header, sync
+from diffcontact.cli_args import non_negative_int, positive_float, positive_int
 
 D = 2
 
@@ -198,12 +199,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small time budgets (about a minute)")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="device of ours")
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
-    ap.add_argument("--contacts", type=int, nargs="+", default=[1, 5, 10, 30])
-    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--contacts", type=positive_int, nargs="+", default=[1, 5, 10, 30])
+    ap.add_argument("--batches", type=positive_int, nargs="+", default=[1, 64, 1024])
+    ap.add_argument("--seed", type=non_negative_int, default=0)
     ap.add_argument(
         "--budget",
-        type=float,
+        type=positive_float,
         default=None,
         help="seconds per cell for each cvxpylayers baseline (default 2 with --quick, else 20)",
     )
@@ -215,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--cvx-tol",
-        type=float,
+        type=positive_float,
         default=None,
         help="Clarabel's tol_gap_abs/tol_gap_rel/tol_feas inside cvxpylayers (default: its 1e-8)",
     )
@@ -229,8 +230,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = ap.parse_args(argv)
 
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
+    if args.json is not None:
+        from diffcontact.io import check_writable_folder
+
+        try:
+            if args.json.is_dir():
+                raise IsADirectoryError(f"{args.json} is a directory; give a file")
+            check_writable_folder(args.json.parent)
+        except OSError as err:
+            ap.error(f"--json: {err}")
     dtype = getattr(torch, args.dtype)
     budget = args.budget if args.budget is not None else (2.0 if args.quick else 20.0)
     reps = 1 if args.quick else 5

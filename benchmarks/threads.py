@@ -30,7 +30,8 @@ import time
 
 import torch
 
-from common import machine_header
+from common import check_tasks, machine_header, settings
+from diffcontact.cli_args import positive_int
 
 SPIN = "while True:\n    pass\n"
 
@@ -167,14 +168,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer steps (about two minutes)")
     ap.add_argument("--task", default="BP5", help="training and rollout task (default BP5)")
-    ap.add_argument("--batch-size", type=int, default=200, help="training chunks per step")
-    ap.add_argument("--steps", type=int, default=None, help="auto steps (48; quick 24)")
+    ap.add_argument("--batch-size", type=positive_int, default=200, help="training chunks per step")
+    ap.add_argument("--steps", type=positive_int, default=None, help="auto steps (48; quick 24)")
     ap.add_argument(
-        "--reps", type=int, default=None, help="timed steps per fixed cell (8; quick 3)"
+        "--reps", type=positive_int, default=None, help="timed steps per fixed cell (8; quick 3)"
     )
     args = ap.parse_args(argv)
-    auto_steps = args.steps or (24 if args.quick else 48)
-    reps = args.reps or (3 if args.quick else 8)
+    check_tasks(ap, "--task", [args.task])
+    chosen = settings(args, {"steps": 48, "reps": 8}, {"steps": 24, "reps": 3})
+    auto_steps, reps = chosen["steps"], chosen["reps"]
     cores = available_cores()
     if cores < 2:
         print(f"threads: this process may use {cores} core; nothing to compare")

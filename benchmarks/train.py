@@ -51,12 +51,15 @@ from common import (
     CONTACT_ROWS_HELP,
     READ_FREE_HELP,
     SPARSE_GRAM_CUDA_HELP,
+    check_device,
+    check_tasks,
     choose_contact_rows,
     choose_read_free_projection,
     choose_sparse_gram_cuda,
     machine_header,
     sync,
 )
+from diffcontact.cli_args import non_negative_int, positive_int
 
 # 2026-11-23, the last commit before issue 11's solver and training-step work (the fused
 # solver, fast paths, batch-invariant polish): the "previous release" of the ratio column
@@ -222,8 +225,10 @@ def main(argv: list[str] | None = None) -> int:
         "--potential-dtype", choices=("float32", "float64"), default=None,
         help="the potential MLP's dtype inside the rollout (LearnedModel's potential_dtype)",
     )  # fmt: skip
-    ap.add_argument("--batch-size", type=int, default=200)
-    ap.add_argument("--reps", type=int, default=None, help="timed steps (default 5, quick 2)")
+    ap.add_argument("--batch-size", type=positive_int, default=200)
+    ap.add_argument(
+        "--reps", type=positive_int, default=None, help="timed steps (default 5, quick 2)"
+    )
     ap.add_argument("--tasks", nargs="+", default=None, help=f"default: {' '.join(TASKS)}")
     ap.add_argument(
         "--against", default=PREVIOUS_RELEASE, metavar="REF",
@@ -240,11 +245,11 @@ def main(argv: list[str] | None = None) -> int:
         "the backward pass) and print its share of the step",
     )  # fmt: skip
     ap.add_argument(
-        "--threads", type=int, default=None,
+        "--threads", type=positive_int, default=None,
         help="torch threads for both versions (default: torch's default)",
     )  # fmt: skip
     ap.add_argument(
-        "--position-projection", type=int, default=None, metavar="N",
+        "--position-projection", type=non_negative_int, default=None, metavar="N",
         help="the learned model's position_projection iterations (default: the task's; "
         "0: without the projection onto the limits, the work the rope's step adds); this "
         "version only, the data keep the task's",
@@ -256,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         help=CONTACT_ROWS_HELP + " (this version)",
     )  # fmt: skip
     ap.add_argument(
-        "--rounds", type=int, default=1, metavar="N",
+        "--rounds", type=positive_int, default=1, metavar="N",
         help="time each row N times, the versions in turn, and print medians (of the times, "
         "and of each round's ratios)",
     )  # fmt: skip
@@ -267,11 +272,24 @@ def main(argv: list[str] | None = None) -> int:
         "batch in float32 against float64 (same weights, CPU)",
     )
     args = ap.parse_args(argv)
-    if args.device == "cuda" and not torch.cuda.is_available():
-        ap.error("--device cuda: no CUDA device available")
+    check_device(ap, args.device)
+    from diffcontact.learning.models.registry import BUILTIN_MODELS, is_physical_model
+
+    if not is_physical_model(args.model):
+        ap.error(f"--model: {args.model!r} is not a physical model; choose from "
+                 f"{', '.join(BUILTIN_MODELS)}")  # fmt: skip
+    if args.tasks is not None:
+        check_tasks(ap, "--tasks", args.tasks)
+    if args.compare_dtypes:  # options of the timing, which --compare-dtypes does not do
+        timing = {
+            "--reps": args.reps is not None, "--rounds": args.rounds != 1,
+            "--mixed": args.mixed, "--network": args.network,
+            "--position-projection": args.position_projection is not None,
+            "--potential-dtype": args.potential_dtype is not None,
+        }  # fmt: skip
+        if given := [k for k, v in timing.items() if v]:
+            ap.error(f"{', '.join(given)}: options of the timing, not of --compare-dtypes")
     args.reps = args.reps or (2 if args.quick else 5)
-    if args.rounds < 1:
-        ap.error(f"--rounds must be at least 1, got {args.rounds}")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     args.threads = torch.get_num_threads()

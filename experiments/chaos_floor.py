@@ -18,6 +18,7 @@ whose mass ratios are off by ``rel`` cannot be expected to do better than this r
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -107,14 +108,27 @@ def learned_physics(data_dir: Path, learned: dict) -> dict | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from diffcontact.cli_args import float_above, non_negative_int
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("data_dir", type=Path, help="a dataset (diffcontact generate)")
-    ap.add_argument("--rel", type=float, nargs="+", default=[1e-6, 1e-5, 1e-4, 1e-3])
-    ap.add_argument("--body", type=int, default=1, help="the body whose mass is scaled")
+    ap.add_argument(
+        "--rel", type=float_above(-1), nargs="+", default=[1e-6, 1e-5, 1e-4, 1e-3],
+        help="relative mass errors (finite, > -1)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--body", type=non_negative_int, default=1, help="the body whose mass is scaled"
+    )
     args = ap.parse_args(argv)
     if not (args.data_dir / "metadata.json").is_file():
         print(f"{args.data_dir}: not a dataset folder (no metadata.json)", file=sys.stderr)
         return 2
+    try:
+        masses = json.loads((args.data_dir / "metadata.json").read_text())["config"].get("masses")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        ap.error(f"{args.data_dir}: unreadable metadata.json ({type(err).__name__}: {err})")
+    if not isinstance(masses, list) or args.body >= len(masses):
+        ap.error(f"--body {args.body}: the config has masses {masses!r}")
     rows = floor(args.data_dir, args.rel, args.body)
     print(f"{args.data_dir}: true system, mass of body {args.body} x (1 + rel), test set")
     print("| mass error rel | rel. error (95 % CI) | median trajectory | largest three |")

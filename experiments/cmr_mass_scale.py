@@ -24,8 +24,10 @@ import time
 
 import torch
 
+from diffcontact.cli_args import one_line, positive_float, positive_int
 from diffcontact.learning.models.physical import LearnedModel
 from diffcontact.learning.training.module import rollout_loss
+from diffcontact.learning.training.options import TrainingInputError
 from diffcontact.learning.training.run import read_training_data
 from diffcontact.systems import System, load_config
 
@@ -66,18 +68,19 @@ def fit_ratios(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data_dir", help="a dataset folder (diffcontact generate --out)")
-    parser.add_argument("--scales", type=float, nargs="+", default=[0.1, 0.3, 1.0])
+    parser.add_argument("--scales", type=positive_float, nargs="+", default=[0.1, 0.3, 1.0])
     parser.add_argument("--model", default="CMr-CD-CLNN", choices=["CMr-CD-CLNN", "CMr-CD-CHNN"])
-    parser.add_argument("--eps", type=float, default=0.01)
-    parser.add_argument("--chunks", type=int, default=400, help="training chunks used")
-    parser.add_argument("--iters", type=int, default=100, help="Adam iterations per scale")
+    parser.add_argument("--eps", type=positive_float, default=0.01)
+    parser.add_argument("--chunks", type=positive_int, default=400, help="training chunks used")
+    parser.add_argument("--iters", type=positive_int, default=100, help="Adam iterations per scale")
     args = parser.parse_args(argv)
-    meta, train, _ = read_training_data(args.data_dir)
+    try:
+        meta, train, _ = read_training_data(args.data_dir)
+    except TrainingInputError as err:
+        parser.error(f"data_dir: {one_line(err)}")
     system = System(load_config(meta["config"]))
     if float(system.gravity.abs().max()) != 0.0 or system.stiffness is not None:
         parser.error(f"{system.name} has a true potential; use a BP5-e or BP5 dataset")
-    if any(s <= 0 for s in args.scales):
-        parser.error("--scales must be positive")
     chunks = train[: args.chunks]
     truth = (system.mass / system.mass[0]).tolist()
     print(f"{system.name}: {args.model}, eps {args.eps}, {len(chunks)} chunks, "

@@ -209,11 +209,13 @@ MISMATCH_NOTES = (
 )
 
 SCALABILITY_NOTES = (
-    "A failed run is reported in the command's output and shows here as `not run`. In "
-    "the --quick run of 2026-11-24, CM-CD-CLNN at N = 100 trained but its evaluation "
-    "failed: the learned model's contact solve did not converge for 1 of the 100 test "
-    "trajectories (step 65; solve_cone_qp residual 3.3e-4 against 1e-7), and evaluate "
-    "raises instead of counting the trajectory as diverged.",
+    "A failed run is reported in the command's output and shows here as `not run`; so do "
+    "rows a stopped command did not reach. The --quick run of 2026-11-27 was stopped after "
+    "18 of its 24 runs; other work shared the CPU at times, so its times are upper bounds. "
+    "Its data are of the rope with its velocities projected after its positions "
+    "(docs/config.md, `velocity_projection`); in the run of 2026-11-24, on rope data made "
+    "before that, CM-CD-CLNN at N = 100 trained but its evaluation failed (the learned "
+    "model's contact solve did not converge for 1 of the 100 test trajectories).",
     "On the 10-point rope the baselines' rollouts diverge (errors far above 1): with "
     "batches of 200 chunks, N <= 200 is one optimiser step per epoch, 60 in all.",
 )
@@ -268,11 +270,19 @@ def _is_default(eps: str) -> bool:
     return eps != "learnable" and float(eps) == DEFAULT_EPS
 
 
-def _positive(text: str) -> bool:
-    try:
-        return float(text) > 0
-    except ValueError:
-        return False
+def _eps_arg(text: str) -> str:
+    """An argparse type for ``--eps``: ``learnable`` or a finite number > 0, kept as given
+    (the text names the run's folder)."""
+    if text != "learnable":
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected a number or 'learnable', got {text!r}"
+            ) from None
+        if not (value > 0 and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be 'learnable' or > 0 and finite, got {text}")
+    return text
 
 
 def _eps_key(task: str, eps: str) -> str:
@@ -819,6 +829,8 @@ def write_report(out: Path, experiment: str, doc: str | None, data: dict[str, An
 
 
 def _parser() -> argparse.ArgumentParser:
+    from diffcontact.cli_args import float_in, positive_int
+
     parser = argparse.ArgumentParser(
         description="The paper's comparison, robustness and scalability experiments.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -827,37 +839,60 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("experiment", choices=EXPERIMENTS)
     parser.add_argument("--out", default="runs/compare", help="output folder (runs/compare)")
     parser.add_argument("--doc", default=None, help="write the section into this file too")
-    parser.add_argument("--jobs", type=int, default=2, help="parallel runs (default 2)")
-    parser.add_argument("--epochs", type=int, default=None, help="override the per-task epochs")
+    parser.add_argument("--jobs", type=positive_int, default=2, help="parallel runs (default 2)")
     parser.add_argument(
-        "--threads", type=int, default=None, help="torch threads per run (default cores / jobs)"
+        "--epochs", type=positive_int, default=None, help="override the per-task epochs"
     )
+    parser.add_argument(
+        "--threads", type=positive_int, default=None,
+        help="torch threads per run (default cores / jobs)",
+    )  # fmt: skip
     parser.add_argument("--tasks", nargs="+", default=None, help="tasks (experiment's default)")
     parser.add_argument("--models", nargs="+", default=None, help="models (models, scalability)")
     parser.add_argument(
-        "--noise", nargs="+", type=float, default=None, help="noise: stds (0 0.01 0.05)"
+        "--noise", nargs="+", type=float_in(0), default=None, help="noise: stds (0 0.01 0.05)"
     )
     parser.add_argument(
-        "--eps", nargs="+", default=None, help="ablation: eps values (0.001 0.01 0.1 learnable)"
-    )
+        "--eps", nargs="+", type=_eps_arg, default=None,
+        help="ablation: eps values (0.001 0.01 0.1 learnable)",
+    )  # fmt: skip
     parser.add_argument("--parts", nargs="+", choices=SCALE_PARTS, default=None)
     parser.add_argument(
         "--size-task", default=None, help=f"scalability: task of network/size ({SIZE_TASK})"
     )
-    parser.add_argument("--sizes", nargs="+", type=int, default=None, help="scalability: N")
-    parser.add_argument("--ds", nargs="+", type=int, default=None, help="scalability: rope D")
+    parser.add_argument(
+        "--sizes", nargs="+", type=positive_int, default=None, help="scalability: N"
+    )
+    parser.add_argument(
+        "--ds", nargs="+", type=positive_int, default=None,
+        help=f"scalability: rope D (a task Rope-DD must exist; {' '.join(map(str, ROPE_DS))})",
+    )  # fmt: skip
     parser.add_argument(
         "--quick", action="store_true",
         help="scalability: network and size on the 10-point Rope, N = 25 100 400, D = 100",
     )  # fmt: skip
-    parser.add_argument("--n-train", type=int, default=800, help=argparse.SUPPRESS)
-    parser.add_argument("--n-val", type=int, default=100, help=argparse.SUPPRESS)
-    parser.add_argument("--n-test", type=int, default=100, help=argparse.SUPPRESS)
-    parser.add_argument("--eval-steps", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--n-train", type=positive_int, default=800, help=argparse.SUPPRESS)
+    parser.add_argument("--n-val", type=positive_int, default=100, help=argparse.SUPPRESS)
+    parser.add_argument("--n-test", type=positive_int, default=100, help=argparse.SUPPRESS)
+    parser.add_argument("--eval-steps", type=positive_int, default=None, help=argparse.SUPPRESS)
     parser.add_argument(
         "--report-only", action="store_true", help="only rewrite the report from the results file"
     )
     return parser
+
+
+# options that only one experiment (or two) reads: given to another, they were ignored
+ONLY_FOR = {
+    "tasks": ("models", "mismatch", "noise", "ablation"),
+    "models": ("models", "scalability"),
+    "noise": ("noise",),
+    "eps": ("ablation",),
+    "parts": ("scalability",),
+    "size_task": ("scalability",),
+    "sizes": ("scalability",),
+    "ds": ("scalability",),
+    "quick": ("scalability",),
+}
 
 
 def _meta(
@@ -917,12 +952,34 @@ def _shown(results: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
     return {"runs": {k: v for k, v in results.items() if k in wanted}, "meta": meta}
 
 
+RESUME_HINT = (
+    "finished datasets, runs and evaluations are kept: run the same command again to continue"
+)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; a stop by Ctrl-C or SIGTERM is one line (the interrupted training
+    run resumes from its checkpoint when the command is run again)."""
+    from diffcontact.cli_args import interrupted
+
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted("compare.py", stop, RESUME_HINT)
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     out = Path(args.out)
     experiment = args.experiment
+    for key, experiments in ONLY_FOR.items():
+        if getattr(args, key) not in (None, False) and experiment not in experiments:
+            parser.error(
+                f"--{key.replace('_', '-')} applies to {' and '.join(experiments)} only, "
+                f"not to {experiment}"
+            )
     if args.doc:  # before any work: a stray marker or an unwritable file
         try:
             write_section(Path(args.doc), experiment, "", check_only=True)
@@ -936,22 +993,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         stored = json.loads(results_file.read_text())
         write_report(out, experiment, args.doc, _shown(stored["runs"], stored["meta"]))
         return 0
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, got {args.jobs}")
-    if args.epochs is not None and args.epochs < 1:
-        parser.error(f"--epochs must be >= 1, got {args.epochs}")
-    if args.threads is not None and args.threads < 1:
-        parser.error(f"--threads must be >= 1, got {args.threads}")
+    from diffcontact.io import check_writable_folder
     from diffcontact.learning import model_names
     from diffcontact.systems import list_tasks
 
-    bad = [t for t in args.tasks or () if t not in list_tasks()]
-    bad += [m for m in args.models or () if m not in model_names()]
-    bad += [str(n) for n in args.sizes or () if n < 1]
-    bad += [str(s) for s in args.noise or () if not s >= 0]
-    bad += [e for e in args.eps or () if e != "learnable" and not _positive(e)]
-    if bad:
-        parser.error(f"unknown or invalid value(s): {', '.join(bad)}")
+    tasks = list_tasks()
+    if bad := [t for t in args.tasks or () if t not in tasks]:
+        parser.error(f"--tasks: unknown task(s) {', '.join(bad)}; choose from {', '.join(tasks)}")
+    if bad := [m for m in args.models or () if m not in model_names()]:
+        parser.error(
+            f"--models: unknown model(s) {', '.join(bad)}; choose from {', '.join(model_names())}"
+        )
+    if args.size_task is not None and args.size_task not in tasks:
+        parser.error(f"--size-task: unknown task {args.size_task}; choose from {', '.join(tasks)}")
+    ropes = [int(t.removeprefix("Rope-D")) for t in tasks if t.removeprefix("Rope-D").isdigit()]
+    if bad := [str(d) for d in args.ds or () if f"Rope-D{d}" not in tasks]:
+        parser.error(
+            f"--ds: no rope task of D = {', '.join(bad)}; choose from "
+            f"{', '.join(map(str, sorted(ropes)))}"
+        )
+    try:
+        check_writable_folder(out)
+    except OSError as err:
+        parser.error(f"--out: {err}")
     rows = plan(experiment, args)
     runs = list({r.key: r for _, r in rows}.values())
     datasets = list({d.key: d for r in runs for d in (r.data, *r.also_on)}.values())

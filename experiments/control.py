@@ -211,6 +211,19 @@ def write_doc(doc: Path, section: str, check_only: bool = False) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; a stop by Ctrl-C or SIGTERM is one line (an interrupted training
+    run resumes from its checkpoint when the command is run again)."""
+    from diffcontact.cli_args import interrupted
+
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted(
+            "control.py", stop, "finished rows are kept: run the same command again to continue"
+        )
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="runs/control", help="output folder")
     parser.add_argument("--doc", default=None, help="Markdown file to put the table into")
@@ -231,10 +244,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             write_doc(Path(args.doc), "", check_only=True)
         except (ValueError, OSError) as err:
             parser.error(f"--doc: {err}")
+    from diffcontact.io import check_writable_folder
+
+    out = Path(args.out)
+    try:
+        check_writable_folder(out)
+    except OSError as err:
+        parser.error(f"--out: {err}")
     import torch
 
     torch.set_num_threads(1)
-    out = Path(args.out)
     results_file = out / "results.json"
     results: dict[str, Any] = {}
     if results_file.is_file():

@@ -23,6 +23,14 @@ from pathlib import Path
 import torch
 
 import diffcontact as dc
+from diffcontact.cli_args import (
+    float_in,
+    int_at_least,
+    interrupted,
+    non_negative_int,
+    positive_int,
+)
+from diffcontact.io import check_writable_folder
 from diffcontact.learning.data.arrays import dataset_from_arrays
 from diffcontact.learning.training.run import train
 from diffcontact.systems.event_driven import simulate_event_driven
@@ -127,16 +135,31 @@ def run(
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; a stop by Ctrl-C or SIGTERM is one line (this script does not
+    resume: the next run needs a new --out)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted(
+            "coulomb.py", stop, "this script does not resume: run it again with a new --out"
+        )
+
+
+def _main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True, help="folder for the data and runs")
-    p.add_argument("--n", type=int, default=200, help="trajectories (default 200)")
-    p.add_argument("--epochs", type=int, default=30)
-    p.add_argument("--mu", type=float, default=0.3)
-    p.add_argument("--cor", type=float, default=0.7)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--n", type=int_at_least(10), default=200, help="trajectories (default 200, >= 10)"
+    )
+    p.add_argument("--epochs", type=positive_int, default=30)
+    p.add_argument("--mu", type=float_in(0), default=0.3, help="friction coefficient (>= 0)")
+    p.add_argument("--cor", type=float_in(0, 1), default=0.7, help="restitution in [0, 1]")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     args = p.parse_args(argv)
-    if args.n < 10 or args.epochs < 1:  # (both failed after the data were made)
-        p.error(f"--n must be >= 10 and --epochs >= 1, got {args.n} and {args.epochs}")
+    try:
+        check_writable_folder(args.out)
+    except OSError as err:
+        p.error(f"--out: {err}")
     if args.out.exists() and any(args.out.iterdir()):  # (a TrainingInputError traceback)
         p.error(f"--out {args.out} is not empty: this script does not resume; give a new folder")
     torch.set_num_threads(max(1, torch.get_num_threads()))

@@ -820,7 +820,23 @@ def _write_report(
     print(f"wrote {out / 'results.md'}" + (f" and {doc}" if doc else ""))
 
 
+RESUME_HINT = "finished datasets and runs are kept: run the same command again to continue"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; a stop by Ctrl-C or SIGTERM is one line (the interrupted training
+    run resumes from its checkpoint when the command is run again)."""
+    from diffcontact.cli_args import interrupted
+
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted("reproduce.py", stop, RESUME_HINT)
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    from diffcontact.cli_args import positive_int
+
     parser = argparse.ArgumentParser(
         description="Reproduce the paper's learning tables (docs/results.md).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -831,13 +847,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--out", default="runs/repro", help="output folder (default runs/repro)")
     parser.add_argument("--doc", default=None, help="also write the report here")
-    parser.add_argument("--jobs", type=int, default=2, help="parallel runs (default 2)")
+    parser.add_argument("--jobs", type=positive_int, default=2, help="parallel runs (default 2)")
     parser.add_argument(
-        "--epochs", type=int, default=None, help="override the per-task epochs (e.g. a quick look)"
-    )
-    parser.add_argument("--n-train", type=int, default=800, help=argparse.SUPPRESS)
-    parser.add_argument("--n-val", type=int, default=100, help=argparse.SUPPRESS)
-    parser.add_argument("--n-test", type=int, default=100, help=argparse.SUPPRESS)
+        "--epochs", type=positive_int, default=None,
+        help="override the per-task epochs (e.g. a quick look)",
+    )  # fmt: skip
+    parser.add_argument("--n-train", type=positive_int, default=800, help=argparse.SUPPRESS)
+    parser.add_argument("--n-val", type=positive_int, default=100, help=argparse.SUPPRESS)
+    parser.add_argument("--n-test", type=positive_int, default=100, help=argparse.SUPPRESS)
     parser.add_argument("--only", default=None, help="TASK:MODEL, a single run (for testing)")
     parser.add_argument(
         "--tasks", nargs="+", default=None, metavar="TASK",
@@ -859,15 +876,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = [t for t in args.tables if t not in TABLES]
     if unknown:
         parser.error(f"unknown table(s) {', '.join(unknown)}; choose from {', '.join(TABLES)}")
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, got {args.jobs}")
-    if args.epochs is not None and args.epochs < 1:
-        parser.error(f"--epochs must be >= 1, got {args.epochs}")
     runs: list[tuple[str, str]] = []
     if args.only:
+        from diffcontact.systems import list_tasks
+
         task, _, model = args.only.partition(":")
         if model not in MODELS:
             parser.error(f"--only expects TASK:MODEL with MODEL one of {', '.join(MODELS)}")
+        if task not in list_tasks():
+            parser.error(
+                f"--only {args.only}: unknown task {task!r}; choose from {', '.join(list_tasks())}"
+            )
+        if args.tasks or args.tables:
+            parser.error("--only names the one run: give no TABLE and no --tasks with it")
         runs = [(task, model)]
     else:
         for table in args.tables or list(TABLES):
@@ -881,6 +902,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 )
             runs = [r for r in runs if r[0] in args.tasks]
     out = Path(args.out)
+    from diffcontact.io import check_writable_folder
+
+    try:
+        check_writable_folder(out)
+    except OSError as err:
+        parser.error(f"--out: {err}")
     cpus = os.cpu_count() or 1
     threads = max(1, cpus // args.jobs)
     t0 = time.perf_counter()

@@ -78,6 +78,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--n must be at least 1 and --horizon a positive number")
     if any(k < 1 for k in args.projection):
         parser.error(f"--projection must be at least 1 iteration, got {args.projection}")
+    from diffcontact.cli_args import one_line
+    from diffcontact.systems import load_config
+
+    try:
+        cfg = load_config(args.task)
+    except ValueError as err:
+        parser.error(f"--task {args.task}: {one_line(err)}")
+    if not hasattr(cfg, "min_ratio"):
+        parser.error(f"--task {args.task}: not a rope (a task with segment limits)")
+    for dt in args.dt:  # every time step, before the first is simulated
+        try:
+            load_config(args.task, dt=dt, horizon=args.horizon)
+        except ValueError as err:
+            parser.error(f"--dt {dt:g} with --horizon {args.horizon:g}: {one_line(err)}")
     torch.set_num_threads(1)
     base = dc.load_system(args.task)
     cfg = base.config

@@ -199,6 +199,19 @@ def write_doc(doc: Path, text: str, check_only: bool = False) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; a stop by Ctrl-C or SIGTERM is one line (an interrupted training
+    run resumes from its checkpoint when the command is run again)."""
+    from diffcontact.cli_args import interrupted
+
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted(
+            "uncertainty.py", stop, "finished runs are kept: run the same command again to continue"
+        )
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="runs/uncert", help="output folder")
     parser.add_argument("--doc", default=None, help="Markdown file to put the tables into")
@@ -209,10 +222,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             write_doc(Path(args.doc), "", check_only=True)
         except (ValueError, OSError) as err:
             parser.error(f"--doc: {err}")
+    from diffcontact.io import check_writable_folder
+
+    out = Path(args.out)
+    try:
+        check_writable_folder(out)
+    except OSError as err:
+        parser.error(f"--out: {err}")
     import torch
 
     torch.set_num_threads(1)
-    out = Path(args.out)
     results = []
     for task in args.tasks:
         print(f"{task}: training CM-CD-CLNN ({TASKS[task]} epochs; reused when finished)")

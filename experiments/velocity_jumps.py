@@ -19,16 +19,17 @@ import numpy as np
 import torch
 
 import diffcontact as dc
+from diffcontact.cli_args import non_negative_int, positive_int
 from diffcontact.learning.data.convert import finite_difference_velocities, velocity_jumps
 
 TASKS = ("BP5-e", "BP5", "BD5", "CP3", "CP3-e", "Gyro", "Rope")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=16, help="trajectories per task")
-    parser.add_argument("--seed", type=int, default=1)
-    args = parser.parse_args()
+    parser.add_argument("--n", type=positive_int, default=16, help="trajectories per task")
+    parser.add_argument("--seed", type=non_negative_int, default=1)
+    args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     print("| task | dt | impact states | flagged within 1 | impacts with dv > 0.1 v_rms | "
           "flagged within 1 | flags without contact within 2 (of states) | FD error where "
@@ -63,7 +64,8 @@ def main() -> None:
             f"{big.sum()} | {(big & near).sum()} | {false.sum()} ({contact.size}) | "
             f"{err[ok].max():.2g} / {np.median(err[ok]):.2g} ({v_rms:.2g}) |"
         )
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

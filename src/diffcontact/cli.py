@@ -130,6 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--fps", type=positive_int, default=20, help="GIF frames per second (default 20)"
     )
     sim.add_argument(
+        "--gif-frames", type=positive_int, default=40,
+        help="at most this many GIF frames, evenly spaced over the trajectory (default 40)",
+    )  # fmt: skip
+    sim.add_argument(
         "--threads", type=threads_arg, default="auto", metavar="N|auto",
         help="torch CPU threads (default auto: 1 or all available cores, whichever the "
         "timed steps show faster; several threads slow down on a loaded CPU)",
@@ -285,7 +289,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             from diffcontact.viz import animate, plot_energy, scene_from_system
 
             if args.gif is not None:
-                animate(traj_np, scene_from_system(system), args.gif, fps=args.fps, dt=system.dt)
+                animate(
+                    traj_np, scene_from_system(system), args.gif, fps=args.fps, dt=system.dt,
+                    max_frames=args.gif_frames,
+                )  # fmt: skip
                 wrote.append(args.gif)
             if args.energy_plot is not None:
                 plot_energy(energy_np, system.dt, args.energy_plot, title=system.name)

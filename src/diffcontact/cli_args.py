@@ -1,7 +1,8 @@
-"""Helpers shared by the ``diffcontact`` subcommands: argument types (argparse
-``type=``), :func:`one_line` (the one-line form of an error message) and
-:func:`report_errors` (errors as one line on stderr and an exit status). No
-heavy imports."""
+"""Helpers shared by the ``diffcontact`` subcommands and the scripts of experiments/ and
+benchmarks/: argument types (argparse ``type=``), :func:`one_line` (the one-line form of
+an error message), :func:`report_errors` (errors as one line on stderr and an exit
+status) and :func:`interrupted` (a stop by Ctrl-C or SIGTERM as one line). No heavy
+imports."""
 
 from __future__ import annotations
 
@@ -52,6 +53,21 @@ def positive_float(text: str) -> float:
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
     return value
+
+
+def float_above(low: float) -> Callable[[str], float]:
+    """An argparse type accepting finite numbers ``> low`` with a message naming the bound."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (value > low and math.isfinite(value)):
+            raise argparse.ArgumentTypeError(f"must be a finite number > {low:g}, got {text}")
+        return value
+
+    return parse
 
 
 def float_in(
@@ -113,3 +129,20 @@ def report_errors(
     except failures as err:
         print(f"{prog}: error: {failed}{type(err).__name__}: {one_line(err)}", file=sys.stderr)
         return 1
+
+
+def interrupted(prog: str, stop: KeyboardInterrupt, hint: str) -> int:
+    """Report a script stopped by Ctrl-C or SIGTERM on one line; its exit status.
+
+    ``stop``: a ``KeyboardInterrupt``, or ``train()``'s ``TrainingInterrupted``, whose
+    signal, exit status and checkpoint are named (its own message ends with the hint of
+    ``diffcontact train``, ``continue with --resume``, which a script need not have).
+    ``hint``: how this script continues, e.g. "run the same command again to continue".
+    Prints ``PROG: SIGNAL received: stopped (checkpoint PATH); HINT`` on stderr and
+    returns 128 + the signal's number (130 for Ctrl-C).
+    """
+    name = getattr(stop, "signal_name", None) or "SIGINT"
+    checkpoint = getattr(stop, "checkpoint", None)
+    where = f" (checkpoint {checkpoint})" if checkpoint else ""
+    print(f"{prog}: {name} received: stopped{where}; {hint}", file=sys.stderr)
+    return int(getattr(stop, "exit_status", 130))

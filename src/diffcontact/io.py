@@ -105,6 +105,26 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
     return p
 
 
+def check_writable_folder(path: str | os.PathLike[str]) -> Path:
+    """Return ``path`` as a ``Path`` if it is a folder, or can be made one, where files can be
+    written; else raise ``OSError``.
+
+    ``path`` must not be a file (nor lie under one), and its nearest existing ancestor
+    must be a writable folder. Call it before expensive work whose results go there.
+    """
+    p = Path(path)
+    existing = p
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        if existing == p:
+            raise NotADirectoryError(f"{p} exists and is not a folder")
+        raise NotADirectoryError(f"{p} cannot be made: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"folder {existing} is not writable")
+    return p
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it onto ``path``.

@@ -44,6 +44,9 @@ def test_defaults_and_validation():
     z0 = system.sample_initial_conditions(1, seed=0)
     with pytest.raises(ValueError, match="position_projection"):
         system.simulate(z0, 2, position_projection=-2)
+    # the call's override has the config's bound (101 was accepted)
+    with pytest.raises(ValueError, match=r"position_projection must be an integer in \[0, 100\]"):
+        system.simulate(z0, 2, position_projection=101)
 
 
 def test_rope_limits_hold_over_a_long_simulation():

@@ -150,6 +150,11 @@ def test_the_key_and_files_of_earlier_versions():
     old = {k: v for k, v in dump.items() if k != "velocity_projection"}
     assert stored_config(old)["velocity_projection"] is False
     assert stored_config(dump) == dump
+    # one written before position_projection existed: no projection then (it loaded as the
+    # rope's 10 with the velocities' off, the energy-gaining combination)
+    older = {k: v for k, v in old.items() if k != "position_projection"}
+    rope = dc.load_system(stored_config(older))
+    assert (rope.position_projection, rope.velocity_projection) == (0, False)
     # an earlier dataset: reused where the key cannot matter (no position projection) only
     bp5 = dc.load_system("BP5").config.model_dump(mode="json")
     before = {k: v for k, v in bp5.items() if k != "velocity_projection"}

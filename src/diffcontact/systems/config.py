@@ -182,6 +182,10 @@ def state_bytes(n_points: int, dim: int, n_contacts: int) -> int:
 
 
 # ----------------------------------------------------------------------- systems
+MAX_PROJECTION_ITERATIONS = 100
+"""The most Gauss-Newton iterations of the position projection (``position_projection``)."""
+
+
 class _SystemBase(_Strict):
     name: str | None = None
     description: str | None = None
@@ -197,7 +201,7 @@ class _SystemBase(_Strict):
     penetration_metric: Literal["mass", "euclidean"] = "mass"
     # Gauss-Newton iterations of the position-level projection onto the admissible set of
     # the violated contacts after each step (systems/projection.py); 0 switches it off
-    position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 0
+    position_projection: Annotated[int, Field(ge=0, le=MAX_PROJECTION_ITERATIONS, strict=True)] = 0
     # with the position projection on: the velocities too, inelastically onto the limits
     # closed at the projected positions (which a step's impulse then treats as active);
     # false: the positions only, as before this key (the energy can then rise)
@@ -454,7 +458,7 @@ class RopeConfig(_SystemBase):
     anchor: Pair = (0.0, 0.0)
     cor: PerContact = 0.0
     # the limits hold only approximately at velocity level (docs/config.md, rope)
-    position_projection: Annotated[int, Field(ge=0, le=100, strict=True)] = 10
+    position_projection: Annotated[int, Field(ge=0, le=MAX_PROJECTION_ITERATIONS, strict=True)] = 10
     initial_conditions: RopeInitialConditions = Field(default_factory=RopeInitialConditions)
 
     def contact_groups(self) -> list[tuple[str, int]]:
@@ -562,7 +566,11 @@ def _depth(data: Any, stop: int) -> int:
     return deepest
 
 
-STORED_BEFORE: dict[str, Any] = {"penetration_metric": "euclidean", "velocity_projection": False}
+STORED_BEFORE: dict[str, Any] = {
+    "penetration_metric": "euclidean",
+    "position_projection": 0,
+    "velocity_projection": False,
+}
 """Keys added to the configs with a default unlike the behaviour before them: the value
 that a stored config without the key stands for."""
 
@@ -572,7 +580,8 @@ def stored_config(data: Any) -> Any:
     :func:`parse_config`. Stored configs are complete dumps; one without a key of
     :data:`STORED_BEFORE` was written before that key existed and keeps the behaviour it
     was made with: ``penetration_metric`` appendix G's Euclidean target (the default
-    became ``mass``), ``velocity_projection`` off (the default became on)."""
+    became ``mass``), ``position_projection`` 0 (the rope's default became 10),
+    ``velocity_projection`` off (the default became on)."""
     if isinstance(data, Mapping) and "type" in data:
         missing = {k: v for k, v in STORED_BEFORE.items() if k not in data}
         if missing:

@@ -74,6 +74,7 @@ from diffcontact.mechanics import (
 )
 from diffcontact.systems import initial_conditions as ics
 from diffcontact.systems.config import (
+    MAX_PROJECTION_ITERATIONS,
     BouncingDisksConfig,
     BouncingMassesConfig,
     ChainPendulumConfig,
@@ -1177,9 +1178,14 @@ class System:
     def _projection_iterations(self, iterations: int | None) -> int:
         if iterations is None:
             return self.position_projection
-        if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
+        if (
+            isinstance(iterations, bool)
+            or not isinstance(iterations, int)
+            or not 0 <= iterations <= MAX_PROJECTION_ITERATIONS
+        ):
             raise ValueError(
-                f"position_projection must be a non-negative integer, got {iterations!r}"
+                f"position_projection must be an integer in [0, {MAX_PROJECTION_ITERATIONS}] "
+                f"(as in a config), got {iterations!r}"
             )
         return iterations
 
@@ -1375,7 +1381,10 @@ class System:
     ) -> Tensor:
         """One full step: :meth:`integrate`, :meth:`resolve_contacts`, then (with
         ``position_projection > 0``, default the config's) :meth:`project_positions`.
-        ``(N, 2, P, dim)``."""
+        ``(N, 2, P, dim)``. With the velocities' projection on (``velocity_projection``),
+        the impulse also treats candidates closed within
+        :data:`~diffcontact.systems.projection.CLOSED` as active, which
+        :meth:`resolve_contacts` does not (:meth:`_contact_margin`)."""
         self._check_state(z, "z")
         model, dynamics, fraction, params = self._options(
             contact_model, dynamics, penetration_fraction, params, eps

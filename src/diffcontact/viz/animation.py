@@ -26,13 +26,16 @@ from diffcontact.io import atomic_path
 
 from .scene import Scene
 
-__all__ = ["animate", "frame_indices", "plot_energy", "render_frame"]
+__all__ = ["MAX_PANELS", "animate", "frame_indices", "plot_energy", "render_frame"]
 
+# the bodies' colours: matplotlib's tab10 with its red replaced by indigo, since red
+# (_CONTACT) marks a body in contact (tab10's red was body 3's, and its contact outline
+# did not show)
 _PALETTE = (
     "#1f77b4",
     "#ff7f0e",
     "#2ca02c",
-    "#d62728",
+    "#393b79",
     "#9467bd",
     "#8c564b",
     "#e377c2",
@@ -41,6 +44,9 @@ _PALETTE = (
     "#17becf",
 )
 _CONTACT = "#e00000"
+MAX_PANELS = 16
+"""The most trajectories one GIF shows (a grid of panels): a 10 x 10 grid of 192-pixel
+panels makes frames of about 2000 x 2000 pixels, slow to render and too small to read."""
 MIN_WIDTH = 5.2
 """The figure's least width in inches: room for the title and the legend over one panel."""
 _OVERLAY = "#222222"
@@ -586,8 +592,13 @@ def _build_figure(
                 "(same T, P, dim; N equal or 1)"
             )
         xo = np.broadcast_to(xo, x.shape)
-    if max_trajectories < 1:
-        raise ValueError(f"max_trajectories must be >= 1, got {max_trajectories}")
+    _positive("max_trajectories", max_trajectories, integer=True)
+    if max_trajectories > MAX_PANELS:
+        raise ValueError(
+            f"max_trajectories must be at most {MAX_PANELS} (one panel each), got "
+            f"{max_trajectories}: animate a few trajectories per GIF"
+        )
+    _positive("max_frames", max_frames, integer=True)
     n = min(n_total, max_trajectories)
     if not np.isfinite(x[:n]).all():
         warnings.warn(
@@ -772,7 +783,8 @@ def animate(
         scene: what to draw (see :mod:`diffcontact.viz.scene`).
         path: output ``.gif`` (written atomically).
         fps: playback frames per second.
-        max_trajectories: at most this many trajectories, as a grid of subplots.
+        max_trajectories: at most this many trajectories, as a grid of subplots (at
+            most :data:`MAX_PANELS`).
         overlay: optional second trajectory of the same shape (N may be 1),
             e.g. a prediction, drawn dashed over ``traj``.
         dt: time step, to show the time in the title (else the step index).

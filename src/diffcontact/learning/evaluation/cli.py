@@ -50,7 +50,13 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "--n-gif",
         type=int_at_least(0),
         default=4,
-        help="test trajectories in the GIF (default 4; 0: none)",
+        help="test trajectories in the GIF (default 4; 0: none; at most 16)",
+    )
+    p.add_argument(
+        "--gif-frames",
+        type=int_at_least(1),
+        default=40,
+        help="at most this many GIF frames, evenly spaced over the rollout (default 40)",
     )
     p.add_argument(
         "--steps",
@@ -173,6 +179,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         args.out,
         data_dir=args.data,
         n_gif=args.n_gif,
+        gif_frames=args.gif_frames,
         device=args.device,
         steps=args.steps,
         n_test=args.n_test,

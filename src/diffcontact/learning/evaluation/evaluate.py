@@ -339,12 +339,14 @@ def evaluate(
             ``load_model(run_dir)``.
         data_dir: the dataset (read with ``load_dataset``: checksums verified); default
             ``run.json``'s ``data_dir`` (as given, else relative to the run).
-        n_gif: test trajectories in the GIF (0: no GIF).
+        n_gif: test trajectories in the GIF (0: no GIF; at most
+            :data:`~diffcontact.viz.animation.MAX_PANELS`).
         device: ``"cpu"`` or ``"cuda"`` for the rollouts.
         steps: rollout steps (default ``max(horizon / dt, 100) - 1``; for
             recorded data ``T - 1``, the recorded steps, and at most that).
         n_test: use only the first ``n_test`` test trajectories.
-        gif_frames: at most this many GIF frames.
+        gif_frames: at most this many GIF frames (evenly subsampled from the rollout's
+            states, the first and last included).
         force: replace the files of another evaluation in ``out_dir`` (one of
             another run or data set; those of the same run and data set are
             always replaced).
@@ -364,8 +366,14 @@ def evaluate(
             the recorded states); CUDA requested but unavailable.
     """
     # ---- arguments and files
-    if not isinstance(n_gif, int) or isinstance(n_gif, bool) or n_gif < 0:
-        raise EvaluationInputError(f"n_gif must be a non-negative integer, got {n_gif!r}")
+    from diffcontact.viz.animation import MAX_PANELS
+
+    if not isinstance(n_gif, int) or isinstance(n_gif, bool) or not 0 <= n_gif <= MAX_PANELS:
+        raise EvaluationInputError(
+            f"n_gif must be an integer in [0, {MAX_PANELS}] (one GIF panel each), got {n_gif!r}"
+        )
+    if not isinstance(gif_frames, int) or isinstance(gif_frames, bool) or gif_frames < 1:
+        raise EvaluationInputError(f"gif_frames must be a positive integer, got {gif_frames!r}")
     for name, value in (("steps", steps), ("n_test", n_test)):
         if value is not None and (
             not isinstance(value, int) or isinstance(value, bool) or value < 1

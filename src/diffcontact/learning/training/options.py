@@ -80,6 +80,12 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.exit_status = exit_status
         self.checkpoint = checkpoint
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # picklable with its attributes: a worker process of experiments/reproduce.py or
+        # compare.py sends it back to the main one (unpickled from ``args`` alone it failed,
+        # and the pool broke: BrokenProcessPool for every run)
+        return (type(self), (str(self), self.signal_name, self.exit_status, self.checkpoint))
+
 
 def _positive_int(name: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
