@@ -960,12 +960,9 @@ RESUME_HINT = (
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; a stop by Ctrl-C or SIGTERM is one line (the interrupted training
     run resumes from its checkpoint when the command is run again)."""
-    from diffcontact.cli_args import interrupted
+    from diffcontact.cli_args import run_stoppable
 
-    try:
-        return _main(argv)
-    except KeyboardInterrupt as stop:
-        return interrupted("compare.py", stop, RESUME_HINT)
+    return run_stoppable(_main, argv, "compare.py", RESUME_HINT)
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

@@ -26,9 +26,9 @@ import diffcontact as dc
 from diffcontact.cli_args import (
     float_in,
     int_at_least,
-    interrupted,
     non_negative_int,
     positive_int,
+    run_stoppable,
 )
 from diffcontact.io import check_writable_folder
 from diffcontact.learning.data.arrays import dataset_from_arrays
@@ -137,12 +137,8 @@ def run(
 def main(argv: list[str] | None = None) -> int:
     """The command line; a stop by Ctrl-C or SIGTERM is one line (this script does not
     resume: the next run needs a new --out)."""
-    try:
-        return _main(argv)
-    except KeyboardInterrupt as stop:
-        return interrupted(
-            "coulomb.py", stop, "this script does not resume: run it again with a new --out"
-        )
+    hint = "this script does not resume: run it again with a new --out"
+    return run_stoppable(_main, argv, "coulomb.py", hint)
 
 
 def _main(argv: list[str] | None = None) -> int:

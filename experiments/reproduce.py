@@ -826,12 +826,9 @@ RESUME_HINT = "finished datasets and runs are kept: run the same command again t
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; a stop by Ctrl-C or SIGTERM is one line (the interrupted training
     run resumes from its checkpoint when the command is run again)."""
-    from diffcontact.cli_args import interrupted
+    from diffcontact.cli_args import run_stoppable
 
-    try:
-        return _main(argv)
-    except KeyboardInterrupt as stop:
-        return interrupted("reproduce.py", stop, RESUME_HINT)
+    return run_stoppable(_main, argv, "reproduce.py", RESUME_HINT)
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

@@ -201,14 +201,14 @@ def write_doc(doc: Path, text: str, check_only: bool = False) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; a stop by Ctrl-C or SIGTERM is one line (an interrupted training
     run resumes from its checkpoint when the command is run again)."""
-    from diffcontact.cli_args import interrupted
+    from diffcontact.cli_args import run_stoppable
 
-    try:
-        return _main(argv)
-    except KeyboardInterrupt as stop:
-        return interrupted(
-            "uncertainty.py", stop, "finished runs are kept: run the same command again to continue"
-        )
+    return run_stoppable(
+        _main,
+        argv,
+        "uncertainty.py",
+        "finished runs are kept: run the same command again to continue",
+    )
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

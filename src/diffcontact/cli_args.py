@@ -10,6 +10,7 @@ import argparse
 import math
 import sys
 from collections.abc import Callable
+from typing import Any
 
 
 def int_at_least(low: int) -> Callable[[str], int]:
@@ -146,3 +147,12 @@ def interrupted(prog: str, stop: KeyboardInterrupt, hint: str) -> int:
     where = f" (checkpoint {checkpoint})" if checkpoint else ""
     print(f"{prog}: {name} received: stopped{where}; {hint}", file=sys.stderr)
     return int(getattr(stop, "exit_status", 130))
+
+
+def run_stoppable(main: Callable[[Any], int], argv: Any, prog: str, hint: str) -> int:
+    """``main(argv)``, a script's command line, with a stop by Ctrl-C or SIGTERM reported
+    on one line by :func:`interrupted` (``prog``, ``hint``: as there)."""
+    try:
+        return main(argv)
+    except KeyboardInterrupt as stop:
+        return interrupted(prog, stop, hint)
