@@ -45,17 +45,6 @@ def threads_arg(text: str) -> int | str:
     return value
 
 
-def positive_float(text: str) -> float:
-    """An argparse type accepting finite numbers > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
-
-
 def float_above(low: float) -> Callable[[str], float]:
     """An argparse type accepting finite numbers ``> low`` with a message naming the bound."""
 
@@ -69,6 +58,10 @@ def float_above(low: float) -> Callable[[str], float]:
         return value
 
     return parse
+
+
+positive_float = float_above(0)
+"""An argparse type accepting finite numbers > 0."""
 
 
 def float_in(
