@@ -1227,8 +1227,8 @@ class System:
             "settings": self._inner_settings(settings),
             "read_free": read_free,
         }
-        if velocities:
-            x, v = project_state(x, v, *args, **kwargs)
+        if velocities:  # foreseeing the crossings of the inelastic limits within a step
+            x, v = project_state(x, v, *args, **kwargs, dt=self.dt, foresee=ctx.cor == 0)
         else:
             x = project_positions(x, *args, **kwargs)
         return torch.stack([x, v], dim=-3)
