@@ -112,8 +112,8 @@ def test_the_rest_of_an_overflowed_rollout_goes_step_by_step_where_too_short(mon
 
 def test_long_ropes_go_step_by_step_when_auto():
     """``cuda_graph="auto"`` does not graph a rollout whose read-free projection pads to
-    more than GRAPH_MAX_ROWS rows (each captured step projects every state at that size);
-    ``True`` still does."""
+    more than GRAPH_MAX_ROWS rows (each captured step projects every state at that size),
+    or of a rope with more than GRAPH_MAX_LIMIT_ROWS limit rows; ``True`` still does."""
     system = dc.load_system("Rope-D100")
     z0 = system.sample_initial_conditions(4, seed=1)
     options = rollout_module.RolloutOptions(
@@ -125,6 +125,15 @@ def test_long_ropes_go_step_by_step_when_auto():
     assert not run._graph_pays()
     no_projection = run.options._replace(iterations=0)
     assert rollout_module.Rollout(system, run.ctx, z0, 20, no_projection)._graph_pays()
+    # a rope whose problem can hold more than GRAPH_MAX_LIMIT_ROWS rows goes step by step
+    # from its first call (Rope-D100's 198 rows do not; Rope-D200's 398 do)
+    assert system._projection_rows_all() <= rollout_module.GRAPH_MAX_LIMIT_ROWS
+    longer = dc.load_system("Rope-D200")
+    z0 = longer.sample_initial_conditions(4, seed=1)
+    run = rollout_module.Rollout(longer, longer._context(z0, None, 4), z0, 20, options)
+    assert longer._projection_rows <= rollout_module.GRAPH_MAX_ROWS
+    assert not run._graph_pays()
+    assert rollout_module.Rollout(longer, run.ctx, z0, 20, no_projection)._graph_pays()
 
 
 def test_the_static_rollout_reads_the_device_once(monkeypatch):

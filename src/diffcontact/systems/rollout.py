@@ -43,6 +43,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "GRAPH_CONTACTS",
+    "GRAPH_MAX_LIMIT_ROWS",
     "GRAPH_MAX_ROWS",
     "GRAPH_MIN_STEPS",
     "PROJECTION_ROWS",
@@ -76,6 +77,13 @@ PROJECTION_ROWS = 16
 #: graphed against 0.35 s step by step; Rope-D400 at 136 rows, 5.17 s against 1.89 s. Where
 #: between the two the graph stops paying is not measured
 GRAPH_MAX_ROWS = 32
+#: ``cuda_graph="auto"`` goes step by step from the first call where the projection's
+#: problem can have more rows than this (each side of each limit: Rope-D200 and Rope-D400,
+#: not Rope or Rope-D100): such ropes select more than :data:`GRAPH_MAX_ROWS` rows within
+#: their first steps, and the first call's graphed attempt was wasted (an H200, 4096
+#: Rope-D400 ropes: 6.21 s under ``auto``, 4.17 s step by step; benchmarks/README.md,
+#: 2026-11-27, ninth sitting)
+GRAPH_MAX_LIMIT_ROWS = 256
 
 
 def _pads_contacts(device: torch.device) -> bool:
@@ -334,10 +342,12 @@ class Rollout:
     def _graph_pays(self) -> bool:
         """``cuda_graph="auto"``'s rule where a graph can be used: at least
         :data:`GRAPH_MIN_STEPS` steps, and a read-free projection (if on) padded to at most
-        :data:`GRAPH_MAX_ROWS` rows (the rows the system remembers)."""
+        :data:`GRAPH_MAX_ROWS` rows (the rows the system remembers) of a problem of at most
+        :data:`GRAPH_MAX_LIMIT_ROWS` rows."""
         system = self.system
         rows = min(system._projection_rows, system._projection_rows_all())
-        wide = bool(self.options.iterations) and rows > GRAPH_MAX_ROWS
+        many = system._projection_rows_all() > GRAPH_MAX_LIMIT_ROWS
+        wide = bool(self.options.iterations) and (rows > GRAPH_MAX_ROWS or many)
         return self.steps >= GRAPH_MIN_STEPS and not wide
 
     def graphed(self, strict: bool = False, capture: bool = True) -> Result | None:

@@ -1473,8 +1473,10 @@ class System:
                 the rollout has at least
                 :data:`~diffcontact.systems.rollout.GRAPH_MIN_STEPS` steps, the position
                 projection (if on) needs at most
-                :data:`~diffcontact.systems.rollout.GRAPH_MAX_ROWS` rows per state (long
-                ropes go step by step, where the projection selects what it needs) and
+                :data:`~diffcontact.systems.rollout.GRAPH_MAX_ROWS` rows per state, of
+                a problem of at most
+                :data:`~diffcontact.systems.rollout.GRAPH_MAX_LIMIT_ROWS` (long ropes go
+                step by step, where the projection selects what it needs) and
                 nothing in it requires a gradient, else step by step (a capture that
                 fails warns and goes step by step); ``True``: insist (``ValueError`` where it
                 cannot); ``False``: never. Results equal the step-by-step ones to
