@@ -9,11 +9,14 @@ from diffcontact.fastops import dot_last, sum_last
 @pytest.mark.parametrize("shape", [(5,), (7, 2), (1024, 10, 2), (3, 4, 3), (6, 9), (4, 0)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_sum_last_equals_torch_sum(shape, dtype):
-    x = torch.randn(*shape, dtype=dtype)
+    x = torch.randn(*shape, dtype=dtype, generator=torch.Generator().manual_seed(0))
     expected = x.sum(-1)
     got = sum_last(x)
     assert got.shape == expected.shape and got.dtype == dtype
-    torch.testing.assert_close(got, expected, rtol=4 * torch.finfo(dtype).eps, atol=0)
+    # two summation orders differ by at most (n - 1) eps sum |x_i| each (a relative bound
+    # fails where the sum cancels: it did, unseeded, on one draw of (3, 4, 3))
+    bound = 2 * shape[-1] * torch.finfo(dtype).eps * x.abs().sum(-1)
+    assert bool(((got - expected).abs() <= bound).all())
     if shape[-1] == 2:  # one addition: bitwise the same
         assert torch.equal(got, expected)
 

@@ -601,14 +601,19 @@ def _project(
         # those join the problem, solved again from v, until none is left
         for round_ in range(VELOCITY_ROUNDS if dt is not None else 1):
             with torch.no_grad():
+                more = None
                 if round_ > 0:
                     new = selected_by(v_i) & ~selected
-                    if read_free is None and not bool(new.any()):  # one read
-                        break
+                    more = new.any()
                     selected = selected | new
                 R = selected.sum(-1).max()
-                if read_free is None:
-                    R = int(R)  # one read
+                if read_free is None:  # one read
+                    if more is None:
+                        R = int(R)
+                    else:
+                        more, R = torch.stack([more.to(R), R]).tolist()
+                        if not more:
+                            break
                 else:
                     read_free.needed.copy_(torch.maximum(read_free.needed, R))
                     R = min(read_free.rows, selected.shape[-1])

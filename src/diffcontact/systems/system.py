@@ -1288,8 +1288,9 @@ class System:
         metric with every such gap >= 0 and the equality constraints' values kept
         (:mod:`diffcontact.systems.projection`), and then their velocities the smallest
         change in the mass metric that stops them from approaching the limits closed at
-        the new positions (an inelastic impulse on those limits; unless ``velocities``
-        is false, default the config's ``velocity_projection``). What :meth:`step` and
+        the new positions, or crossing within the next step the inelastic ones still
+        open there (an inelastic impulse on those limits; unless ``velocities`` is false,
+        default the config's ``velocity_projection``). What :meth:`step` and
         :meth:`simulate` do after the impulse when ``position_projection > 0``.
         Differentiable (the active set aside).
 
