@@ -216,6 +216,22 @@ def test_the_step_treats_closed_limits_as_active():
     assert float(rate[gaps < CLOSED].min()) > -1e-9
 
 
+@pytest.mark.parametrize(
+    ("changes", "named"),
+    [({"rest_length": 1e-6}, "stretch band"), ({"max_angle": 1e-5}, "bending band")],
+)
+def test_a_rope_whose_bands_the_closed_gap_would_fill_is_refused(changes, named):
+    """"Closed" is an absolute gap (CLOSED): a rope of rest length 1e-6 had every stretch
+    limit closed on both sides and froze its segments. Such a rope is refused, naming the
+    band and the remedy; without the velocities' projection it loads."""
+    with pytest.raises(ValueError, match=named) as info:
+        dc.load_system("Rope", **changes)
+    assert "velocity_projection: false" in str(info.value)
+    dc.load_system("Rope", velocity_projection=False, **changes)
+    dc.load_system("Rope", position_projection=0, **changes)
+    dc.load_system("Rope", rest_length=1e-3)  # millimetre segments in metres: fine
+
+
 def test_the_key_and_files_of_earlier_versions():
     from diffcontact.learning.data.write import _differences
     from diffcontact.systems.config import stored_config

@@ -483,6 +483,33 @@ class RopeConfig(_SystemBase):
                 f"need min_ratio < 1 < max_ratio; got min_ratio={self.min_ratio}, "
                 f"max_ratio={self.max_ratio}"
             )
+        if self.position_projection and self.velocity_projection:
+            self._check_bands()
+
+    def _check_bands(self) -> None:
+        """The velocities' projection treats a limit within an absolute gap
+        (``projection.CLOSED``) as closed: a band narrower than 100 times that would be
+        held closed over much of its width (a rope of rest length 1e-6 froze its
+        segments), so such a rope is refused with the remedy."""
+        from diffcontact.systems.projection import CLOSED
+
+        least = 100 * CLOSED
+        bands = (
+            (
+                "stretch band (max_ratio - min_ratio) * rest_length",
+                (self.max_ratio - self.min_ratio) * self.rest_length,
+                "express lengths in smaller units (millimetres instead of metres, say)",
+            ),
+            ("bending band 2 * max_angle", 2 * self.max_angle, "widen max_angle"),
+        )
+        for name, width, remedy in bands:
+            if width < least:
+                raise ValueError(
+                    f"the rope's {name} = {width:.3g} is narrower than {least:.3g}: the "
+                    f"velocities' projection treats a limit within {CLOSED:g} of its gap as "
+                    "closed and would hold most of the band closed (the segments frozen); "
+                    f"{remedy}, or set velocity_projection: false"
+                )
 
 
 SystemConfig = Annotated[
