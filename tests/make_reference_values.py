@@ -39,9 +39,9 @@ velocities would cross within the next step (``project_state``'s ``dt``): a limi
 projection released to a small positive gap was left approaching, and at coarse steps the
 rope still gained energy (Rope at dt = 0.02: 0.887 J within 1 s,
 ``test_the_rope_gains_no_energy_at_a_coarse_step``). They moved by up to 1.02 (Rope), 0.46,
-0.29 and 0.041 (Rope-D100, -D200, -D400); with the projection's ``dt`` left out they are
-those of the code before to 6e-15, as the code before is to its own entries on this
-machine.
+0.29 and 0.041 (Rope-D100, -D200, -D400); with the projection's ``dt`` left out (the
+config key ``foresee_crossings: false`` since) they are those of the code before to 6e-15,
+as the code before is to its own entries on this machine.
 
 ``tests/test_reference_values.py`` compares against it.
 """

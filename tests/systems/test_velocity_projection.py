@@ -65,24 +65,14 @@ def test_no_velocity_points_into_a_limit_closed_by_the_projection():
     torch.testing.assert_close(out[:, 0], system.project_positions(z, velocities=False)[:, 0])
 
 
-def _without_step(monkeypatch) -> None:
-    """The velocities' projection onto the closed limits only (before the step ``dt`` was
-    passed: no open limit's crossing foreseen)."""
-    from diffcontact.systems import system as system_module
-
-    def closed_only(*args, dt=None, **kwargs):
-        return project_state(*args, **kwargs)
-
-    monkeypatch.setattr(system_module, "project_state", closed_only)
-
-
-def test_no_open_limit_is_crossed_within_the_next_step(monkeypatch):
+def test_no_open_limit_is_crossed_within_the_next_step():
     """A limit that the projection released (a neighbour's correction moved it to a small
     positive gap) was left approaching: the next step crossed it, at up to 33 rad/s. The
     velocities now close such a limit within ``dt`` at most: ``gap + dt J v >= 0``."""
     system, z = _pre_projection_states()
+    closed_only = dc.load_system("Rope", foresee_crossings=False)
 
-    def worst_crossing() -> float:
+    def worst_crossing(system) -> float:
         out = system.project_positions(z)
         gaps = system.gaps(out[:, 0])
         rate = system.contact_velocities(out)[..., 0]
@@ -90,9 +80,8 @@ def test_no_open_limit_is_crossed_within_the_next_step(monkeypatch):
         assert bool(open_.any())
         return float((gaps + system.dt * rate)[open_].min())
 
-    assert worst_crossing() > -1e-9
-    _without_step(monkeypatch)
-    assert worst_crossing() < -1e-3  # the defect, with the closed limits alone
+    assert worst_crossing(system) > -1e-9
+    assert worst_crossing(closed_only) < -1e-3  # the defect, with the closed limits alone
 
 
 def test_only_the_inelastic_limits_are_foreseen():
@@ -125,7 +114,7 @@ def test_only_the_inelastic_limits_are_foreseen():
             project_state(x, v, geometry, M_inv, 10, dt=bad)
 
 
-def test_the_rope_gains_no_energy_at_a_coarse_step(monkeypatch):
+def test_the_rope_gains_no_energy_at_a_coarse_step():
     """Rope at dt = 0.02 (four times its config's): with the closed limits alone, 7 of 64
     trajectories gained energy, one 0.887 J within 1 s (0.19 J with the open limits that
     the velocities cross, but without the rounds that add those the correction makes
@@ -133,17 +122,17 @@ def test_the_rope_gains_no_energy_at_a_coarse_step(monkeypatch):
     system = dc.load_system("Rope", horizon=1.0, dt=0.02)
     z0 = system.sample_initial_conditions(64, seed=0)
 
-    def rise() -> tuple[float, float]:
+    def rise(system) -> tuple[float, float]:
         """The largest rise of ``E(t)`` over ``E(0)``, and the mean loss over 1 s."""
         energy = system.energy(system.simulate(z0))
         change = energy - energy[:, :1]
         return float(change.max()), -float(change[:, -1].mean())
 
-    rise_now, loss = rise()
+    rise_now, loss = rise(system)
     assert loss > 1.0  # the limits dissipate (about 1.7 J); the integrator's error is 2e-7 J
     assert rise_now < 1e-5 * loss
-    _without_step(monkeypatch)
-    assert rise()[0] > 0.1
+    closed_only = dc.load_system("Rope", horizon=1.0, dt=0.02, foresee_crossings=False)
+    assert rise(closed_only)[0] > 0.1
 
 
 def test_a_state_without_a_violated_limit_is_untouched():
@@ -262,6 +251,21 @@ def test_the_key_and_files_of_earlier_versions():
     ]
     positions_only = dump | {"velocity_projection": False}
     assert _differences({"config": old}, {"config": positions_only}) == []
+    # foresee_crossings: stored before it, off; an earlier dataset is reused only where it
+    # cannot matter (the velocities not projected)
+    assert dc.load_system("Rope").foresee_crossings is True
+    with pytest.raises(ValueError, match="foresee_crossings"):
+        dc.load_system("Rope", foresee_crossings=1)
+    unforeseen = {k: v for k, v in dump.items() if k != "foresee_crossings"}
+    assert stored_config(unforeseen)["foresee_crossings"] is False
+    assert dc.load_system(stored_config(unforeseen)).foresee_crossings is False
+    assert _differences({"config": unforeseen}, {"config": dump}) == [
+        "config.foresee_crossings (not recorded there, requested true)"
+    ]
+    positions_before = {k: v for k, v in positions_only.items() if k != "foresee_crossings"}
+    assert _differences({"config": positions_before}, {"config": positions_only}) == []
+    closed_only = dump | {"foresee_crossings": False}
+    assert _differences({"config": unforeseen}, {"config": closed_only}) == []
 
 
 def _rope_limits_script():

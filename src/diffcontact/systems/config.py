@@ -206,6 +206,10 @@ class _SystemBase(_Strict):
     # closed at the projected positions (which a step's impulse then treats as active);
     # false: the positions only, as before this key (the energy can then rise)
     velocity_projection: Annotated[bool, Field(strict=True)] = True
+    # with the velocities projected: also onto the inelastic limits (cor 0) still open at
+    # the projected positions that they would cross within the next step; false: the
+    # closed limits only, as before this key (a rope at coarse steps can then gain energy)
+    foresee_crossings: Annotated[bool, Field(strict=True)] = True
     dynamics: Literal["lagrangian", "hamiltonian"] = "lagrangian"
     # the fourth-order Runge-Kutta rule of the smooth dynamics: classic, or the 3/8 rule
     # (torchdiffeq's "rk4", used by the paper's released code)
@@ -597,6 +601,7 @@ STORED_BEFORE: dict[str, Any] = {
     "penetration_metric": "euclidean",
     "position_projection": 0,
     "velocity_projection": False,
+    "foresee_crossings": False,
 }
 """Keys added to the configs with a default unlike the behaviour before them: the value
 that a stored config without the key stands for."""
@@ -608,7 +613,8 @@ def stored_config(data: Any) -> Any:
     :data:`STORED_BEFORE` was written before that key existed and keeps the behaviour it
     was made with: ``penetration_metric`` appendix G's Euclidean target (the default
     became ``mass``), ``position_projection`` 0 (the rope's default became 10),
-    ``velocity_projection`` off (the default became on)."""
+    ``velocity_projection`` off (the default became on), ``foresee_crossings`` off (the
+    default became on)."""
     if isinstance(data, Mapping) and "type" in data:
         missing = {k: v for k, v in STORED_BEFORE.items() if k not in data}
         if missing:

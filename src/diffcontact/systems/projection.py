@@ -570,6 +570,7 @@ def _project(
 
     v_i = None
     if v is not None:  # the velocities onto the limits closed at the projected positions
+        # (and, given dt, the open ones they would cross within it)
         v_b = v if read_free is not None else v[b]
         gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)
         with torch.no_grad():
@@ -598,7 +599,8 @@ def _project(
         with torch.no_grad():
             selected = selected_by(v_b)
         # the corrected velocities can cross further open limits (the rows share points):
-        # those join the problem, solved again from v, until none is left
+        # those join the problem, solved again from v, until none is added (at most
+        # VELOCITY_ROUNDS solves; read-free: all of them)
         for round_ in range(VELOCITY_ROUNDS if dt is not None else 1):
             with torch.no_grad():
                 more = None

@@ -336,7 +336,8 @@ class System:
       (candidates K), ``d`` (contact-space dimension), ``contact_names``,
       ``geometry``, ``constraints``, ``dt``, ``horizon``, ``default_steps``,
       ``penetration_fraction``, ``penetration_metric`` (``"mass"`` or ``"euclidean"``),
-      ``position_projection``, ``velocity_projection``, ``dynamics``, ``integrator``
+      ``position_projection``, ``velocity_projection``, ``foresee_crossings``,
+      ``dynamics``, ``integrator``
       (``"rk4"`` or ``"rk4_38"``, the config's Runge-Kutta rule);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
@@ -356,6 +357,7 @@ class System:
         self.penetration_metric: str = cfg.penetration_metric
         self.position_projection: int = int(cfg.position_projection)
         self.velocity_projection: bool = bool(cfg.velocity_projection)
+        self.foresee_crossings: bool = bool(cfg.foresee_crossings)
         self.dynamics: str = cfg.dynamics
         self.integrator: str = cfg.integrator
         self.second_moments: Tensor | None = None
@@ -1228,7 +1230,8 @@ class System:
             "read_free": read_free,
         }
         if velocities:  # foreseeing the crossings of the inelastic limits within a step
-            x, v = project_state(x, v, *args, **kwargs, dt=self.dt, foresee=ctx.cor == 0)
+            dt = self.dt if self.foresee_crossings else None
+            x, v = project_state(x, v, *args, **kwargs, dt=dt, foresee=ctx.cor == 0)
         else:
             x = project_positions(x, *args, **kwargs)
         return torch.stack([x, v], dim=-3)
@@ -1289,9 +1292,10 @@ class System:
         (:mod:`diffcontact.systems.projection`), and then their velocities the smallest
         change in the mass metric that stops them from approaching the limits closed at
         the new positions, or crossing within the next step the inelastic ones still
-        open there (an inelastic impulse on those limits; unless ``velocities`` is false,
-        default the config's ``velocity_projection``). What :meth:`step` and
-        :meth:`simulate` do after the impulse when ``position_projection > 0``.
+        open there (with ``foresee_crossings``; an inelastic impulse on those limits;
+        unless ``velocities`` is false, default the config's ``velocity_projection``).
+        What :meth:`step` and :meth:`simulate` do after the impulse when
+        ``position_projection > 0``.
         Differentiable (the active set aside).
 
         Args:

@@ -64,6 +64,12 @@ ADDED_CONFIG_KEYS: dict[str, Callable[[dict[str, Any]], bool]] = {
     "velocity_projection": lambda config: (
         not config["velocity_projection"] or not config.get("position_projection")
     ),
+    # crossings are foreseen only where the velocities are projected
+    "foresee_crossings": lambda config: (
+        not config["foresee_crossings"]
+        or not config.get("velocity_projection")
+        or not config.get("position_projection")
+    ),
 }
 
 
