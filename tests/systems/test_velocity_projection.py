@@ -210,7 +210,7 @@ def test_the_step_treats_closed_limits_as_active():
     [({"rest_length": 1e-6}, "stretch band"), ({"max_angle": 1e-5}, "bending band")],
 )
 def test_a_rope_whose_bands_the_closed_gap_would_fill_is_refused(changes, named):
-    """"Closed" is an absolute gap (CLOSED): a rope of rest length 1e-6 had every stretch
+    """ "Closed" is an absolute gap (CLOSED): a rope of rest length 1e-6 had every stretch
     limit closed on both sides and froze its segments. Such a rope is refused, naming the
     band and the remedy; without the velocities' projection it loads."""
     with pytest.raises(ValueError, match=named) as info:
