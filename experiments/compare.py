@@ -210,14 +210,17 @@ MISMATCH_NOTES = (
 
 SCALABILITY_NOTES = (
     "A failed run is reported in the command's output and shows here as `not run`; so do "
-    "rows a stopped command did not reach. The --quick run of 2026-11-27 was stopped after "
-    "18 of its 24 runs; other work shared the CPU at times, so its times are upper bounds. "
-    "Its data are of the rope with its velocities projected after its positions "
-    "(docs/config.md, `velocity_projection`); in the run of 2026-11-24, on rope data made "
-    "before that, CM-CD-CLNN at N = 100 trained but its evaluation failed (the learned "
-    "model's contact solve did not converge for 1 of the 100 test trajectories).",
-    "On the 10-point rope the baselines' rollouts diverge (errors far above 1): with "
-    "batches of 200 chunks, N <= 200 is one optimiser step per epoch, 60 in all.",
+    "rows a stopped command did not reach. The --quick run of 2026-11-27 (the second of "
+    "that day) was stopped after 19 of its 24 runs; the test suites ran beside it, so its "
+    "times are upper bounds. Its data are of the rope whose velocities foresee the limits "
+    "they would cross (docs/config.md, `foresee_crossings`). In the first run of that day, "
+    "on data and code from before that, the baselines' rollouts diverged (MLP-CD-CLNN up "
+    "to 4e23, IN-CP-CLNN up to 8e2); in the run of 2026-11-24, on rope data made before the "
+    "velocities were projected at all, CM-CD-CLNN at N = 100 trained but its evaluation "
+    "failed (the learned model's contact solve did not converge for 1 of the 100 test "
+    "trajectories).",
+    "On the 10-point rope IN-SP-CP's rollouts diverge (errors above 1) at every N run; "
+    "with batches of 200 chunks, N <= 200 is one optimiser step per epoch, 60 in all.",
 )
 
 # ---------------------------------------------------------------- what to run

@@ -670,6 +670,30 @@ def _atomic_write(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
+STOP_GRACE = 30.0
+"""Seconds a stopped pool's workers get to write their checkpoints and exit (then they are
+told to stop again, and at last killed)."""
+
+
+def _workers(pool: ProcessPoolExecutor) -> list[Any]:
+    return list((getattr(pool, "_processes", None) or {}).values())
+
+
+def _end_workers(processes: list[Any], grace: float) -> None:
+    """After a stop: let the workers finish (their runs stop at a checkpoint), then stop
+    any still running (a job the pool had already handed to a worker when the stop came
+    starts anyway) the same way, and kill what is left."""
+    for attempt in range(2):
+        deadline = time.monotonic() + grace
+        for process in processes:
+            process.join(max(0.0, deadline - time.monotonic()))
+        left = [p for p in processes if p.is_alive()]
+        if not left:
+            return
+        for process in left:
+            process.terminate() if attempt == 0 else process.kill()
+
+
 @contextmanager
 def job_pool(jobs: int) -> Iterator[Any]:
     """An executor of ``jobs`` spawned worker processes (``--jobs 1``: this process).
@@ -677,6 +701,8 @@ def job_pool(jobs: int) -> Iterator[Any]:
     A SIGTERM to this process (``timeout``, a batch scheduler) is passed on to the
     workers, whose training runs then stop at a checkpoint as after Ctrl-C; before, the
     workers were left running, orphaned, and a rerun trained the same runs beside them.
+    A stop (SIGTERM, Ctrl-C) cancels the jobs not started: before, the workers, whose
+    training had stopped at a checkpoint, went on taking the queued runs.
     """
     if jobs == 1:
         yield _InlineExecutor()
@@ -684,14 +710,20 @@ def job_pool(jobs: int) -> Iterator[Any]:
     pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
 
     def stop(signum: int, _frame: Any) -> None:
-        for process in list((getattr(pool, "_processes", None) or {}).values()):
+        for process in _workers(pool):
             process.terminate()
         raise SystemExit(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        with pool:
-            yield pool
+        yield pool
+    except BaseException:
+        processes = _workers(pool)
+        pool.shutdown(wait=False, cancel_futures=True)  # no queued job starts
+        _end_workers(processes, STOP_GRACE)
+        raise
+    else:
+        pool.shutdown(wait=True)
     finally:
         signal.signal(signal.SIGTERM, previous)
 

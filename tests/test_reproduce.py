@@ -252,6 +252,61 @@ def test_sigterm_stops_the_worker_processes(tmp_path):
                 os.kill(pid, signal.SIGKILL)
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+def test_sigterm_starts_no_queued_job(tmp_path):
+    """The workers' training stops at a checkpoint on SIGTERM (a handler, not death), and
+    the workers then took the queued runs one after the other: a stopped compare.py went on
+    training (2026-11-27, the scalability run). Jobs not started are now cancelled; a job
+    the pool had already handed to a worker is stopped the same way after a grace period."""
+    script = tmp_path / "pool.py"
+    script.write_text(
+        "import signal, sys, time\n"
+        "from pathlib import Path\n"
+        f"sys.path.insert(0, {str(EXPERIMENTS)!r})\n"
+        "import reproduce\n"
+        "reproduce.STOP_GRACE = 2.0\n"
+        "def job(k, folder):\n"
+        "    Path(folder, f'started-{k}').write_text('')\n"
+        "    def stop(signum, frame):\n"
+        "        raise RuntimeError('stopped at a checkpoint')\n"
+        "    signal.signal(signal.SIGTERM, stop)\n"
+        "    try:\n"
+        "        time.sleep(120)\n"
+        "    finally:\n"
+        "        signal.signal(signal.SIGTERM, signal.SIG_DFL)\n"
+        "if __name__ == '__main__':\n"
+        "    folder = sys.argv[1]\n"
+        "    with reproduce.job_pool(2) as pool:\n"
+        "        futures = [pool.submit(job, k, folder) for k in range(6)]\n"
+        "        while len(list(Path(folder).glob('started-*'))) < 2:\n"
+        "            time.sleep(0.1)\n"
+        "        print(' '.join(map(str, pool._processes)), flush=True)\n"
+        "        for fut in futures:\n"
+        "            fut.result()\n"
+    )
+    folder = tmp_path / "jobs"
+    folder.mkdir()
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(folder)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        assert len(workers) == 2
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 20
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(_alive(p) for p in workers)
+        # the two running, and at most the one the pool had queued to a worker
+        assert len(list(folder.glob("started-*"))) <= 3
+    finally:
+        proc.kill()
+        for pid in locals().get("workers", []):
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def test_inline_jobs_run_one_by_one_as_they_are_reached(repro):
     """--jobs 1 ran every job at submission, so the caller stored no result until all had
     run (an interrupted command left nothing to report)."""
