@@ -235,7 +235,13 @@ def test_sigterm_stops_the_worker_processes(tmp_path):
         "        print(' '.join(map(str, pool._processes)), flush=True)\n"
         "        futures[0].result()\n"
     )
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    _stop_and_check([sys.executable, str(script)])
+
+
+def _stop_and_check(command: list[str]) -> None:
+    """Run ``command`` (a pool script printing its two workers' pids once they work),
+    SIGTERM it: it must exit with 128 + SIGTERM within 60 s, its workers within 20 s more."""
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
     try:
         workers = [int(p) for p in proc.stdout.readline().split()]
         assert len(workers) == 2 and all(_alive(p) for p in workers)
@@ -286,25 +292,9 @@ def test_sigterm_starts_no_queued_job(tmp_path):
     )
     folder = tmp_path / "jobs"
     folder.mkdir()
-    proc = subprocess.Popen(
-        [sys.executable, str(script), str(folder)], stdout=subprocess.PIPE, text=True
-    )
-    try:
-        workers = [int(p) for p in proc.stdout.readline().split()]
-        assert len(workers) == 2
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
-        deadline = time.monotonic() + 20
-        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert not any(_alive(p) for p in workers)
-        # the two running, and at most the one the pool had queued to a worker
-        assert len(list(folder.glob("started-*"))) <= 3
-    finally:
-        proc.kill()
-        for pid in locals().get("workers", []):
-            if _alive(pid):
-                os.kill(pid, signal.SIGKILL)
+    _stop_and_check([sys.executable, str(script), str(folder)])
+    # the two running, and at most the one the pool had queued to a worker
+    assert len(list(folder.glob("started-*"))) <= 3
 
 
 def test_inline_jobs_run_one_by_one_as_they_are_reached(repro):
