@@ -752,14 +752,18 @@ def test_trailing_inactive_contacts_are_trimmed_exactly():
 
 def test_split_follows_the_faster_mode(monkeypatch):
     """The batch split is used while it is faster per unit of work than one core and left
-    while a busy core makes it slower, probing the other mode every _PROBE_EVERY calls."""
+    while a busy core makes it slower, probing the other mode every _PROBE_EVERY calls.
+    The durations come from a fake clock that the main thread's part advances (real sleeps
+    made the test fail on a loaded machine)."""
     import threading
-    import time
+    import types
 
     monkeypatch.setattr(fused, "_cores", lambda: 2)
     monkeypatch.setattr(fused, "_split_state", {})
     monkeypatch.setattr(fused, "_PROBE_EVERY", 4)
     monkeypatch.setattr(fused, "_EMA", 1.0)  # the latest measurement decides
+    clock = {"now": 0.0}
+    monkeypatch.setattr(fused, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"]))
     modes, busy = [], {"pool": 0.0}
 
     def run(first, count):
@@ -768,7 +772,8 @@ def test_split_follows_the_faster_mode(monkeypatch):
             modes.append("single")
         elif main:
             modes.append("split")
-        time.sleep(0.01 * count / 10 if main else busy["pool"])
+        if main:  # a split call lasts as long as its slower part (the pool's when busy)
+            clock["now"] += max(0.01 * count / 10, busy["pool"] if count < 10 else 0.0)
 
     parts = [(0, 5), (5, 5)]
     for _ in range(8):  # idle: the split takes half the time
