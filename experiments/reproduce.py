@@ -691,7 +691,10 @@ def _end_workers(processes: list[Any], grace: float) -> None:
         if not left:
             return
         for process in left:
-            process.terminate() if attempt == 0 else process.kill()
+            if attempt == 0:
+                process.terminate()
+            else:
+                process.kill()
 
 
 @contextmanager

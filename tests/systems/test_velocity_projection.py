@@ -116,9 +116,7 @@ def test_only_the_inelastic_limits_are_foreseen():
 
 def test_the_rope_gains_no_energy_at_a_coarse_step():
     """Rope at dt = 0.02 (four times its config's): with the closed limits alone, 7 of 64
-    trajectories gained energy, one 0.887 J within 1 s (0.19 J with the open limits that
-    the velocities cross, but without the rounds that add those the correction makes
-    them cross)."""
+    trajectories gained energy, one 0.887 J within 1 s."""
     system = dc.load_system("Rope", horizon=1.0, dt=0.02)
     z0 = system.sample_initial_conditions(64, seed=0)
 
