@@ -3,6 +3,7 @@
     python experiments/rope_limits.py [--task Rope-D200] [--horizon 5] [--n 2]
                                       [--dt 0.01 0.005 0.0025] [--fraction 0.125]
                                       [--projection 10] [--positions-only]
+                                      [--tip-mass 100] [--undamped]
 
 The rope's limits (each segment within ``[min_ratio, max_ratio]`` of its rest length,
 each joint's bend within ``+-max_angle``; docs/config.md) are inelastic contacts
@@ -12,11 +13,14 @@ resolved at the velocity level. Without a position-level correction
 ``position_projection: 10``) the positions are projected back onto the limits after
 every step (systems/projection.py), and the velocities onto the limits closed there
 (``velocity_projection``; ``--positions-only`` adds runs without it, the behaviour
-before that key, whose energy can rise). This script simulates ``--n`` trajectories over
-``--horizon`` seconds for every time step, once per setting, and prints the largest
-and smallest segment-length ratio, the largest bend beyond ``max_angle`` (radians),
-the energy change (mean over trajectories of ``E(T) - E(0)``, and the largest rise
-``max_t E(t) - E(0)``), and the wall time.
+before that key, whose energy can rise). ``--tip-mass`` sets the last point's mass (a rope
+with a heavy end; the other points keep the config's), and ``--undamped`` adds runs whose
+projection takes plain Gauss-Newton steps (``projection.DAMPING = 0``, the behaviour
+before the damping; systems/projection.py, "Damping"). This script simulates ``--n``
+trajectories over ``--horizon`` seconds for every time step, once per setting, and
+prints the largest and smallest segment-length ratio, the largest bend beyond
+``max_angle`` (radians), the energy change (mean over trajectories of ``E(T) - E(0)``,
+and the largest rise ``max_t E(t) - E(0)``), and the wall time.
 """
 
 from __future__ import annotations
@@ -69,6 +73,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--positions-only", action="store_true",
         help="also run each projection setting without the velocities' projection",
     )  # fmt: skip
+    parser.add_argument(
+        "--tip-mass", type=float, default=None,
+        help="the last point's mass (default: the config's)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--undamped", action="store_true",
+        help="also run each projection setting with plain Gauss-Newton steps",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if not all(math.isfinite(v) and v > 0 for v in args.dt):
         parser.error(f"--dt must be positive numbers, got {args.dt}")
@@ -78,8 +90,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--n must be at least 1 and --horizon a positive number")
     if any(k < 1 for k in args.projection):
         parser.error(f"--projection must be at least 1 iteration, got {args.projection}")
+    if args.tip_mass is not None and not (math.isfinite(args.tip_mass) and args.tip_mass > 0):
+        parser.error(f"--tip-mass must be a positive number, got {args.tip_mass:g}")
     from diffcontact.cli_args import one_line
-    from diffcontact.systems import load_config
+    from diffcontact.systems import load_config, projection
 
     try:
         cfg = load_config(args.task)
@@ -87,24 +101,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--task {args.task}: {one_line(err)}")
     if not hasattr(cfg, "min_ratio"):
         parser.error(f"--task {args.task}: not a rope (a task with segment limits)")
+    masses = {}
+    if args.tip_mass is not None:
+        mass = cfg.mass if isinstance(cfg.mass, list) else [cfg.mass] * cfg.n_points
+        masses = {"mass": [*mass[:-1], args.tip_mass]}
     for dt in args.dt:  # every time step, before the first is simulated
         try:
             load_config(args.task, dt=dt, horizon=args.horizon)
         except ValueError as err:
             parser.error(f"--dt {dt:g} with --horizon {args.horizon:g}: {one_line(err)}")
     torch.set_num_threads(1)
-    base = dc.load_system(args.task)
+    base = dc.load_system(args.task, **masses)
     cfg = base.config
+    tip = "" if not masses else f"; tip mass {args.tip_mass:g} (the others' {cfg.mass[0]:g})"
     print(
         f"{args.task}: {args.n} trajectories x {args.horizon:g} s; limits: ratio "
-        f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad"
+        f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad{tip}"
     )
     print(
         f"{'dt':>7} {'setting':>16} {'steps':>5} {'max ratio':>10} {'min ratio':>9} "
         f"{'max bend-lim':>12} {'mean dE':>9} {'max rise':>9} {'s':>5}"
     )
-    # (label, config keys, simulate options)
+    # (label, config keys, simulate options[, projection.DAMPING])
     settings = [(f"projection {k}", {}, {"position_projection": k}) for k in args.projection]
+    if args.undamped:
+        settings += [
+            (f"undamped {k}", {}, {"position_projection": k}, 0.0) for k in args.projection
+        ]
     if args.positions_only:
         settings += [
             (f"positions only {k}", {"velocity_projection": False}, {"position_projection": k})
@@ -115,13 +138,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         for f in args.fraction
     ]
     for dt in args.dt:
-        for label, keys, options in settings:
-            system = dc.load_system(args.task, dt=dt, horizon=args.horizon, **keys)
+        for label, keys, options, *damping in settings:
+            system = dc.load_system(args.task, dt=dt, horizon=args.horizon, **masses, **keys)
             z0 = system.sample_initial_conditions(args.n, seed=0)
             steps = round(args.horizon / dt)
-            start = time.perf_counter()
-            traj = system.simulate(z0, steps, on_tunnelling="ignore", **options)
-            seconds = time.perf_counter() - start
+            default = projection.DAMPING
+            projection.DAMPING = damping[0] if damping else default
+            try:
+                start = time.perf_counter()
+                traj = system.simulate(z0, steps, on_tunnelling="ignore", **options)
+                seconds = time.perf_counter() - start
+            finally:
+                projection.DAMPING = default
             r = segment_ratios(system, traj)
             bend = bending_excess(system, traj)
             E = system.energy(traj)

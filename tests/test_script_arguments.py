@@ -152,6 +152,8 @@ BAD = [
     ("rope_limits", ["--task", "Nope"], "--task Nope"),
     ("rope_limits", ["--task", "BP5"], "--task BP5"),
     ("rope_limits", ["--task", "Rope", "--horizon", "0.02", "--dt", "0.01", "0.003"], "--dt"),
+    ("rope_limits", ["--task", "Rope", "--tip-mass", "0"], "--tip-mass"),
+    ("rope_limits", ["--task", "Rope", "--tip-mass", "nan"], "--tip-mass"),
     ("velocity_jumps", ["--n", "0"], "--n"),
     ("velocity_jumps", ["--seed", "-1"], "--seed"),
     ("solver", ["--contacts", "0"], "--contacts"),

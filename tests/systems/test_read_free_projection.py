@@ -53,6 +53,23 @@ def test_the_read_free_projection_gives_the_reading_ones_positions(task):
     assert bool(few.overflowed) and int(few.needed) == int(read_free.needed)
 
 
+def test_the_read_free_projection_damps_as_the_reading_one(monkeypatch):
+    """A rope with a heavy tip, whose states' iterations damp (projection.DAMPING)."""
+    from diffcontact.systems import projection
+
+    system = dc.load_system("Rope", mass=[0.1] * 9 + [30.0], dt=0.01)
+    z0 = system.sample_initial_conditions(16, seed=0)
+    traj = system.simulate(z0, 20, position_projection=0, on_tunnelling="ignore")
+    x = traj[:, -1, 0]
+    geometry, M_inv = system.geometry, system.inverse_mass_matrix()
+    want = project_positions(x, geometry, M_inv, 10)
+    got = project_positions(x, geometry, M_inv, 10, read_free=_read_free(64, system))
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    monkeypatch.setattr(projection, "DAMPING", 0.0)
+    undamped = project_positions(x, geometry, M_inv, 10)
+    assert float((undamped - want).abs().max()) > 1e-4  # the damping took part
+
+
 def test_the_read_free_projection_keeps_equality_constraints():
     """Disks pushed into a wall (block mass matrix, rigid-body constraints)."""
     system, traj = _violating_states("BD5", 6, 40)

@@ -31,6 +31,16 @@ def bending_angles(x: torch.Tensor) -> torch.Tensor:
     return torch.atan2(cross, (a * b).sum(-1))
 
 
+def assert_limits_hold(system, x: torch.Tensor, tol: float = 1e-8) -> None:
+    """Every gap of positions ``x: (..., P, 2)`` above ``-tol``, segment ratios and bends
+    within the config's limits."""
+    cfg = system.config
+    assert float(system.gaps(x).min()) > -tol
+    r = segment_ratios(system, x)
+    assert float(r.max()) <= cfg.max_ratio + tol and float(r.min()) >= cfg.min_ratio - tol
+    assert float(bending_angles(x).abs().max()) <= cfg.max_angle + tol
+
+
 def test_defaults_and_validation():
     assert dc.load_system("Rope").position_projection == 10
     assert dc.load_system("Rope-D200").position_projection == 10
@@ -55,11 +65,7 @@ def test_rope_limits_hold_over_a_long_simulation():
     cfg = system.config
     z0 = system.sample_initial_conditions(4, seed=0)
     traj = system.simulate(z0, 100, on_tunnelling="ignore")
-    x = traj[:, :, 0]
-    assert float(system.gaps(x).min()) > -1e-8
-    r = segment_ratios(system, x)
-    assert float(r.max()) <= cfg.max_ratio + 1e-8 and float(r.min()) >= cfg.min_ratio - 1e-8
-    assert float(bending_angles(x).abs().max()) <= cfg.max_angle + 1e-8
+    assert_limits_hold(system, traj[:, :, 0])
     # the same rollout without it leaves the limits far behind: the test can fail
     loose = system.simulate(z0, 100, on_tunnelling="ignore", position_projection=0)
     r0 = segment_ratios(system, loose[:, :, 0])
@@ -248,3 +254,85 @@ def test_the_projection_takes_any_minimiser_with_the_canonical_ones_positions(mo
     assert all(canonical for canonical, _ in calls)
     torch.testing.assert_close(traj, canonical, rtol=0, atol=1e-10)
     assert iterations_any < sum(it for _, it in calls)
+
+
+def _heavy_tip(tip: float, **keys):
+    """The 10-point Rope with its last point ``tip`` kg (the others 0.1 kg)."""
+    return dc.load_system("Rope", mass=[0.1] * 9 + [tip], **keys)
+
+
+def test_a_heavy_tip_keeps_the_limits(monkeypatch):
+    """A tip 300x the other points: the damped iterations keep the limits, and the energy
+    does not rise; plain Gauss-Newton steps stalled and the rope stretched to 3x."""
+    from diffcontact.systems import projection
+
+    system = _heavy_tip(30.0, dt=0.01, horizon=1.0)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    traj = system.simulate(z0, 100, on_tunnelling="ignore")
+    assert_limits_hold(system, traj[:, :, 0])
+    E = system.energy(traj)
+    assert float((E - E[:, :1]).max()) < 1e-6
+    # without the damping (a zero DAMPING never damps) the projection stalls
+    monkeypatch.setattr(projection, "DAMPING", 0.0)
+    stalled = system.simulate(z0, 100, on_tunnelling="ignore")
+    assert float(segment_ratios(system, stalled[:, :, 0]).max()) > 2.0
+
+
+def test_equal_point_masses_are_not_damped(monkeypatch):
+    """Their damped metric is the masses' times a number: the same steps, so they take
+    the undamped iterations' exact positions."""
+    from diffcontact.systems import projection
+
+    system = dc.load_system("Rope", dt=0.01)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    traj = system.simulate(z0, 40, on_tunnelling="ignore")
+    monkeypatch.setattr(projection, "DAMPING", 0.0)
+    assert torch.equal(system.simulate(z0, 40, on_tunnelling="ignore"), traj)
+    # ... but the damped metric is used: the masses' times a number
+    w = torch.full((3, 5), 10.0, dtype=F64)
+    damped = projection._damped(w, torch.tensor([0.0, 1.0, 100.0], dtype=F64), True)
+    torch.testing.assert_close(damped, w / torch.tensor([[1.0], [2.0], [101.0]], dtype=F64))
+
+
+def test_the_damped_metric_of_a_matrix_is_that_of_its_diagonal():
+    """``(M + rho mbar I)^-1`` from a full ``M_inv`` and from the diagonal of point masses."""
+    from diffcontact.systems.projection import _damped
+
+    w = torch.tensor([[10.0, 10.0, 0.01], [1.0, 2.0, 4.0]], dtype=F64)
+    rho = torch.tensor([3.0, 0.0], dtype=F64)
+    want = _damped(w, rho, True)  # (2, 3)
+    mbar = (1 / w[0]).mean()
+    torch.testing.assert_close(want[0], 1 / (1 / w[0] + 3.0 * mbar))
+    torch.testing.assert_close(want[1], w[1])  # rho = 0: the masses' metric
+    got = _damped(torch.diag_embed(w), rho, False)
+    torch.testing.assert_close(got, torch.diag_embed(want))
+
+
+def test_gradient_through_a_damped_projection(monkeypatch):
+    """A heavy-tip step whose projection damps: autograd against finite differences.
+
+    The line search's step lengths and the damping are discrete choices; the state is one
+    whose choices stay put under the finite differences' perturbation (many heavy-tip
+    states are near a switch, as the undamped projection's are near one of the line
+    search's)."""
+    from diffcontact.systems import projection
+
+    system = _heavy_tip(30.0, dt=0.01)
+    z0 = system.sample_initial_conditions(4, seed=0)
+    z = system.simulate(z0, 22, on_tunnelling="ignore")[1:2, -1]
+    with torch.no_grad():
+        gaps = system.gaps(system.step(z, position_projection=0)[:, 0])
+        damped = system.step(z)
+        monkeypatch.setattr(projection, "DAMPING", 0.0)
+        undamped = system.step(z)
+        monkeypatch.undo()
+    assert float((damped - undamped).abs().max()) > 1e-5, "the step's projection must damp"
+    assert float(gaps.abs().min()) > 1e-5  # the active set stays put under perturbation
+    base = system.parameters()
+
+    def step(mass, stiffness, z):
+        return system.step(z, params=base.replace(mass=mass, stiffness=stiffness))
+
+    inputs = [base.mass.detach().clone(), base.stiffness.detach().clone(), z]
+    results = assert_gradients_close(step, inputs, n_directions=2, rtol=1e-4)
+    assert all(float(r.finite_difference.abs().max()) > 0 for r in results)

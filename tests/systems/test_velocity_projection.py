@@ -299,6 +299,22 @@ def test_rope_limits_script_compares_with_the_positions_only(capsys):
         assert exit_info.value.code == 2
 
 
+def test_rope_limits_script_compares_a_heavy_tip_with_the_undamped_projection(capsys):
+    """experiments/rope_limits.py --tip-mass 100 --undamped (docs/config.md, "Heavy tips"):
+    the damped projection keeps the limits, the undamped one lets the rope stretch."""
+    from diffcontact.systems import projection
+
+    script = _rope_limits_script()
+    argv = ["--task", "Rope", "--horizon", "0.5", "--dt", "0.01", "--n", "2"]
+    assert script.main([*argv, "--tip-mass", "100", "--undamped"]) == 0
+    out = capsys.readouterr().out
+    assert "tip mass 100 (the others' 0.1)" in out.splitlines()[0]
+    rows = {" ".join(line.split()[1:-7]): line.split()[-6] for line in out.splitlines()[2:]}
+    assert set(rows) == {"projection 10", "undamped 10", "fraction 0.125"}
+    assert float(rows["projection 10"]) < 1.2 + 1e-8 < 1.5 < float(rows["undamped 10"])
+    assert projection.DAMPING == 1.0  # put back after the undamped rows
+
+
 def test_long_ropes_keep_their_limits_at_a_coarse_step():
     """Rope-D200 (100 points) at dt = 0.01 for 1 s: with the positions' projection alone
     the whipping rope's violations outgrew the iterations (stretch ratios up to 2.8 within

@@ -41,6 +41,22 @@ Making it robust on a whipping rope (violations of 0.1-0.4 rad per step at
 - a backtracking line search over :data:`STEPS` keeps the step with the least
   violation (``0`` if none improves).
 
+Damping. Where the masses differ a lot (a rope with a heavy tip), the Gauss-Newton step
+stalls: a taut chain can only shorten by moving its heavy end, but the linearised limits
+offer a cheap way through the light points, sideways, which the limits' curvature does
+not allow (moving a joint onto the chord of its neighbours shortens both segments to
+first order only). The full step then throws the light points far, and no step of the
+line search reduces the violation (a tip 1000 times the other points stretched Rope's
+segments to 5 times their rest length at dt = 0.01). A state whose line search
+backtracks therefore iterates in the damped metric ``M + rho mbar I`` (``mbar`` its mean
+point mass): ``rho`` starts at :data:`DAMPING`, and each backtracked step multiplies it
+by :data:`DAMPING_FACTOR`, each full step divides it, as in Levenberg-Marquardt. The
+isotropic term charges the light points' sideways motion as the curvature of a taut
+segment does (in proportion to its tension, whatever the points' masses). With equal
+point masses the damped metric is the masses' times a number (the same steps), and such
+states are not damped. A damped state's projected positions are admissible like the
+others', but not those of the iterations in the mass metric.
+
 With the positions projected alone, the per-step violations of a long whipping rope
 (Rope-D200 at ``dt = 0.01``) grew beyond what the iterations resolve; with the velocities
 projected too (below) the limits hold there (docs/config.md, ``rope``).
@@ -125,6 +141,11 @@ __all__ = ["ReadFree", "project_positions", "project_state"]
 
 STEPS = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Step lengths tried along each Gauss-Newton direction (the one with the least violation wins)."""
+DAMPING = 1.0
+"""The damping ``rho`` a state's metric gets at its first backtracked step (module
+docstring, "Damping"), in units of its mean point mass."""
+DAMPING_FACTOR = 10.0
+"""A backtracked step multiplies a state's damping by this, a full step divides it."""
 MARGIN = 0.25
 """A limit enters an iteration's problem once its distance (mass metric) is below
 ``MARGIN`` times the state's largest violation: the limits a correction can reach
@@ -245,15 +266,36 @@ def _metric_norms(
     return (gram * w).sum((-1, -2)).clamp_min(0).sqrt()
 
 
-def _minv_rows(rows: Tensor, Minv_b: Tensor, P: int, dim: int, diagonal: bool) -> Tensor:
+def _damped(masses: Tensor, damping: Tensor, diagonal: bool) -> Tensor:
+    """The metric of a damped iteration, ``(M + rho mbar I)^-1`` per state (``mbar`` the mean
+    of ``M``'s diagonal, ``rho = damping: (n,)``), from the masses' metric ``masses``:
+    ``M_inv``, ``(P, P)`` or ``(n, P, P)``, or with ``diagonal`` its diagonal, ``(P,)`` or
+    ``(n, P)``. Returns ``(n, P, P)``, or ``(n, P)`` with ``diagonal``; where ``rho = 0``,
+    ``masses`` itself."""
+    n = damping.shape[0]
+    rho = damping.to(masses)
+    if diagonal:
+        w = masses.expand(n, masses.shape[-1])  # (n, P)
+        mbar = w.reciprocal().mean(-1, keepdim=True)
+        return w / (1 + rho[:, None] * mbar * w)  # the same w where rho = 0
+    Mi = masses.expand(n, *masses.shape[-2:])
+    M = torch.linalg.inv(Mi)
+    mbar = M.diagonal(dim1=-2, dim2=-1).mean(-1)
+    eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+    damped = torch.linalg.inv(M + (rho * mbar)[:, None, None] * eye)
+    return torch.where(rho[:, None, None] > 0, damped, Mi)
+
+
+def _minv_rows(rows: Tensor, metric: Tensor, P: int, dim: int, diagonal: bool) -> Tensor:
     """``rows M^-1`` for ``rows: (n, R, P * dim)``, ``M^-1 = kron(M_inv, I_dim)`` (symmetric;
-    ``Minv_b: (P, P)`` or ``(n, P, P)``; ``diagonal``: point masses, no dense product)."""
+    ``metric``: ``M_inv``, ``(P, P)`` or ``(n, P, P)``, or with ``diagonal`` (point masses,
+    no dense product) its diagonal, ``(P,)`` or ``(n, P)``)."""
     r = rows.reshape(*rows.shape[:-1], P, dim)
     if diagonal:
-        w = Minv_b.diagonal(dim1=-2, dim2=-1)
+        w = metric
         out = r * (w[:, None, :, None] if w.dim() == 2 else w[:, None])
     else:
-        Mi = Minv_b if Minv_b.dim() == 3 else Minv_b.unsqueeze(0)
+        Mi = metric if metric.dim() == 3 else metric.unsqueeze(0)
         out = torch.einsum("nrpd,nqp->nrqd", r, Mi.expand(rows.shape[0], P, P))
     return out.reshape(rows.shape)
 
@@ -262,7 +304,7 @@ def _smallest_correction(
     rows: SparseJacobian,
     mask: Tensor,
     rhs: Tensor,
-    Minv_b: Tensor,
+    metric: Tensor,
     *,
     diagonal: bool,
     sparse: bool,
@@ -270,19 +312,21 @@ def _smallest_correction(
     Mh: Tensor | None = None,
     base: Tensor | None = None,
 ) -> Tensor:
-    """The smallest correction in the mass metric that meets ``R`` linear rows:
-    ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= 0} 0.5 lambda^T A lambda +
-    lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh`` (``Mhat^-1``, with equality
-    constraints) or ``M^-1``: the frictionless cone QP of one projection iteration
-    (``rhs`` the gaps) or of the velocity projection (``rhs = J v``).
+    """The smallest correction in a metric (the masses', or a damped iteration's) that
+    meets ``R`` linear rows: ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= 0} 0.5
+    lambda^T A lambda + lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh``
+    (``Mhat^-1``, with equality constraints) or ``kron(metric, I_dim)``: the frictionless
+    cone QP of one projection iteration (``rhs`` the gaps) or of the velocity projection
+    (``rhs = J v``).
 
     Args:
         rows: the rows' sparse entries, ``points (n, R, m)`` and ``values (n, R, 1, m,
             dim)``, signed and zero on padded rows.
         mask: ``(n, R)`` bool, the real rows.
         rhs: ``(n, R)``.
-        Minv_b: ``(P, P)`` or ``(n, P, P)`` inverse mass matrix over points.
-        diagonal: point masses (a diagonal ``Minv_b``).
+        metric: ``W``'s inverse mass matrix over points, ``(P, P)`` or ``(n, P, P)``, or
+            with ``diagonal`` its diagonal, ``(P,)`` or ``(n, P)``.
+        diagonal: point masses (``metric`` is the diagonal).
         sparse: ``A`` from the rows' entries where large (point masses, Warp on the CPU).
         settings: the cone QP's settings.
         Mh: ``(n, D, D)`` ``Mhat^-1`` with equality constraints, else ``None``.
@@ -292,14 +336,14 @@ def _smallest_correction(
         ``(n, P, dim)``.
     """
     n, R = mask.shape
-    P, dim = Minv_b.shape[-1], rows.values.shape[-1]
+    P, dim = metric.shape[-1], rows.values.shape[-1]
     D = P * dim
     values, root = rows.values, None
     if diagonal and Mh is None:
         # point masses: the rows scaled by sqrt(M^-1), J_s = J M^-1/2, so that A = J_s J_s^T
         # and the correction M^-1 J^T lambda = M^-1/2 J_s^T lambda need only J_s, not J and
         # J M^-1 (scaled on the few sparse entries, not on dense rows)
-        root = Minv_b.diagonal(dim1=-2, dim2=-1).sqrt()  # (P,) or (n, P)
+        root = metric.sqrt()  # (P,) or (n, P)
         values = values * at_points(root, rows.points)[:, :, None, :, None]
     if root is not None and sparse and n * R * D >= MIN_DENSE_SIZE:
         # A = J_s J_s^T from the rows' few entries (sparse_gram): no dense rows
@@ -312,7 +356,7 @@ def _smallest_correction(
         elif Mh is not None:
             JM = J @ Mh  # (n, R, D)
         else:
-            JM = _minv_rows(J, Minv_b, P, dim, diagonal)
+            JM = _minv_rows(J, metric, P, dim, diagonal)
         A = JM @ J.transpose(-1, -2)
         A = 0.5 * (A + A.transpose(-1, -2))
     if base is not None:
@@ -502,27 +546,44 @@ def _project(
     # point masses on the CPU with Warp: A = J_s J_s^T and J_s^T lambda from the rows' entries
     sparse = bool(diagonal) and phi0 is None and sparse_gram_available(settings, x.dtype, x.device)
 
+    # the masses' metric: M_inv, or its diagonal for point masses
+    masses = Minv_b.diagonal(dim1=-2, dim2=-1) if diagonal else Minv_b
+    with torch.no_grad():  # (n,) damping changes the steps of these states only (not of
+        # equal point masses, whose damped metric is the masses' times a number)
+        uneven = (masses != masses[..., :1]).any(-1) if diagonal else x.new_ones((), dtype=bool)
+        uneven = uneven.expand(x_pred.shape[0])
+
     def correction(
-        rows: SparseJacobian, mask: Tensor, rhs: Tensor, x_at: Tensor, base: bool
+        rows: SparseJacobian,
+        mask: Tensor,
+        rhs: Tensor,
+        x_at: Tensor,
+        base: bool,
+        metric: Tensor = masses,
     ) -> Tensor:
-        """:func:`_smallest_correction` at positions ``x_at`` (``base``: with the equality
-        constraints' drift back to ``phi0``)."""
+        """:func:`_smallest_correction` at positions ``x_at`` in ``metric`` (``base``: with
+        the equality constraints' drift back to ``phi0``)."""
         Mh = drift = None
         if phi0 is not None:
             # Mhat^-1 keeps the correction tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1
             # J_E^T)^-1 r takes Phi back to its value at x_pred
             J_E = constraints.jacobian(x_at)  # (n, E, D)
-            Mh = Mhat_inv(Minv_b, J_E)
+            Mh = Mhat_inv(torch.diag_embed(metric) if diagonal else metric, J_E)
             if base:
                 r = (constraints.phi(x_at) - phi0).unsqueeze(-1)  # (n, E, 1)
-                B = _minv_rows(J_E, Minv_b, P, dim, bool(diagonal)).transpose(-1, -2)
+                B = _minv_rows(J_E, metric, P, dim, bool(diagonal)).transpose(-1, -2)
                 drift = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
         return _smallest_correction(
-            rows, mask, rhs, Minv_b, diagonal=bool(diagonal), sparse=sparse,
+            rows, mask, rhs, metric, diagonal=bool(diagonal), sparse=sparse,
             settings=any_minimiser, Mh=Mh, base=drift,
         )  # fmt: skip
 
     x_i = x_pred
+    # (n,) each state's damping rho of the metric (module docstring, "Damping"): zero until
+    # its line search first backtracks; whether an iteration computes the damped metric
+    # (reading: once a state has damping; read-free: always, the same steps)
+    damping = x.new_zeros(x_pred.shape[0])
+    damp = read_free is not None
     dist = None  # after the first iteration: the line search's distances at x_i
     going = None  # after the first iteration: (n,) bool, the states not converged yet
     for it in range(iterations):
@@ -542,7 +603,8 @@ def _project(
                 going = left if going is None else going & left
                 R = torch.where(going, rows.sum(-1), 0).max()
                 if read_free is None:  # one read
-                    left, R = torch.stack([going.any().to(R), R]).tolist()
+                    damped = (damping > 0).any().to(R)
+                    left, R, damp = torch.stack([going.any().to(R), R, damped]).tolist()
                     if not left:
                         break  # converged (the line search's gaps said so: no evaluation more)
             if read_free is not None:  # the padded rows; the count they had to hold
@@ -553,7 +615,8 @@ def _project(
             gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)  # with the graph
         taken, idx, mask = signed_rows(rows_i, mask_rows, int(R))
         gap = row_gaps(gaps_raw).gather(-1, idx)  # (n, R)
-        dx = correction(taken, mask, gap, x_i, base=True)
+        metric = _damped(masses, damping, bool(diagonal)) if damp else masses
+        dx = correction(taken, mask, gap, x_i, base=True, metric=metric)
         with torch.no_grad():  # backtracking: the step length with the least violation
             trial = x_i.detach() + steps[:, None, None, None] * dx.detach()  # (S, n, P, dim)
             trial_dist = row_gaps(geometry.gaps(trial)) / scale_rows  # (S, n, R_all)
@@ -561,6 +624,11 @@ def _project(
             merit = trial_dist.amin(-1).neg().clamp_min(0)  # (S, n)
             choice = merit.argmin(0)  # (n,)
             best = steps[choice]
+            # a state whose line search backtracked raises its damping, one that took the
+            # full step lowers it
+            backtracked = (choice > 0) & uneven
+            raised = torch.clamp_min(damping * DAMPING_FACTOR, DAMPING)
+            damping = torch.where(backtracked, raised, damping / DAMPING_FACTOR)
             # limits that a trial step crossed join the next iteration's problem
             mask_rows = mask_rows | (trial_dist.amin(0) < 0)
             # the distances at the chosen step: the next iteration's convergence test
@@ -627,7 +695,7 @@ def _project(
                 gap = row_gaps(gaps_raw).gather(-1, idx)  # (n, R)
                 open_ = gap.detach() >= closed_below(x.dtype)
                 approach = approach + torch.where(open_, gap / dt, torch.zeros_like(gap))
-            v_i = v_b + correction(taken, mask, approach, x_i, base=False)
+            v_i = v_b + correction(taken, mask, approach, x_i, base=False)  # the masses' metric
     if read_free is not None:
         keep = has[:, None, None]
         return torch.where(keep, x_i, x), None if v_i is None else torch.where(keep, v_i, v)
