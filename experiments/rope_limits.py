@@ -3,7 +3,7 @@
     python experiments/rope_limits.py [--task Rope-D200] [--horizon 5] [--n 2]
                                       [--dt 0.01 0.005 0.0025] [--fraction 0.125]
                                       [--projection 10] [--positions-only]
-                                      [--tip-mass 100] [--undamped]
+                                      [--tip-mass 100] [--undamped] [--cor 0.5]
 
 The rope's limits (each segment within ``[min_ratio, max_ratio]`` of its rest length,
 each joint's bend within ``+-max_angle``; docs/config.md) are inelastic contacts
@@ -16,7 +16,8 @@ every step (systems/projection.py), and the velocities onto the limits closed th
 before that key, whose energy can rise). ``--tip-mass`` sets the last point's mass (a rope
 with a heavy end; the other points keep the config's), and ``--undamped`` adds runs whose
 projection takes plain Gauss-Newton steps (``projection.DAMPING = 0``, the behaviour
-before the damping; systems/projection.py, "Damping"). This script simulates ``--n``
+before the damping; systems/projection.py, "Damping"); ``--cor`` gives the limits
+restitution (default the config's 0, inelastic). This script simulates ``--n``
 trajectories over ``--horizon`` seconds for every time step, once per setting, and
 prints the largest and smallest segment-length ratio, the largest bend beyond
 ``max_angle`` (radians), the energy change (mean over trajectories of ``E(T) - E(0)``,
@@ -77,6 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--tip-mass", type=float, default=None,
         help="the last point's mass (default: the config's)",
     )  # fmt: skip
+    parser.add_argument("--cor", type=float, default=None, help="the limits' cor")
     parser.add_argument(
         "--undamped", action="store_true",
         help="also run each projection setting with plain Gauss-Newton steps",
@@ -92,6 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--projection must be at least 1 iteration, got {args.projection}")
     if args.tip_mass is not None and not (math.isfinite(args.tip_mass) and args.tip_mass > 0):
         parser.error(f"--tip-mass must be a positive number, got {args.tip_mass:g}")
+    if args.cor is not None and not 0 <= args.cor <= 1:
+        parser.error(f"--cor must lie in [0, 1], got {args.cor:g}")
     from diffcontact.cli_args import one_line
     from diffcontact.systems import load_config, projection
 
@@ -105,6 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.tip_mass is not None:
         mass = cfg.mass if isinstance(cfg.mass, list) else [cfg.mass] * cfg.n_points
         masses = {"mass": [*mass[:-1], args.tip_mass]}
+    if args.cor is not None:
+        masses["cor"] = args.cor
     for dt in args.dt:  # every time step, before the first is simulated
         try:
             load_config(args.task, dt=dt, horizon=args.horizon)
@@ -113,7 +119,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(1)
     base = dc.load_system(args.task, **masses)
     cfg = base.config
-    tip = "" if not masses else f"; tip mass {args.tip_mass:g} (the others' {cfg.mass[0]:g})"
+    tip = ""
+    if args.tip_mass is not None:
+        tip = f"; tip mass {args.tip_mass:g} (the others' {cfg.mass[0]:g})"
+    if args.cor is not None:
+        tip += f"; cor {args.cor:g}"
     print(
         f"{args.task}: {args.n} trajectories x {args.horizon:g} s; limits: ratio "
         f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad{tip}"

@@ -103,10 +103,12 @@ def test_only_the_inelastic_limits_are_foreseen():
     mixed = project_state(x, v, geometry, M_inv, 10, dt=system.dt, foresee=rows)
     torch.testing.assert_close(mixed[1][:2], every[1][:2], rtol=0, atol=1e-12)
     torch.testing.assert_close(mixed[1][2:], closed_only[1][2:], rtol=0, atol=1e-12)
-    # a system foresees its inelastic limits only
+    # a system foresees its inelastic limits only (and gives the others' restitution)
     bouncing = dc.load_system("Rope", cor=0.5)
     iterations = bouncing.position_projection
-    want = project_state(x, v, bouncing.geometry, bouncing.inverse_mass_matrix(), iterations)
+    cor = torch.full((K,), 0.5, dtype=z.dtype)
+    M_inv = bouncing.inverse_mass_matrix()
+    want = project_state(x, v, bouncing.geometry, M_inv, iterations, restitution=cor)
     assert torch.equal(bouncing.project_positions(z)[:, 1], want[1])
     assert torch.equal(system.project_positions(z)[:, 1], every[1])
     for bad in (0.0, -0.01, float("nan")):
@@ -266,15 +268,20 @@ def test_the_key_and_files_of_earlier_versions():
     assert _differences({"config": unforeseen}, {"config": closed_only}) == []
 
 
-def _rope_limits_script():
+def _experiment(name: str):
+    """``experiments/NAME.py`` as a module."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "experiments" / "rope_limits.py"
-    spec = importlib.util.spec_from_file_location("rope_limits", path)
+    path = Path(__file__).resolve().parents[2] / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _rope_limits_script():
+    return _experiment("rope_limits")
 
 
 def test_rope_limits_script_compares_with_the_positions_only(capsys):
@@ -330,3 +337,105 @@ def test_long_ropes_keep_their_limits_at_a_coarse_step():
     before = dc.load_system("Rope-D200", dt=0.01, horizon=1.0, velocity_projection=False)
     loose = before.simulate(z0, 50, on_tunnelling="ignore")
     assert float(script.segment_ratios(before, loose).max()) > cfg.max_ratio + 0.01
+
+
+def test_elastic_billiards_keep_their_energy_with_the_projection():
+    """BP5 with cor 1 and the projection on: a contact that only the position projection
+    closed bounces (Poisson's restitution in the velocities' projection). Inelastic, it
+    lost up to 68 % of a trajectory's energy in one event."""
+    system = dc.load_system("BP5", cor=1.0, mu=0.0, position_projection=10)
+    z0 = system.sample_initial_conditions(16, seed=0)
+    traj = system.simulate(z0, on_tunnelling="ignore")
+    assert float(system.gaps(traj[:, :, 0]).min()) > -1e-12  # the projection took part
+    energy = system.energy(traj)
+    change = (energy - energy[:, :1]) / energy[:, :1]
+    assert float(change.abs().max()) < 1e-9, float(change.min())
+
+
+@pytest.mark.parametrize("cor", [0.0, 0.5, 1.0])
+def test_a_limit_closed_by_the_projection_bounces_with_its_restitution(cor):
+    """A 2-point rope whose first segment is stretched past its limit and still
+    stretching: the projection puts it on the limit, and its velocity becomes ``-cor``
+    times the approach (Newton's and Poisson's restitution agree on one contact)."""
+    system = dc.load_system("Rope", n_points=2, cor=cor)
+    l0 = float(system.config.rest_length)
+    x = torch.tensor([[[0.0, -1.25 * l0], [0.0, -2.2 * l0]]], dtype=torch.float64)
+    v = torch.tensor([[[0.0, -1.0], [0.0, -1.0]]], dtype=torch.float64)
+    z = torch.stack([x, v], dim=1)
+    out = system.project_positions(z)
+    assert float(out[0, 0, 0, 1]) == pytest.approx(-1.2 * l0, abs=1e-9)
+    assert float(out[0, 1, 0, 1]) == pytest.approx(cor * 1.0, abs=1e-9)
+    torch.testing.assert_close(out[0, 1, 1], v[0, 1])  # the other point keeps its velocity
+    if cor:  # the restitution phase; without it, the inelastic correction
+        M_inv = system.inverse_mass_matrix()
+        plain = project_state(x, v, system.geometry, M_inv, 10)[1]
+        assert float(plain[0, 0, 1]) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("task", ["BP5", "BD5"])
+def test_read_free_gives_the_reading_restitution(task):
+    pytest.importorskip("warp")
+    system, z = _pre_projection_states(task, n=8, steps=40)
+    geometry, M_inv = system.geometry, system.inverse_mass_matrix()
+    x, v = z[:, 0], z[:, 1]
+    cor = torch.linspace(0.2, 1.0, system.n_contacts, dtype=z.dtype)
+    want = project_state(x, v, geometry, M_inv, 10, restitution=cor)
+    inelastic = project_state(x, v, geometry, M_inv, 10)
+    assert float((want[1] - inelastic[1]).abs().max()) > 1e-3  # the restitution took part
+    needed = torch.zeros((), dtype=torch.long)
+    wide = ReadFree(system._projection_rows_all(), needed, system._point_masses, system._two_sided)
+    got = project_state(x, v, geometry, M_inv, 10, read_free=wide, restitution=cor)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_gradient_through_the_restitution():
+    """The bounce of a limit closed by the projection, against finite differences in its
+    ``cor`` and the state."""
+    system = dc.load_system("Rope", n_points=2, cor=0.5)
+    l0 = float(system.config.rest_length)
+    x = torch.tensor([[[0.1 * l0, -1.25 * l0], [0.3 * l0, -2.2 * l0]]], dtype=torch.float64)
+    v = torch.tensor([[[0.2, -1.0], [0.1, -0.7]]], dtype=torch.float64)
+    z = torch.stack([x, v], dim=1)
+    base = system.parameters()
+
+    def project(cor, z):
+        return system.project_positions(z, params=base.replace(cor=cor))
+
+    cor = base.cor.detach().clone()
+    results = assert_gradients_close(project, [cor, z], n_directions=2, rtol=1e-5)
+    assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
+
+
+@pytest.mark.parametrize("task", ["BP5", "BD5"])
+def test_bounces_leave_no_closed_contact_approaching(task):
+    """With restitution, a bounce can make a closed neighbour approach (a ball in a corner
+    hit by another): that one bounces in turn, within the same projection (as sequential
+    impacts), instead of crossing in the next step; an elastic one keeps the energy."""
+    system, z = _pre_projection_states(task, n=16, steps=60)
+    system = dc.load_system(task, cor=1.0, mu=0.0, position_projection=10)
+    out = system.project_positions(z)
+    projected = (system.gaps(z[:, 0]) < 0).any(-1)  # (a state without a violation is kept)
+    closed = (system.gaps(out[:, 0]) < CLOSED) & projected[:, None]
+    assert bool(closed.any())
+    rate = system.contact_velocities(out)[..., 0]  # (N, K) the gaps' rates
+    assert float(rate[closed].min()) > -1e-9
+    kinetic = system.kinetic_energy(out)
+    torch.testing.assert_close(kinetic, system.kinetic_energy(z), rtol=1e-9, atol=0)
+
+
+def test_projection_energy_script_compares_the_settings(capsys):
+    """experiments/projection_energy.py (docs/config.md, ``velocity_projection``): elastic
+    billiards keep their energy with and without the projection, and the projection
+    removes the penetration."""
+    script = _experiment("projection_energy")
+    assert script.main(["--tasks", "BP5", "--n", "4"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "cor 1, mu 0; 4 trajectories per task"
+    rows = {}
+    for line in lines[2:]:
+        rows[" ".join(line.split()[1:-4])] = [float(v) for v in line.split()[-4:]]
+    assert set(rows) == {"no projection", "projection 10", "positions only 10"}
+    for low, high, _, _ in rows.values():
+        assert -1e-9 < low <= high < 1e-9
+    assert rows["no projection"][-1] < -1e-3 < -1e-9 < rows["projection 10"][-1]

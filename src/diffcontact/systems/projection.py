@@ -95,6 +95,22 @@ points): those join and the problem is solved again from ``v``, at most
 Only inelastic limits are foreseen (``System``: ``cor == 0``, the ropes'): a bouncing one
 would lose the approach its bounce needs.
 
+Restitution. Given the candidates' coefficients (``System`` passes ``cor`` where one is
+positive), a closed limit with restitution joins the problem only where it approaches
+at the projected positions, and after the correction above (the compression phase, its
+impulse ``lambda_c`` the canonical minimiser) a restitution phase, the frictionless
+second QP of the contact model (CM), gives each closed row an impulse of at least ``e_k
+lambda_c,k`` with the same targets. A bounce can make a neighbouring closed limit with
+restitution approach (a ball in a corner, hit by another): each such limit then gets two
+phases of its own from the velocities so far, sequential impacts (an elastic one keeps
+the kinetic energy), at most :data:`BOUNCE_ROUNDS` times. A contact that only the
+position projection closed thus bounces instead of stopping: elastic billiards (BP5 with
+``cor`` 1 and the projection on) lost up to 68 % of a trajectory's energy in one event,
+and now keep it to rounding (``python experiments/projection_energy.py``). A closed
+limit with restitution is not held where it does not approach: a rope given restitution
+keeps its limits but can gain energy where the projection lifted it and a bounce kept
+the speed (docs/config.md, "rope").
+
 With point masses (the ropes) each iteration needs only ``J_s = J M^-1/2``: ``A = J_s
 J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp, where the dense
 ``(n, R, P dim)`` rows would be large (:data:`~diffcontact.geometry.sparse_gram.
@@ -153,6 +169,9 @@ MARGIN = 0.25
 VELOCITY_ROUNDS = 4
 """With a step ``dt``, the velocities' problems solved at most: each adds the open limits
 that the previous one's velocities cross within ``dt``."""
+BOUNCE_ROUNDS = 10
+"""With restitution, the sequential bounces at most after the first problem's (each of
+the closed limits with restitution that the last ones made approach)."""
 CLOSED = 1e-6
 """A limit whose gap is below ``CLOSED`` is closed (:func:`closed_below`):
 :func:`project_state` projects the velocities onto it at the projected positions, and
@@ -311,7 +330,9 @@ def _smallest_correction(
     settings: SolverSettings,
     Mh: Tensor | None = None,
     base: Tensor | None = None,
-) -> Tensor:
+    lower: Tensor | None = None,
+    impulse: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
     """The smallest correction in a metric (the masses', or a damped iteration's) that
     meets ``R`` linear rows: ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= 0} 0.5
     lambda^T A lambda + lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh``
@@ -331,9 +352,12 @@ def _smallest_correction(
         settings: the cone QP's settings.
         Mh: ``(n, D, D)`` ``Mhat^-1`` with equality constraints, else ``None``.
         base: ``(n, D)`` a fixed part of the correction (the equality constraints' drift).
+        lower: ``(n, R)`` lower bounds of ``lambda`` (Poisson's, in a restitution phase),
+            else zero.
+        impulse: also return ``lambda``.
 
     Returns:
-        ``(n, P, dim)``.
+        ``(n, P, dim)``, and with ``impulse`` ``lambda: (n, R)``.
     """
     n, R = mask.shape
     P, dim = metric.shape[-1], rows.values.shape[-1]
@@ -363,7 +387,7 @@ def _smallest_correction(
         rhs = rhs + (J @ base.unsqueeze(-1)).squeeze(-1)
     rhs = torch.where(mask, rhs, torch.zeros_like(rhs))
     lam, status = solve_cone_qp(
-        A, rhs, torch.zeros_like(rhs), 1, None, mask, settings=settings, return_status=True
+        A, rhs, torch.zeros_like(rhs), 1, lower, mask, settings=settings, return_status=True
     )
     # a problem the solver did not finish still gives a direction (the projection's line
     # search keeps only steps that reduce the violation); an unbounded one does not
@@ -374,7 +398,8 @@ def _smallest_correction(
     else:
         dx = (JM.transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
         dx = (dx if base is None else dx + base).reshape(n, P, dim)
-    return dx if root is None else dx * root.unsqueeze(-1)
+    dx = dx if root is None else dx * root.unsqueeze(-1)
+    return (dx, lam) if impulse else dx
 
 
 def project_positions(
@@ -429,6 +454,7 @@ def project_state(
     read_free: ReadFree | None = None,
     dt: float | None = None,
     foresee: Tensor | None = None,
+    restitution: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """:func:`project_positions`, then the velocities of the projected states onto the
     limits closed at their new positions (module docstring, "Velocities").
@@ -445,6 +471,11 @@ def project_state(
             limits closed there (``J v+ >= 0``).
         foresee: ``(K,)`` or ``(N, K)`` bool, the candidates whose crossing within ``dt``
             is foreseen (``System``: the inelastic ones, ``cor == 0``); default all.
+        restitution: ``(K,)`` or ``(N, K)`` Poisson's coefficients of restitution in [0, 1]
+            (``System``: ``cor``, where one is positive): a closed limit that the
+            correction stopped then gets a restitution impulse of at least its
+            coefficient times that one (module docstring, "Restitution"). ``None``
+            (default): inelastic.
 
     Returns:
         ``x, v``: ``(N, P, dim)`` each; the states without a violated candidate unchanged.
@@ -453,7 +484,7 @@ def project_state(
         raise ValueError(f"dt must be a positive number or None, got {dt!r}")
     x, v1 = _project(
         x, v, geometry, M_inv, iterations, constraints, gaps, settings, tol, read_free, dt,
-        foresee,
+        foresee, restitution,
     )  # fmt: skip
     return x, v if v1 is None else v1
 
@@ -471,6 +502,7 @@ def _project(
     read_free: ReadFree | None,
     dt: float | None = None,
     foresee: Tensor | None = None,
+    restitution: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """:func:`project_state` (``v``: ``None`` projects the positions only, and returns
     ``None`` for the velocities)."""
@@ -560,9 +592,11 @@ def _project(
         x_at: Tensor,
         base: bool,
         metric: Tensor = masses,
-    ) -> Tensor:
+        **options: Any,
+    ) -> Tensor | tuple[Tensor, Tensor]:
         """:func:`_smallest_correction` at positions ``x_at`` in ``metric`` (``base``: with
-        the equality constraints' drift back to ``phi0``)."""
+        the equality constraints' drift back to ``phi0``; ``options``: its ``settings``
+        (default: any minimiser), ``lower`` and ``impulse``)."""
         Mh = drift = None
         if phi0 is not None:
             # Mhat^-1 keeps the correction tangent to Phi; dx_E = -M^-1 J_E^T (J_E M^-1
@@ -573,9 +607,10 @@ def _project(
                 r = (constraints.phi(x_at) - phi0).unsqueeze(-1)  # (n, E, 1)
                 B = _minv_rows(J_E, metric, P, dim, bool(diagonal)).transpose(-1, -2)
                 drift = -(B @ spd_solve(J_E @ B, r)).squeeze(-1)  # (n, D); SPD: no read
+        options = {"settings": any_minimiser, **options}
         return _smallest_correction(
-            rows, mask, rhs, metric, diagonal=bool(diagonal), sparse=sparse,
-            settings=any_minimiser, Mh=Mh, base=drift,
+            rows, mask, rhs, metric, diagonal=bool(diagonal), sparse=sparse, Mh=Mh,
+            base=drift, **options,
         )  # fmt: skip
 
     x_i = x_pred
@@ -644,18 +679,30 @@ def _project(
         with torch.no_grad():
             gap_rows = row_gaps(gaps_raw.detach())  # (n, R_all)
             closed = gap_rows < closed_below(x.dtype)
-            if foresee is not None:  # (K,) or (N, K) -> (1 or n, R_all)
-                foresee = foresee.to(closed.device)
-                if foresee.dim() == 1:
-                    foresee = foresee.unsqueeze(0)
+
+            def per_row(t: Tensor) -> Tensor:
+                """A candidate's ``(K,)`` or ``(N, K)`` -> ``(1 or n, R_all)``, its rows'."""
+                t = t.to(closed.device)
+                if t.dim() == 1:
+                    t = t.unsqueeze(0)
                 elif read_free is None:
-                    foresee = foresee[b]
-                foresee = torch.cat([foresee, foresee], -1) if width is not None else foresee
+                    t = t[b]
+                return torch.cat([t, t], -1) if width is not None else t
+
+            if foresee is not None:
+                foresee = per_row(foresee)
+            # the closed limits whose approach a correction stops: all inelastic ones, the
+            # others where they approach at the projected positions
+            stops = closed
+            if restitution is not None:
+                rate = jacobian_matvec(rows_i, v_b.detach())[..., 0]  # (n, K): gap rates
+                rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
+                stops = closed & ((per_row(restitution.detach()) == 0) | (rate_rows < -tol))
 
         def selected_by(vel: Tensor) -> Tensor:
-            """``(n, R_all)``: the closed rows, and the open ones that ``vel`` crosses
-            within ``dt``."""
-            rows = closed
+            """``(n, R_all)``: the closed rows (with restitution: those that approach), and
+            the open ones that ``vel`` crosses within ``dt``."""
+            rows = stops
             if dt is not None:
                 rate = jacobian_matvec(rows_i, vel.detach())[..., 0]  # (n, K): gap rates
                 rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
@@ -664,6 +711,9 @@ def _project(
             return rows & has[:, None] if read_free is not None else rows
 
         v_i = v_b
+        # Poisson's restitution needs the compression impulse itself (the canonical one)
+        qp = {} if restitution is None else {"settings": settings or SolverSettings()}
+        last = None  # the last problem solved: its rows, targets and impulse
         with torch.no_grad():
             selected = selected_by(v_b)
         # the corrected velocities can cross further open limits (the rows share points):
@@ -691,11 +741,52 @@ def _project(
                 break
             taken, idx, mask = signed_rows(rows_i, selected, R)
             approach = jacobian_matvec(taken, v_b)[..., 0]  # (n, R): J v
+            allowed = torch.zeros_like(approach)  # (n, R): the approach a row may keep
             if dt is not None:  # an open limit may close within the step, not be crossed
                 gap = row_gaps(gaps_raw).gather(-1, idx)  # (n, R)
                 open_ = gap.detach() >= closed_below(x.dtype)
-                approach = approach + torch.where(open_, gap / dt, torch.zeros_like(gap))
-            v_i = v_b + correction(taken, mask, approach, x_i, base=False)  # the masses' metric
+                allowed = torch.where(open_, gap / dt, allowed)
+            # the masses' metric
+            dv, lam = correction(taken, mask, approach + allowed, x_i, False, impulse=True, **qp)
+            v_i = v_b + dv
+            last = (taken, idx, mask, allowed, lam)
+        if restitution is not None and last is not None:
+            e_rows = per_row(restitution).expand(closed.shape)  # (n, R_all)
+
+            def restitution_phase(v_c, taken, idx, mask, allowed, lam):
+                """``v_c`` after the restitution phase: at least ``e`` times the compression
+                impulse ``lam`` on the closed rows (the open ones, foreseen, are
+                inelastic), the compression's targets otherwise."""
+                e = e_rows.gather(-1, idx)  # (n, R)
+                e = torch.where(mask & closed.gather(-1, idx), e, torch.zeros_like(e))
+                approach = jacobian_matvec(taken, v_c)[..., 0] + allowed  # (n, R)
+                return v_c + correction(taken, mask, approach, x_i, False, lower=e * lam, **qp)
+
+            v_i = restitution_phase(v_i, *last)
+            # closed limits with restitution that the bounces made approach (again): they
+            # get their own two phases from the velocities so far, sequential impacts (an
+            # elastic one keeps the energy), at most BOUNCE_ROUNDS times
+            with torch.no_grad():
+                bouncing = closed & (e_rows > 0)
+            for _ in range(BOUNCE_ROUNDS):
+                with torch.no_grad():
+                    rate = jacobian_matvec(rows_i, v_i.detach())[..., 0]  # (n, K)
+                    rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
+                    new = bouncing & (rate_rows < -tol)
+                    if read_free is not None:
+                        new = new & has[:, None]
+                    R = new.sum(-1).max()
+                    if read_free is None:  # one read
+                        R = int(R)
+                        if R == 0:
+                            break
+                    else:
+                        read_free.needed.copy_(torch.maximum(read_free.needed, R))
+                        R = min(read_free.rows, new.shape[-1])
+                taken, idx, mask = signed_rows(rows_i, new, R)
+                approach = jacobian_matvec(taken, v_i)[..., 0]
+                dv, lam = correction(taken, mask, approach, x_i, False, impulse=True, **qp)
+                v_i = restitution_phase(v_i + dv, taken, idx, mask, torch.zeros_like(lam), lam)
     if read_free is not None:
         keep = has[:, None, None]
         return torch.where(keep, x_i, x), None if v_i is None else torch.where(keep, v_i, v)

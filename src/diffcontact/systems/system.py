@@ -299,6 +299,15 @@ class _Context:
     # the state-independent acceleration of an unconstrained system without springs or a
     # learned potential, by state shape, computed at its first RK4 stage of the call
     constant_acceleration: dict = dataclass_field(default_factory=dict)
+    # whether a candidate has restitution (cor > 0), read once at the first projection of
+    # the velocities (a captured rollout's warm-up step): None until then
+    bouncing: bool | None = None
+
+    def has_restitution(self) -> bool:
+        """Whether any candidate's ``cor`` is positive (one read of the device, once)."""
+        if self.bouncing is None:
+            self.bouncing = bool((self.cor.detach() > 0).any())
+        return self.bouncing
 
     @property
     def force_is_constant(self) -> bool:
@@ -1229,8 +1238,10 @@ class System:
             "settings": self._inner_settings(settings),
             "read_free": read_free,
         }
-        if velocities:  # foreseeing the crossings of the inelastic limits within a step
+        if velocities:  # foreseeing the crossings of the inelastic limits within a step,
+            # with Poisson's restitution on the closed limits that have it
             dt = self.dt if self.foresee_crossings else None
+            kwargs["restitution"] = ctx.cor if ctx.has_restitution() else None
             x, v = project_state(x, v, *args, **kwargs, dt=dt, foresee=ctx.cor == 0)
         else:
             x = project_positions(x, *args, **kwargs)
@@ -1292,8 +1303,9 @@ class System:
         (:mod:`diffcontact.systems.projection`), and then their velocities the smallest
         change in the mass metric that stops them from approaching the limits closed at
         the new positions, or crossing within the next step the inelastic ones still
-        open there (with ``foresee_crossings``; an inelastic impulse on those limits;
-        unless ``velocities`` is false, default the config's ``velocity_projection``).
+        open there (with ``foresee_crossings``; an inelastic impulse on those limits, and
+        Poisson's restitution on the closed ones with ``cor`` > 0 that approach; unless
+        ``velocities`` is false, default the config's ``velocity_projection``).
         What :meth:`step` and :meth:`simulate` do after the impulse when
         ``position_projection > 0``.
         Differentiable (the active set aside).
