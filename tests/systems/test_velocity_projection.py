@@ -407,23 +407,6 @@ def test_gradient_through_the_restitution():
     assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
 
 
-@pytest.mark.parametrize("task", ["BP5", "BD5"])
-def test_bounces_leave_no_closed_contact_approaching(task):
-    """With restitution, a bounce can make a closed neighbour approach (a ball in a corner
-    hit by another): that one bounces in turn, within the same projection (as sequential
-    impacts), instead of crossing in the next step; an elastic one keeps the energy."""
-    system, z = _pre_projection_states(task, n=16, steps=60)
-    system = dc.load_system(task, cor=1.0, mu=0.0, position_projection=10)
-    out = system.project_positions(z)
-    projected = (system.gaps(z[:, 0]) < 0).any(-1)  # (a state without a violation is kept)
-    closed = (system.gaps(out[:, 0]) < CLOSED) & projected[:, None]
-    assert bool(closed.any())
-    rate = system.contact_velocities(out)[..., 0]  # (N, K) the gaps' rates
-    assert float(rate[closed].min()) > -1e-9
-    kinetic = system.kinetic_energy(out)
-    torch.testing.assert_close(kinetic, system.kinetic_energy(z), rtol=1e-9, atol=0)
-
-
 def test_projection_energy_script_compares_the_settings(capsys):
     """experiments/projection_energy.py (docs/config.md, ``velocity_projection``): elastic
     billiards keep their energy with and without the projection, and the projection

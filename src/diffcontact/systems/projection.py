@@ -53,8 +53,10 @@ point mass): ``rho`` starts at :data:`DAMPING`, and each backtracked step multip
 by :data:`DAMPING_FACTOR`, each full step divides it, as in Levenberg-Marquardt. The
 isotropic term charges the light points' sideways motion as the curvature of a taut
 segment does (in proportion to its tension, whatever the points' masses). With equal
-point masses the damped metric is the masses' times a number (the same steps), and such
-states are not damped. A damped state's projected positions are admissible like the
+point masses the damped metric is the masses' times a number (the same steps), and
+point masses within a factor :data:`UNEVEN` of each other are not damped (a learned
+rope's masses, a few per cent apart: the steps barely change, and damping costs each
+iteration some operations). A damped state's projected positions are admissible like the
 others', but not those of the iterations in the mass metric.
 
 With the positions projected alone, the per-step violations of a long whipping rope
@@ -100,14 +102,14 @@ positive), a closed limit with restitution joins the problem only where it appro
 at the projected positions, and after the correction above (the compression phase, its
 impulse ``lambda_c`` the canonical minimiser) a restitution phase, the frictionless
 second QP of the contact model (CM), gives each closed row an impulse of at least ``e_k
-lambda_c,k`` with the same targets. A bounce can make a neighbouring closed limit with
-restitution approach (a ball in a corner, hit by another): each such limit then gets two
-phases of its own from the velocities so far, sequential impacts (an elastic one keeps
-the kinetic energy), at most :data:`BOUNCE_ROUNDS` times. A contact that only the
-position projection closed thus bounces instead of stopping: elastic billiards (BP5 with
-``cor`` 1 and the projection on) lost up to 68 % of a trajectory's energy in one event,
-and now keep it to rounding (``python experiments/projection_energy.py``). A closed
-limit with restitution is not held where it does not approach: a rope given restitution
+lambda_c,k`` with the same targets. A contact that only the position projection closed
+thus bounces instead of stopping: elastic billiards (BP5 with ``cor`` 1 and the
+projection on) lost up to 68 % of a trajectory's energy in one event, and now keep it
+to rounding (``python experiments/projection_energy.py``). A closed limit with
+restitution that does not approach is left to the next step's impulse: held by the
+compression, it took its share of a neighbour's correction inelastically, which in the
+billiards lost energy again. A bounce can make such a neighbour approach (a ball in a
+corner, hit by another); the next step's impulse resolves it. A rope given restitution
 keeps its limits but can gain energy where the projection lifted it and a bounce kept
 the speed (docs/config.md, "rope").
 
@@ -162,6 +164,8 @@ DAMPING = 1.0
 docstring, "Damping"), in units of its mean point mass."""
 DAMPING_FACTOR = 10.0
 """A backtracked step multiplies a state's damping by this, a full step divides it."""
+UNEVEN = 2.0
+"""Point masses are damped only where the largest is more than this times the smallest."""
 MARGIN = 0.25
 """A limit enters an iteration's problem once its distance (mass metric) is below
 ``MARGIN`` times the state's largest violation: the limits a correction can reach
@@ -169,9 +173,6 @@ MARGIN = 0.25
 VELOCITY_ROUNDS = 4
 """With a step ``dt``, the velocities' problems solved at most: each adds the open limits
 that the previous one's velocities cross within ``dt``."""
-BOUNCE_ROUNDS = 10
-"""With restitution, the sequential bounces at most after the first problem's (each of
-the closed limits with restitution that the last ones made approach)."""
 CLOSED = 1e-6
 """A limit whose gap is below ``CLOSED`` is closed (:func:`closed_below`):
 :func:`project_state` projects the velocities onto it at the projected positions, and
@@ -580,9 +581,13 @@ def _project(
 
     # the masses' metric: M_inv, or its diagonal for point masses
     masses = Minv_b.diagonal(dim1=-2, dim2=-1) if diagonal else Minv_b
-    with torch.no_grad():  # (n,) damping changes the steps of these states only (not of
-        # equal point masses, whose damped metric is the masses' times a number)
-        uneven = (masses != masses[..., :1]).any(-1) if diagonal else x.new_ones((), dtype=bool)
+    with torch.no_grad():  # (n,) the states damping can help: not equal point masses (their
+        # damped metric is the masses' times a number, the same steps), nor nearly equal
+        # ones (a learned rope's: the steps barely change, and each damped iteration costs)
+        if diagonal:
+            uneven = masses.amax(-1) > UNEVEN * masses.amin(-1)
+        else:
+            uneven = x.new_ones((), dtype=torch.bool)
         uneven = uneven.expand(x_pred.shape[0])
 
     def correction(
@@ -753,40 +758,13 @@ def _project(
         if restitution is not None and last is not None:
             e_rows = per_row(restitution).expand(closed.shape)  # (n, R_all)
 
-            def restitution_phase(v_c, taken, idx, mask, allowed, lam):
-                """``v_c`` after the restitution phase: at least ``e`` times the compression
-                impulse ``lam`` on the closed rows (the open ones, foreseen, are
-                inelastic), the compression's targets otherwise."""
-                e = e_rows.gather(-1, idx)  # (n, R)
-                e = torch.where(mask & closed.gather(-1, idx), e, torch.zeros_like(e))
-                approach = jacobian_matvec(taken, v_c)[..., 0] + allowed  # (n, R)
-                return v_c + correction(taken, mask, approach, x_i, False, lower=e * lam, **qp)
-
-            v_i = restitution_phase(v_i, *last)
-            # closed limits with restitution that the bounces made approach (again): they
-            # get their own two phases from the velocities so far, sequential impacts (an
-            # elastic one keeps the energy), at most BOUNCE_ROUNDS times
-            with torch.no_grad():
-                bouncing = closed & (e_rows > 0)
-            for _ in range(BOUNCE_ROUNDS):
-                with torch.no_grad():
-                    rate = jacobian_matvec(rows_i, v_i.detach())[..., 0]  # (n, K)
-                    rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
-                    new = bouncing & (rate_rows < -tol)
-                    if read_free is not None:
-                        new = new & has[:, None]
-                    R = new.sum(-1).max()
-                    if read_free is None:  # one read
-                        R = int(R)
-                        if R == 0:
-                            break
-                    else:
-                        read_free.needed.copy_(torch.maximum(read_free.needed, R))
-                        R = min(read_free.rows, new.shape[-1])
-                taken, idx, mask = signed_rows(rows_i, new, R)
-                approach = jacobian_matvec(taken, v_i)[..., 0]
-                dv, lam = correction(taken, mask, approach, x_i, False, impulse=True, **qp)
-                v_i = restitution_phase(v_i + dv, taken, idx, mask, torch.zeros_like(lam), lam)
+            # the restitution phase: at least e times the compression impulse on the closed
+            # rows (the open ones, foreseen, are inelastic), the compression's targets
+            taken, idx, mask, allowed, lam = last
+            e = e_rows.gather(-1, idx)  # (n, R)
+            e = torch.where(mask & closed.gather(-1, idx), e, torch.zeros_like(e))
+            approach = jacobian_matvec(taken, v_i)[..., 0] + allowed  # (n, R)
+            v_i = v_i + correction(taken, mask, approach, x_i, False, lower=e * lam, **qp)
     if read_free is not None:
         keep = has[:, None, None]
         return torch.where(keep, x_i, x), None if v_i is None else torch.where(keep, v_i, v)
