@@ -299,10 +299,12 @@ def _damped(masses: Tensor, damping: Tensor, diagonal: bool) -> Tensor:
         mbar = w.reciprocal().mean(-1, keepdim=True)
         return w / (1 + rho[:, None] * mbar * w)  # the same w where rho = 0
     Mi = masses.expand(n, *masses.shape[-2:])
-    M = torch.linalg.inv(Mi)
+    # inv_ex: no error check, which would read the device (a CUDA graph captures this);
+    # M^-1 is positive definite
+    M = torch.linalg.inv_ex(Mi)[0]
     mbar = M.diagonal(dim1=-2, dim2=-1).mean(-1)
     eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
-    damped = torch.linalg.inv(M + (rho * mbar)[:, None, None] * eye)
+    damped = torch.linalg.inv_ex(M + (rho * mbar)[:, None, None] * eye)[0]
     return torch.where(rho[:, None, None] > 0, damped, Mi)
 
 
