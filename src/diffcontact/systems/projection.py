@@ -337,8 +337,8 @@ def _smallest_correction(
     impulse: bool = False,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """The smallest correction in a metric (the masses', or a damped iteration's) that
-    meets ``R`` linear rows: ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= 0} 0.5
-    lambda^T A lambda + lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh``
+    meets ``R`` linear rows: ``W J^T lambda (+ base)``, ``lambda = argmin_{lambda >= lower}
+    0.5 lambda^T A lambda + lambda^T (rhs + J base)``, ``A = J W J^T``, ``W`` = ``Mh``
     (``Mhat^-1``, with equality constraints) or ``kron(metric, I_dim)``: the frictionless
     cone QP of one projection iteration (``rhs`` the gaps) or of the velocity projection
     (``rhs = J v``).
