@@ -105,28 +105,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--task {args.task}: {one_line(err)}")
     if not hasattr(cfg, "min_ratio"):
         parser.error(f"--task {args.task}: not a rope (a task with segment limits)")
-    masses = {}
+    rope_keys = {}  # the config keys of --tip-mass and --cor
     if args.tip_mass is not None:
         mass = cfg.mass if isinstance(cfg.mass, list) else [cfg.mass] * cfg.n_points
-        masses = {"mass": [*mass[:-1], args.tip_mass]}
+        rope_keys["mass"] = [*mass[:-1], args.tip_mass]
     if args.cor is not None:
-        masses["cor"] = args.cor
+        rope_keys["cor"] = args.cor
     for dt in args.dt:  # every time step, before the first is simulated
         try:
             load_config(args.task, dt=dt, horizon=args.horizon)
         except ValueError as err:
             parser.error(f"--dt {dt:g} with --horizon {args.horizon:g}: {one_line(err)}")
     torch.set_num_threads(1)
-    base = dc.load_system(args.task, **masses)
+    base = dc.load_system(args.task, **rope_keys)
     cfg = base.config
-    tip = ""
+    extra = ""
     if args.tip_mass is not None:
-        tip = f"; tip mass {args.tip_mass:g} (the others' {cfg.mass[0]:g})"
+        extra = f"; tip mass {args.tip_mass:g} (the others' {cfg.mass[0]:g})"
     if args.cor is not None:
-        tip += f"; cor {args.cor:g}"
+        extra += f"; cor {args.cor:g}"
     print(
         f"{args.task}: {args.n} trajectories x {args.horizon:g} s; limits: ratio "
-        f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad{tip}"
+        f"[{cfg.min_ratio}, {cfg.max_ratio}], bend {cfg.max_angle} rad{extra}"
     )
     print(
         f"{'dt':>7} {'setting':>16} {'steps':>5} {'max ratio':>10} {'min ratio':>9} "
@@ -149,7 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ]
     for dt in args.dt:
         for label, keys, options, *damping in settings:
-            system = dc.load_system(args.task, dt=dt, horizon=args.horizon, **masses, **keys)
+            system = dc.load_system(args.task, dt=dt, horizon=args.horizon, **rope_keys, **keys)
             z0 = system.sample_initial_conditions(args.n, seed=0)
             steps = round(args.horizon / dt)
             default = projection.DAMPING
