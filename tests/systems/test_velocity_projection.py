@@ -389,6 +389,23 @@ def test_read_free_gives_the_reading_restitution(task):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
 
 
+def test_bad_restitution_and_foresee_are_clear_errors():
+    system = dc.load_system("Rope", n_points=2)
+    l0 = float(system.config.rest_length)
+    x = torch.tensor([[[0.0, -1.25 * l0], [0.0, -2.2 * l0]]], dtype=torch.float64)
+    v = torch.zeros_like(x)
+    args = (x, v, system.geometry, system.inverse_mass_matrix(), 10)
+    K = system.n_contacts
+    for bad in (torch.ones(K + 2), torch.ones(2, K)):
+        with pytest.raises(ValueError, match=rf"restitution must have shape \({K},\)"):
+            project_state(*args, restitution=bad)
+        with pytest.raises(ValueError, match=rf"foresee must have shape \({K},\)"):
+            project_state(*args, dt=0.01, foresee=bad.bool())
+    for bad in (1.5, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"restitution must lie in \[0, 1\]"):
+            project_state(*args, restitution=torch.full((K,), bad, dtype=torch.float64))
+
+
 def test_gradient_through_the_restitution():
     """The bounce of a limit closed by the projection, against finite differences in its
     ``cor`` and the state."""

@@ -519,6 +519,11 @@ def _project(
         g0 = geometry.gaps(x.detach()) if gaps is None else gaps.detach()
         violated = g0 < 0
         has = violated.any(-1)  # (N,)
+        N, K = g0.shape
+        for name, t in (("foresee", foresee), ("restitution", restitution)):
+            if t is not None and tuple(t.shape) not in ((K,), (N, K)):
+                shape = tuple(t.shape)
+                raise ValueError(f"{name} must have shape ({K},) or ({N}, {K}), got {shape}")
         if read_free is None:
             # one read of the device (a synchronisation on CUDA) for the states to project
             # and two properties of the problem: point masses (a diagonal M^-1: no dense
@@ -527,8 +532,12 @@ def _project(
             diag = torch.diag_embed(M_inv.diagonal(dim1=-2, dim2=-1))
             flags = [has.sum(), (M_inv == diag).all()]
             flags.append(torch.isfinite(widths).any() if widths is not None else has.new_zeros(()))
+            if restitution is not None:  # (read-free: the caller's, System's checked cor)
+                flags.append(((restitution >= 0) & (restitution <= 1)).all())
             flags = torch.stack([f.to(has.device, torch.int64) for f in flags])
-            n, diagonal, two_sided = flags.tolist()
+            n, diagonal, two_sided, *valid = flags.tolist()
+            if valid and not valid[0]:
+                raise ValueError("restitution must lie in [0, 1] (a number per candidate)")
         else:
             n, diagonal, two_sided = x.shape[0], read_free.diagonal, read_free.two_sided
     if n == 0:
@@ -543,7 +552,6 @@ def _project(
     if constraints is not None and constraints.num_equations == 0:
         constraints = None
     phi0 = None if constraints is None else constraints.phi(x_pred)
-    K = violated.shape[-1]
     width = widths.to(dtype=x.dtype, device=x.device) if two_sided else None  # (K,)
     # every candidate's gap and rows at x_pred: the metric below and the first iteration's
     gaps_raw, rows_i = _gaps_and_rows(geometry, x_pred)
