@@ -563,8 +563,12 @@ def _project(
         steps = _step_lengths(x.dtype, x.device)
         mask_rows = torch.zeros_like(scale_rows, dtype=torch.bool)
 
-    def row_gaps(g: Tensor) -> Tensor:  # (..., K) -> (..., R_all): each side of each limit
-        return torch.cat([g, width - g], -1) if width is not None else g
+    def row_gaps(g: Tensor, total: Tensor | float | None = None) -> Tensor:
+        """``(..., K) -> (..., R_all)``: each side of each limit, the second ``total - g``
+        (default ``width``; 0 for the gaps' rates)."""
+        if width is None:
+            return g
+        return torch.cat([g, (width if total is None else total) - g], -1)
 
     def signed_rows(
         rows: SparseJacobian, selected: Tensor, R: int
@@ -691,6 +695,11 @@ def _project(
         # (and, given dt, the open ones they would cross within it)
         v_b = v if read_free is not None else v[b]
         gaps_raw, rows_i = _gaps_and_rows(geometry, x_i)
+
+        def rates(vel: Tensor) -> Tensor:
+            """``(n, R_all)``: the rows' gap rates ``J vel`` at the projected positions."""
+            return row_gaps(jacobian_matvec(rows_i, vel.detach())[..., 0], 0.0)
+
         with torch.no_grad():
             gap_rows = row_gaps(gaps_raw.detach())  # (n, R_all)
             closed = gap_rows < closed_below(x.dtype)
@@ -710,18 +719,15 @@ def _project(
             # others where they approach at the projected positions
             stops = closed
             if restitution is not None:
-                rate = jacobian_matvec(rows_i, v_b.detach())[..., 0]  # (n, K): gap rates
-                rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
-                stops = closed & ((per_row(restitution.detach()) == 0) | (rate_rows < -tol))
+                approaching = rates(v_b) < -tol
+                stops = closed & ((per_row(restitution.detach()) == 0) | approaching)
 
         def selected_by(vel: Tensor) -> Tensor:
             """``(n, R_all)``: the closed rows (with restitution: those that approach), and
             the open ones that ``vel`` crosses within ``dt``."""
             rows = stops
             if dt is not None:
-                rate = jacobian_matvec(rows_i, vel.detach())[..., 0]  # (n, K): gap rates
-                rate_rows = torch.cat([rate, -rate], -1) if width is not None else rate
-                crossed = gap_rows + dt * rate_rows < -tol
+                crossed = gap_rows + dt * rates(vel) < -tol
                 rows = rows | (crossed if foresee is None else crossed & foresee)
             return rows & has[:, None] if read_free is not None else rows
 
