@@ -45,9 +45,11 @@ A command can be interrupted and run again: finished datasets, runs and
 evaluations are reused and an interrupted training run resumes from its last
 checkpoint. With ``--doc`` each experiment writes its own marked section of that
 file (kept by ``reproduce.py`` when it rewrites the page) next to the paper's
-numbers; ``--report-only`` rewrites it from the results file. Training times are
-the sums of the per-epoch wall times of each run's ``logs/metrics.csv``;
-evaluation times are the wall times of ``evaluate``.
+numbers; ``--report-only`` rewrites it from the results file. The section shows every
+row of the results file made with the last invocation's data sizes, not only that
+invocation's: a run of a subset (``--tasks A``) updates its rows and keeps the
+others. Training times are the sums of the per-epoch wall times of each run's
+``logs/metrics.csv``; evaluation times are the wall times of ``evaluate``.
 """
 
 from __future__ import annotations
@@ -57,14 +59,18 @@ import json
 import math
 import os
 import platform
+import re
 import shutil
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -506,8 +512,16 @@ def _header(experiment: str, meta: dict[str, Any], runs: list[dict[str, Any]]) -
         + ")"
         for c in calls
     )
+    # a report can hold the rows of several invocations (subsets of tasks, models, ...):
+    # then it names them all (with their wall times in the next paragraph)
+    made = f"`{calls[-1]['command']}`"
+    if len(calls) > 1:
+        made = (
+            f"the {len(calls)} invocations listed with their wall times below (each row as its "
+            f"last run left it), the last {made}"
+        )
     return [
-        f"Produced by `{calls[-1]['command']}` ({meta['date']}; diffcontact {meta['version']}, "
+        f"Produced by {made} ({meta['date']}; diffcontact {meta['version']}, "
         f"torch {meta['torch']}, {meta['cpus']} CPU cores, one torch thread per run). "
         f"Data: {meta['sizes'][0]} / {meta['sizes'][1]} / {meta['sizes'][2]} trajectories "
         "(train / val / test) unless the row says otherwise, seed 0; package-default "
@@ -522,38 +536,106 @@ def _header(experiment: str, meta: dict[str, Any], runs: list[dict[str, Any]]) -
     ]
 
 
-def _figure(results: dict[str, Any], path: Path, tasks: list[str], models: list[str]) -> None:
-    """Grouped bar chart of the relative errors (log scale, 95 % CI as error bars)."""
+LOG_FLOOR = 0.1
+"""On the log axis a lower error bar ends at ``LOG_FLOOR`` times its mean at the lowest: a
+bar that would reach below that (or to zero and below) is drawn cut (:func:`lower_bars`)."""
+
+
+def lower_bars(means: Sequence[float], cis: Sequence[float]) -> tuple[list[float], list[bool]]:
+    """The drawn lengths of the lower error bars on a log axis, and which of them are cut.
+
+    A bar of half-width ``ci`` below a mean ``m`` ends at ``m - ci``; a log axis cannot
+    show an end at or below zero, and one just above zero would stretch the axis over
+    decades, so an end below ``LOG_FLOOR * m`` is moved up to it (length
+    ``(1 - LOG_FLOOR) * m``) and flagged, so the figure can draw that bar as cut
+    instead of passing it off as the confidence interval. A mean that is not finite
+    or not positive has no bar (length 0, not cut).
+    """
+    if len(means) != len(cis):
+        raise ValueError(f"lower_bars: {len(means)} means but {len(cis)} intervals")
+    lengths: list[float] = []
+    cut: list[bool] = []
+    for m, c in zip(means, cis, strict=True):
+        if not (math.isfinite(m) and m > 0):
+            lengths.append(0.0)
+            cut.append(False)
+        elif c > (1 - LOG_FLOOR) * m:
+            lengths.append((1 - LOG_FLOOR) * m)
+            cut.append(True)
+        else:
+            lengths.append(c)
+            cut.append(False)
+    return lengths, cut
+
+
+CUT_BAR_LABEL = f"lower bar cut at {LOG_FLOOR:g} x mean\n(the 95 % CI reaches lower)"
+CUT_BAR_CAPTION = (
+    f"Error bars: 95 % CI. On the log axis a lower bar that would reach below {LOG_FLOOR:g} "
+    "times the mean (or below zero) is drawn cut there: dashed, ending in a downward "
+    "triangle; the table gives the interval."
+)
+
+
+def _draw_figure(results: dict[str, Any], tasks: list[str], models: list[str]) -> Figure:
+    """The grouped bar chart of the relative errors (log scale, 95 % CI as error bars; a
+    lower bar cut by :func:`lower_bars` dashed and ending in a downward triangle, named
+    in the legend)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.lines import Line2D
 
     fig, ax = plt.subplots(figsize=(max(7.5, 1.3 * len(tasks) + 3.5), 4.2))
     width = 0.8 / max(1, len(models))
     cmap = plt.get_cmap("tab10")
+    bar_style = {"ecolor": "black", "elinewidth": 0.8, "capsize": 2, "fmt": "none"}
+    any_cut = False
     for j, model in enumerate(models):
-        mean, lo, hi = [], [], []
+        means, cis = [], []
         for task in tasks:
             r = results.get(f"{task}/{model}")
             m = r["rel_err_mean"] if r else math.nan
             c = r["rel_err_ci95"] if r else math.nan
-            m = m if m is not None and math.isfinite(m) else math.nan
-            c = c if c is not None and math.isfinite(c) else 0.0
-            mean.append(m)
-            lo.append(min(c, 0.9 * m) if math.isfinite(m) else 0.0)  # log axis: stay > 0
-            hi.append(c)
+            means.append(m if m is not None and math.isfinite(m) else math.nan)
+            cis.append(c if c is not None and math.isfinite(c) else 0.0)
+        lo, cut = lower_bars(means, cis)
+        mean, low, high = np.asarray(means), np.asarray(lo), np.asarray(cis)
+        is_cut = np.asarray(cut, dtype=bool)
         x = np.arange(len(tasks)) + (j - (len(models) - 1) / 2) * width
-        ax.bar(x, mean, width, yerr=[lo, hi], capsize=2, label=model, color=cmap(j % 10))
+        ax.bar(x, mean, width, label=model, color=cmap(j % 10))
+        whole = ~is_cut & np.isfinite(mean) & (mean > 0)
+        if whole.any():
+            ax.errorbar(x[whole], mean[whole], yerr=[low[whole], high[whole]], **bar_style)
+        if is_cut.any():
+            any_cut = True
+            ax.errorbar(x[is_cut], mean[is_cut], yerr=[0 * low[is_cut], high[is_cut]], **bar_style)
+            ends = mean[is_cut] - low[is_cut]
+            ax.vlines(x[is_cut], ends, mean[is_cut], colors="black", linestyles="dashed", lw=0.8)
+            ax.plot(x[is_cut], ends, linestyle="none", marker="v", color="black", markersize=4)
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(tasks)))
     ax.set_xticklabels(tasks)
     ax.set_ylabel("test rollout relative error")
     ax.set_title("Comparison of models (95 % CI)")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    handles, labels = ax.get_legend_handles_labels()
+    if any_cut:
+        handles.append(
+            Line2D([], [], color="black", linestyle="dashed", lw=0.8, marker="v", markersize=4)
+        )
+        labels.append(CUT_BAR_LABEL)
+    ax.legend(handles, labels, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(axis="y", which="both", alpha=0.3)
     fig.tight_layout()
+    return fig
+
+
+def _figure(results: dict[str, Any], path: Path, tasks: list[str], models: list[str]) -> None:
+    """Save :func:`_draw_figure`'s bar chart to ``path`` (PNG)."""
+    import matplotlib.pyplot as plt
+
+    fig = _draw_figure(results, tasks, models)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -613,7 +695,7 @@ def render_models(results: dict[str, Any], meta: dict[str, Any], figure: str | N
             "",
         ]
     if figure:
-        lines += [f"![relative error of every model, log scale]({figure})", ""]
+        lines += [f"![relative error of every model, log scale]({figure})", "", CUT_BAR_CAPTION, ""]
     lines += ["Notes:", ""] + [f"- {note}" for note in MODELS_NOTES] + [""]
     return "\n".join(lines)
 
@@ -772,7 +854,7 @@ def render_scalability(results: dict[str, Any], meta: dict[str, Any], figure: st
         )
         lines.append(f"| {n} | {cells} |")
     lines += ["", "### Degrees of freedom of the rope (Table S.10)", "", f"| D | {head} |", sep]
-    for d in ROPE_DS:
+    for d in sorted({*ROPE_DS, *meta.get("ds", ())}):
         cells = " | ".join(
             f"{cell(f'Rope-D{d}/{m}')} | {paper_cell(PAPER_ROPE, m, d)}" for m in models
         )
@@ -924,8 +1006,11 @@ def _meta(
         "command": "python experiments/compare.py " + " ".join(argv),
         "trained": sum(bool(results[r.key].get("trained")) for r in runs if r.key in results),
         "finished": finished,
+        "setup": _args_setup(args),
     }
-    calls = list((old or {}).get("invocations", []))
+    # invocations recorded before the set-up was: that of the file's meta, the only record
+    before = _setup(old) if old else None
+    calls = [{**c, "setup": c.get("setup", before)} for c in (old or {}).get("invocations", [])]
     calls += [this_call] if this_call["trained"] or not calls else []
     quick = QUICK if args.quick else {}
     experiment = args.experiment
@@ -937,6 +1022,7 @@ def _meta(
         "jobs": args.jobs,
         "python": platform.python_version(),
         "sizes": [args.n_train, args.n_val, args.n_test],
+        "eval_steps": args.eval_steps,
         "invocations": calls,
         "keys": [r.key for r in runs],
         "tasks": list(args.tasks or DEFAULT_TASKS.get(experiment, ())),
@@ -946,13 +1032,145 @@ def _meta(
         "parts": list(args.parts or quick.get("parts", SCALE_PARTS)),
         "size_task": args.size_task or quick.get("size_task", SIZE_TASK),
         "n_list": list(args.sizes or quick.get("sizes", SIZES)),
+        "ds": list(args.ds or quick.get("ds", ROPE_DS)),
     }
 
 
-def _shown(results: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
-    """The report's data: the rows of the last invocation (the file may hold more)."""
-    wanted = set(meta.get("keys", results))
-    return {"runs": {k: v for k, v in results.items() if k in wanted}, "meta": meta}
+def _args_setup(args: argparse.Namespace) -> dict[str, Any]:
+    """The set-up of an invocation that a row's numbers depend on beyond its key: the
+    data sizes (``--n-train`` is in a key only where it differs from the command's) and
+    the evaluation's rollout steps."""
+    return {"sizes": [args.n_train, args.n_val, args.n_test], "eval_steps": args.eval_steps}
+
+
+def _setup(meta: dict[str, Any]) -> dict[str, Any]:
+    """:func:`_args_setup` of the invocation that wrote ``meta`` (a results file's)."""
+    return {"sizes": list(meta["sizes"]), "eval_steps": meta.get("eval_steps")}
+
+
+def _run_of(key: str, entry: dict[str, Any]) -> Run | None:
+    """The :class:`Run` whose ``key`` a stored row has (its ``task`` and ``model`` fields
+    name the parts a key does not delimit), or None for a key not of that form."""
+    task, model = entry.get("task"), entry.get("model")
+    data_key, _, name = key.partition("/")
+    if not (isinstance(task, str) and isinstance(model, str)):
+        return None
+    if not (data_key.startswith(task) and name.startswith(model)):
+        return None
+    parts = data_key[len(task) :].split("_")
+    if parts[0]:  # the task is followed by "_" or nothing
+        return None
+    parts = parts[1:]
+    n_train = int(parts.pop()[1:]) if parts and re.fullmatch(r"N\d+", parts[-1]) else None
+    noise = 0.0
+    if parts and parts[-1].startswith("noise"):
+        try:
+            noise = float(parts.pop()[len("noise") :])
+        except ValueError:
+            return None
+    if len(parts) > 1:
+        return None
+    suffix = re.fullmatch(r"(?:_eps(.+?))?(?:_hidden(\d+)x(\d+))?", name[len(model) :])
+    if suffix is None:
+        return None
+    eps, width, depth = suffix.groups()
+    if eps is not None:
+        try:
+            _eps_arg(eps)
+        except argparse.ArgumentTypeError:
+            return None
+    hidden = None if width is None else (int(width),) * int(depth)
+    data = Data(task, parts[0] if parts else "CM", noise, n_train)
+    run = Run(data, model, eps, hidden)
+    return run if run.key == key else None
+
+
+def _order(default: Iterable[Any], seen: Iterable[Any]) -> list[Any]:
+    """``seen`` without repeats, those in ``default`` first in its order, then the others in
+    the order seen."""
+    seen = list(dict.fromkeys(seen))
+    first = [x for x in default if x in seen]
+    return first + [x for x in seen if x not in first]
+
+
+def _shown(experiment: str, results: dict[str, Any], meta: dict[str, Any]) -> dict[str, Any]:
+    """The report's data: every row of the results file made with the set-up of ``meta``
+    (the last invocation's), not only the last invocation's rows.
+
+    A run of a subset (``--tasks A``, ``--models M``, ``--noise``, ``--eps``, ...)
+    updates its own rows and keeps the rows earlier invocations stored; the tasks,
+    models and other row values of the report are those of the last invocation and of
+    the stored rows, in the experiment's default order and then in the order first
+    stored. A stored row of another set-up (data sizes, evaluation steps; see
+    :func:`_args_setup`) is left out, and so are the invocations that made only such
+    rows. The scalability tables show one network/size task (the last invocation's);
+    another's rows are left out as well.
+    """
+    setup = _setup(meta)
+    # rows stored before the set-up was: that of the file (main() stamps them on a run)
+    stored = {k: v for k, v in results.items() if v.get("setup", setup) == setup}
+    parsed = [r for k, v in stored.items() if (r := _run_of(k, v)) is not None]
+    calls = [c for c in meta["invocations"] if c.get("setup", setup) == setup]
+    view = {**meta, "invocations": calls or meta["invocations"][-1:]}
+    plain = [r for r in parsed if r.eps is None and r.hidden is None and r.data.n_train is None]
+    clean = [r for r in plain if r.data.contact_model == "CM" and not r.data.noise_std]
+    if experiment == "models":
+        view["tasks"] = _order(ALL_TASKS, [*(r.data.task for r in clean), *meta["tasks"]])
+        view["models"] = _order(ALL_MODELS, [*(r.model for r in clean), *meta["models"]])
+    elif experiment == "mismatch":
+        tasks = (r.data.task for r in plain if r.model == OURS and not r.data.noise_std)
+        view["tasks"] = _order(MISMATCH_TASKS, [*tasks, *meta["tasks"]])
+    elif experiment == "noise":
+        ours = [r for r in plain if r.model == OURS and r.data.contact_model == "CM"]
+        view["tasks"] = _order(NOISE_TASKS, [*(r.data.task for r in ours), *meta["tasks"]])
+        view["noise"] = _order(NOISE_STDS, [*(r.data.noise_std for r in ours), *meta["noise"]])
+    elif experiment == "ablation":
+        from diffcontact.learning.training.options import DEFAULT_EPS
+
+        cmr = [
+            r for r in parsed
+            if r.model == "CMr-CD-CLNN" and r.hidden is None and r.data == Data(r.data.task)
+        ]  # fmt: skip
+        # the package default's run has no eps in its key: it takes the label asked for
+        default = next((e for e in meta["eps"] if _is_default(e)), f"{DEFAULT_EPS:g}")
+        view["tasks"] = _order(ABLATION_TASKS, [*(r.data.task for r in cmr), *meta["tasks"]])
+        labels = _order(ABLATION_EPS, [*(r.eps or default for r in cmr), *meta["eps"]])
+        defaults = [e for e in labels if _is_default(e)]
+        view["eps"] = [e for e in labels if not _is_default(e) or e == defaults[0]]
+    elif experiment == "scalability":
+        task = meta["size_task"]
+        rows = [
+            r
+            for r in parsed
+            if r.eps is None and r.data == Data(r.data.task, n_train=r.data.n_train)
+        ]
+        network = [r for r in rows if r.data.task == task and r.data.n_train is None]
+        sized = [r for r in rows if r.data.task == task and r.data.n_train is not None]
+        rope = [
+            r for r in rows
+            if r.data.task != task and r.data.task.startswith("Rope-D")
+            and r.data.task[len("Rope-D") :].isdigit() and r.data.n_train is None
+            and r.hidden is None
+        ]  # fmt: skip
+        view["models"] = _order(
+            SCALE_MODELS, [*(r.model for r in (*network, *sized, *rope)), *meta["models"]]
+        )
+        view["parts"] = _order(SCALE_PARTS, [
+            *meta["parts"], *(["network"] if network else []),
+            *(["size"] if sized else []), *(["rope"] if rope else []),
+        ])  # fmt: skip
+        view["n_list"] = _order((), [*meta["n_list"], *(r.data.n_train for r in sized)])
+        view["ds"] = _order(
+            (), [*meta.get("ds", ROPE_DS), *(int(r.data.task[len("Rope-D") :]) for r in rope)]
+        )
+    args = argparse.Namespace(
+        tasks=view.get("tasks"), models=view.get("models"), noise=view.get("noise"),
+        eps=view.get("eps"), parts=view.get("parts"), size_task=view.get("size_task"),
+        sizes=view.get("n_list"), ds=view.get("ds"), quick=False, n_train=setup["sizes"][0],
+    )  # fmt: skip
+    keys = list(dict.fromkeys(r.key for _, r in plan(experiment, args)))
+    view["keys"] = [k for k in keys if k in stored]
+    return {"runs": {k: stored[k] for k in view["keys"]}, "meta": view}
 
 
 RESUME_HINT = (
@@ -991,7 +1209,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
             print(f"compare.py: error: {results_file} does not exist", file=sys.stderr)
             return 2
         stored = json.loads(results_file.read_text())
-        write_report(out, experiment, args.doc, _shown(stored["runs"], stored["meta"]))
+        write_report(out, experiment, args.doc, _shown(experiment, stored["runs"], stored["meta"]))
         return 0
     from diffcontact.io import check_writable_folder
     from diffcontact.learning import model_names
@@ -1030,6 +1248,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     )
     stored = json.loads(results_file.read_text()) if results_file.is_file() else {}
     results: dict[str, Any] = stored.get("runs", {})
+    for r in results.values():  # stored before rows had their set-up: the file's
+        r.setdefault("setup", _setup(stored["meta"]))
     failed: list[str] = []
     with job_pool(args.jobs) as pool:
         futures = {
@@ -1058,7 +1278,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
                 failed.append(f"{key}: {type(err).__name__}: {err}")
                 print(f"  [{i}/{len(runs)}] {key}: FAILED: {err}", flush=True)
                 continue
-            results[key] = r
+            results[key] = {**r, "setup": _args_setup(args)}
             print(
                 f"  [{i}/{len(runs)}] {key}: {r['epochs']} epochs, train {r['train_seconds']:.0f} s"
                 f", eval {r['eval_seconds']:.0f} s, rel. error {_err(r)}  "
@@ -1073,7 +1293,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     wall = time.perf_counter() - t0
     meta = _meta(args, argv, stored.get("meta"), results, runs, wall, finished=True)
     _atomic_write(results_file, json.dumps({"runs": results, "meta": meta}, indent=1))
-    write_report(out, experiment, args.doc, _shown(results, meta))
+    write_report(out, experiment, args.doc, _shown(experiment, results, meta))
     print(f"wall time {wall / 60:.1f} min")
     for line in failed:
         print(f"FAILED {line}", file=sys.stderr)

@@ -20,7 +20,11 @@ For each task (BD5, BP5; one mu and one e_P per contact):
    flagged ones.
 
 The tables land in ``OUT/uncertainty.md`` and, with ``--doc``, in a marked
-section of that file (the rest is kept).
+section of that file (the rest is kept). The results are stored in
+``OUT/uncertainty.json``; a run of some of the tasks (``--tasks BP5``) replaces
+their results and keeps the other tasks' stored ones (made with the same set-up:
+model, epochs, data sizes, scan), so the report shows every task, each with the
+command and date that made it.
 """
 
 from __future__ import annotations
@@ -30,17 +34,20 @@ import json
 import platform
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 TASKS = {"BD5": 80, "BP5": 60}
 MODEL = "CM-CD-CLNN"
+SIZES = (800, 100, 100)  # generated trajectories: train / val / test
 # the scan of every mu: these multiples of its learned value (UncertaintySettings.scan)
 SCAN = (0.0, 0.25, 0.5, 0.75, 1.5, 2.0)
 BEGIN = "<!-- uncertainty results (experiments/uncertainty.py): begin -->"
 END = "<!-- uncertainty results: end -->"
+# what the report named as its command before results recorded theirs (uncertainty.json)
+DEFAULT_COMMAND = "python experiments/uncertainty.py --out runs/uncert --doc docs/results.md"
 
 
 def _write(path: Path, text: str) -> None:
@@ -58,7 +65,8 @@ def train_model(task: str, out: Path, epochs: int) -> tuple[Path, Path, float]:
     data = out / "data" / task
     run = out / task
     if not (data / "metadata.json").is_file():
-        generate_dataset(task, data, n_train=800, n_val=100, n_test=100, progress=False)
+        n_train, n_val, n_test = SIZES
+        generate_dataset(task, data, n_train=n_train, n_val=n_val, n_test=n_test, progress=False)
     learned = run / "learned.json"
     done = learned.is_file() and json.loads(learned.read_text()).get("finished")
     start = time.perf_counter()
@@ -103,6 +111,80 @@ def assess(task: str, data: Path, run: Path) -> dict[str, Any]:
     }
 
 
+def setup(task: str) -> dict[str, Any]:
+    """What a task's results depend on besides the code: model, epochs, data sizes, scan.
+
+    A stored result of another set-up is not shown beside this one's (:func:`merge`).
+    """
+    return {"model": MODEL, "epochs": TASKS.get(task), "sizes": list(SIZES), "scan": list(SCAN)}
+
+
+def load_results(path: Path) -> list[dict[str, Any]]:
+    """The results stored in ``path`` (``OUT/uncertainty.json``; none when it is missing).
+
+    Results stored before each recorded its command and set-up get those of the file:
+    its ``meta`` (date, torch, machine), the command the report named then
+    (:data:`DEFAULT_COMMAND`) and this script's set-up, which it had unless its
+    constants were changed since.
+
+    Raises:
+        ValueError: the file is not a results file of this script (the message names it).
+    """
+    if not path.is_file():
+        return []
+    try:
+        stored = json.loads(path.read_text())
+        meta, results = stored["meta"], list(stored["results"])
+        legacy = {
+            "command": meta.get("command", DEFAULT_COMMAND),
+            **{k: meta[k] for k in ("date", "torch", "machine")},
+        }
+        for r in results:
+            r.setdefault("produced", legacy)
+            r.setdefault("setup", setup(r["task"]))
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
+        raise ValueError(
+            f"{path} is not a results file of uncertainty.py ({type(err).__name__}: {err}); "
+            "move it away or choose another --out"
+        ) from None
+    return results
+
+
+def _order(default: Iterable[str], seen: Iterable[str]) -> list[str]:
+    """``seen`` without repeats: those in ``default`` in its order, then the others."""
+    seen = list(dict.fromkeys(seen))
+    first = [x for x in default if x in seen]
+    return first + [x for x in seen if x not in first]
+
+
+def merge(stored: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The results to report: ``new`` (this invocation's), and the ``stored`` ones of the
+    other tasks whose set-up is today's (:func:`setup`), in the order of :data:`TASKS`,
+    then any other task in the order first stored."""
+    by_task = {r["task"]: r for r in stored if r.get("setup") == setup(r["task"])}
+    by_task.update({r["task"]: r for r in new})
+    seen = [*(r["task"] for r in stored), *(r["task"] for r in new)]
+    return [by_task[t] for t in _order(TASKS, seen) if t in by_task]
+
+
+def _produced(results: list[dict[str, Any]]) -> str:
+    """``Produced by `COMMAND` (DATE; torch ..., machine)``, one clause per invocation that
+    made some of ``results`` (each naming its tasks when there are several)."""
+    groups: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    for r in results:
+        p = r["produced"]
+        groups.setdefault(json.dumps(p, sort_keys=True), (p, []))[1].append(r["task"])
+    clauses = [
+        f"`{p['command']}` ("
+        + (f"{', '.join(tasks)}; " if len(groups) > 1 else "")
+        + f"{p['date']}; torch {p['torch']}, {p['machine']})"
+        for p, tasks in groups.values()
+    ]
+    if len(clauses) > 1:
+        clauses = [", ".join(clauses[:-1]) + " and " + clauses[-1]]
+    return "Produced by " + clauses[0] + "."
+
+
 def _off(kind: str, learned: float, true: float, tol: dict[str, float]) -> bool:
     if kind == "mass_ratios":
         return abs(learned / true - 1) > tol["mass_ratio_relative"]
@@ -117,17 +199,18 @@ def _cell(entry: dict[str, Any], i: int) -> str:
     return f"{value:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]{flag}"
 
 
-def section(results: list[dict[str, Any]], meta: dict[str, Any]) -> str:
-    """The Markdown section of the report."""
+def section(results: list[dict[str, Any]]) -> str:
+    """The Markdown section of the report: one part per result (task), each made by the
+    invocation its ``produced`` names (:func:`merge` keeps those of earlier ones)."""
     lines = [
         BEGIN,
-        "## Which learned parameters the data determine (BD5, BP5)",
+        f"## Which learned parameters the data determine ({', '.join(r['task'] for r in results)})",
         "",
-        f"Produced by `python experiments/uncertainty.py --out runs/uncert --doc "
-        f"docs/results.md` ({meta['date']}; torch {meta['torch']}, {meta['machine']}). "
+        f"{_produced(results)} "
         "CM-CD-CLNN with one mu and one e_P per contact, trained with the package defaults "
-        "(BD5 80 epochs, BP5 60) on 800 generated trajectories; then "
-        "`diffcontact.learning.evaluation.parameter_uncertainty` on the 800 training chunks: "
+        f"({', '.join(f'{t} {e} epochs' for t, e in TASKS.items())}) on {SIZES[0]} generated "
+        "trajectories; then `diffcontact.learning.evaluation.parameter_uncertainty` on the "
+        f"{SIZES[0]} training chunks: "
         "Laplace standard errors with the potential network held fixed, and a scan of each "
         f"mu over {', '.join(f'{f:g}' for f in SCAN)} times its learned value "
         '(docs/evaluation.md, "Parameter uncertainty"). A value is shown with its 95 % '
@@ -216,6 +299,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/uncert", help="output folder")
     parser.add_argument("--doc", default=None, help="Markdown file to put the tables into")
     parser.add_argument("--tasks", nargs="+", choices=tuple(TASKS), default=list(TASKS))
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     if args.doc:  # before any work: a stray marker or an unwritable file
         try:
@@ -229,23 +313,29 @@ def _main(argv: Sequence[str] | None = None) -> int:
         check_writable_folder(out)
     except OSError as err:
         parser.error(f"--out: {err}")
+    try:  # the other tasks' results, kept in the report (before any work: a bad file)
+        stored = load_results(out / "uncertainty.json")
+    except ValueError as err:
+        parser.error(f"--out: {err}")
     import torch
 
     torch.set_num_threads(1)
-    results = []
+    meta = {
+        "command": "python experiments/uncertainty.py " + " ".join(argv),
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "torch": torch.__version__,
+        "machine": f"{platform.machine()} CPU, one torch thread",
+    }
+    new = []
     for task in args.tasks:
         print(f"{task}: training CM-CD-CLNN ({TASKS[task]} epochs; reused when finished)")
         data, run, train_seconds = train_model(task, out, TASKS[task])
         print(f"{task}: parameter uncertainty")
         r = assess(task, data, run)
         r["train_seconds"] = train_seconds
-        results.append(r)
-    meta = {
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-        "torch": torch.__version__,
-        "machine": f"{platform.machine()} CPU, one torch thread",
-    }
-    text = section(results, meta)
+        new.append({**r, "produced": meta, "setup": setup(task)})
+    results = merge(stored, new)
+    text = section(results)
     _write(out / "uncertainty.md", text + "\n")
     _write(out / "uncertainty.json", json.dumps({"meta": meta, "results": results}, indent=1))
     if args.doc:

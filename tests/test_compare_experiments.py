@@ -208,3 +208,244 @@ def test_bad_arguments(compare, tmp_path, capsys):
         assert exc.value.code == 2
     assert compare.main(["noise", "--report-only", "--out", str(tmp_path / "none")]) == 2
     capsys.readouterr()
+
+
+# ---------------------------------------------------------------- subset runs (no training)
+
+
+@pytest.fixture
+def fake_runs(compare, monkeypatch):
+    """``make_dataset`` and ``train_and_evaluate`` replaced (no simulation, no training):
+    every run returns a new relative error, so a row shows which invocation made it."""
+    made: list[dict] = []
+
+    def make_dataset(data, out, threads, sizes):
+        return compare.Data(**data).key
+
+    def train_and_evaluate(spec, out, epochs, threads, eval_steps=None):
+        hidden = None if spec["hidden"] is None else tuple(spec["hidden"])
+        also_on = tuple(compare.Data(**d) for d in spec["also_on"])
+        run = compare.Run(compare.Data(**spec["data"]), spec["model"], spec["eps"], hidden,
+                          also_on)  # fmt: skip
+        mean = 1.01e-3 * (len(made) + 1)
+
+        def summary(m):
+            return {"rel_err_mean": m, "rel_err_ci95": m / 7, "n_nonfinite": 0, "n_test": 2,
+                    "eval_seconds": 0.5}  # fmt: skip
+
+        r = {
+            "loss_first": 1.0, "loss_last": 0.5, "loss_drop_last10": 0.1, "key": run.key,
+            "task": run.data.task, "data": run.data.key, "model": run.model, "epochs": epochs,
+            "train_seconds": 2.0, **summary(mean), "skipped_steps": 0,
+            "mu": {"true": [0.5], "learned": [0.4]}, "cor": {"true": [0.0], "learned": [0.1]},
+            "eps": 0.01, "also_on": {d.key: summary(mean * 1.5) for d in also_on},
+            "trained": True, "evaluated": True,
+        }  # fmt: skip
+        made.append(r)
+        return r
+
+    monkeypatch.setattr(compare, "make_dataset", make_dataset)
+    monkeypatch.setattr(compare, "train_and_evaluate", train_and_evaluate)
+    return made
+
+
+FAST = ["--jobs", "1", "--epochs", "1"]
+
+
+# (experiment, the subset arguments of each invocation in turn)
+SUBSETS = [
+    ("models", [["--tasks", "Gyro", "--models", "CM-CD-CLNN", "IN-SP-CP"],
+                ["--tasks", "BP5-e", "--models", "CM-CD-CLNN"],
+                ["--tasks", "Gyro", "--models", "MLP-CD-CLNN"],
+                ["--tasks", "Gyro", "--models", "CM-CD-CLNN"]]),
+    ("mismatch", [["--tasks", "Gyro"], ["--tasks", "CP3"], ["--tasks", "Gyro"]]),
+    ("noise", [["--tasks", "CP3", "--noise", "0.05"], ["--tasks", "CP3-e", "--noise", "0"],
+               ["--tasks", "CP3", "--noise", "0"]]),
+    ("ablation", [["--tasks", "Gyro", "--eps", "learnable"], ["--tasks", "CP3", "--eps", "0.1"],
+                  ["--tasks", "Gyro", "--eps", "0.01", "learnable"]]),
+    ("scalability", [["--parts", "rope", "--ds", "100", "--models", "IN-SP-CP"],
+                     ["--parts", "size", "--size-task", "Rope", "--sizes", "25",
+                      "--models", "CM-CD-CLNN"],
+                     ["--parts", "network", "--size-task", "Rope", "--models", "CM-CD-CLNN"]]),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("experiment", "subsets"), SUBSETS, ids=[s[0] for s in SUBSETS])
+def test_a_subset_run_keeps_the_other_rows(compare, fake_runs, experiment, subsets, tmp_path,
+                                          capsys):  # fmt: skip
+    """A rerun of some tasks (models, noise stds, ...) updated its own rows and dropped the
+    other rows of the results file from the section; now it shows them all, each with the
+    numbers of its last run, and the header names every invocation."""
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    commands = []
+    for subset in subsets:
+        argv = [experiment, *subset, "--out", str(out), "--doc", str(doc), *FAST]
+        assert compare.main(argv) == 0
+        commands.append("python experiments/compare.py " + " ".join(argv))
+    stored = _results(out, experiment)
+    body = _section(doc, experiment)
+    # every stored row is in the section with its latest numbers; a superseded one is not
+    latest = {r["key"]: r for r in fake_runs}
+    assert set(stored) == set(latest)
+    for key, r in latest.items():
+        assert compare._err(r) in body, key
+    for r in fake_runs:
+        if r is not latest[r["key"]]:
+            assert compare._err(r) not in body, r["key"]
+    assert f"Produced by the {len(subsets)} invocations" in body
+    assert all(f"`{c}`" in body for c in commands)
+    assert f"**{len(latest)} runs;" in body
+    # --report-only renders the same section
+    assert compare.main([experiment, "--out", str(out), "--doc", str(doc), "--report-only"]) == 0
+    assert _section(doc, experiment) == body
+    capsys.readouterr()
+
+
+def test_subset_rows_keep_the_default_order(compare, fake_runs, tmp_path, capsys):
+    """Rows of several invocations: the experiment's default order of tasks and models,
+    whatever order they ran in."""
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    for tasks, models in ((["Gyro"], ["IN-SP-CP"]), (["CP3", "BP5-e"], ["IN-SP-CP", OURS])):
+        argv = ["models", "--tasks", *tasks, "--models", *models, "--out", str(out),
+                "--doc", str(doc), *FAST]  # fmt: skip
+        assert compare.main(argv) == 0
+    order = [(t, m) for t in compare.ALL_TASKS for m in compare.ALL_MODELS]
+    cells = [line.removeprefix("| ").split(" | ") for line in _section(doc, "models").splitlines()]
+    got = [(c[0], c[1]) for c in cells if len(c) > 1 and (c[0], c[1]) in order]
+    assert sorted(got, key=order.index) == got
+    assert ("Gyro", "IN-SP-CP") in got and ("Gyro", OURS) not in got and len(got) == 5
+    noise = ["noise", "--tasks", "CP3", "--out", str(out), "--doc", str(doc), *FAST]
+    assert compare.main([*noise, "--noise", "0.05", "0.01"]) == 0
+    assert compare.main([*noise, "--noise", "0.02"]) == 0
+    stds = [line.split(" | ")[1] for line in _section(doc, "noise").splitlines()
+            if line.startswith("| CP3 |")]  # fmt: skip
+    assert stds == ["0.01", "0.05", "0.02"]  # Table S.6's order, then the others
+    capsys.readouterr()
+
+
+OURS = "CM-CD-CLNN"
+
+
+def test_rows_of_another_setup_are_left_out(compare, fake_runs, tmp_path, capsys):
+    """The data sizes are no part of a row's key: a row stored by an invocation with other
+    sizes is not shown under this one's header (it names their sizes), nor its command."""
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    first = ["models", "--tasks", "CP3", "--models", OURS, "--n-test", "7"]
+    second = ["models", "--tasks", "Gyro", "--models", OURS]
+    for argv in (first, second):
+        assert compare.main([*argv, "--out", str(out), "--doc", str(doc), *FAST]) == 0
+    body = _section(doc, "models")
+    assert "| Gyro | CM-CD-CLNN |" in body and "| CP3 |" not in body
+    assert "--n-test 7" not in body and "Produced by `" in body and "**1 runs;" in body
+    assert set(_results(out, "models")) == {"CP3/CM-CD-CLNN", "Gyro/CM-CD-CLNN"}
+    # a results file of before the set-up was recorded: its rows are the file's set-up
+    file = out / "results-models.json"
+    stored = json.loads(file.read_text())
+    for r in stored["runs"].values():
+        del r["setup"]
+    for c in stored["meta"]["invocations"]:
+        del c["setup"]
+    del stored["meta"]["eval_steps"]
+    file.write_text(json.dumps(stored))
+    assert compare.main(["models", "--out", str(out), "--doc", str(doc), "--report-only"]) == 0
+    legacy = _section(doc, "models")
+    assert "| CP3 | CM-CD-CLNN |" in legacy and "| Gyro | CM-CD-CLNN |" in legacy
+    assert "Produced by the 2 invocations" in legacy
+    # a run on it stamps the old rows with the old file's set-up, as they were made
+    assert compare.main([*second, "--out", str(out), "--doc", str(doc), *FAST]) == 0
+    assert all(r["setup"]["sizes"] == [800, 100, 100] for r in _results(out, "models").values())
+    capsys.readouterr()
+
+
+def test_keys_parse_back_to_their_runs(compare):
+    """The report finds the rows of the results file from their keys."""
+    Data, Run = compare.Data, compare.Run
+    runs = [
+        Run(Data("CP3"), OURS),
+        Run(Data("Gyro", "LCP"), OURS),
+        Run(Data("CP3-e", noise_std=0.05), OURS),
+        Run(Data("Rope", n_train=25), "IN-SP-CP"),
+        Run(Data("Rope"), OURS, hidden=(512,) * 6),
+        Run(Data("Gyro"), "CMr-CD-CLNN", eps="learnable"),
+        Run(Data("CP3"), "CMr-CD-CLNN", eps="1e-3"),
+        Run(Data("BP5-e", "LCP", 0.01, 50), "CMr-CD-CLNN", "0.1", (64, 64)),
+    ]
+    for run in runs:
+        assert compare._run_of(run.key, {"task": run.data.task, "model": run.model}) == run
+    assert compare._run_of("CP3/CM-CD-CLNN", {"task": "CP3", "model": "IN-SP-CP"}) is None
+    assert compare._run_of("CP3_x_y/CM-CD-CLNN", {"task": "CP3", "model": OURS}) is None
+    assert compare._run_of("CP3/CM-CD-CLNN_epsx", {"task": "CP3", "model": OURS}) is None
+    assert compare._run_of("CP3/CM-CD-CLNN", {}) is None
+
+
+# ---------------------------------------------------------------- the bar chart
+
+
+def test_lower_bars_cut_on_the_log_axis(compare):
+    nan = float("nan")
+    lengths, cut = compare.lower_bars([1e-3, 1e-3, 2e-3, nan, 0.0], [5e-4, 3e-3, 1.9e-3, 1.0, 1.0])
+    assert lengths == pytest.approx([5e-4, 9e-4, 1.8e-3, 0.0, 0.0])
+    assert cut == [False, True, True, False, False]
+    with pytest.raises(ValueError, match="2 means but 1 intervals"):
+        compare.lower_bars([1.0, 2.0], [0.1])
+
+
+def test_the_bar_chart_shows_which_lower_bars_are_cut(compare, monkeypatch, tmp_path):
+    """A lower error bar reaching below 0.1 x the mean was cut there without a sign, so it
+    read as the confidence interval: now its cut part is dashed, ends in a downward
+    triangle, and the legend says so. (Artists inspected, not pixels.)"""
+    import matplotlib.figure
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    saved = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: saved.append(fig))
+    results = {
+        "CP3/A": {"rel_err_mean": 1e-3, "rel_err_ci95": 5e-4},  # whole bar: down to 5e-4
+        "CP3/B": {"rel_err_mean": 2e-3, "rel_err_ci95": 3e-3},  # reaches below zero: cut
+    }
+    compare._figure(results, tmp_path / "f.png", ["CP3"], ["A", "B"])
+    (fig,) = saved
+    ax = fig.axes[0]
+    x_a, x_b = (p.get_x() + p.get_width() / 2 for p in ax.patches)
+
+    def solid_lows(x):  # lowest end of the solid error-bar lines at x
+        lows = [
+            min(y for _, y in seg)
+            for coll in ax.collections
+            if coll.get_linestyle()[0][1] is None  # (offset, dashes): solid
+            for seg in coll.get_segments()
+            if np.allclose([px for px, _ in seg], x)
+        ]
+        return min(lows)
+
+    assert solid_lows(x_a) == pytest.approx(5e-4)
+    assert solid_lows(x_b) == pytest.approx(2e-3)  # the solid bar goes up only
+    triangles = [ln for ln in ax.lines if ln.get_marker() == "v"]
+    assert [(list(ln.get_xdata()), list(ln.get_ydata())) for ln in triangles] == [
+        ([pytest.approx(x_b)], [pytest.approx(2e-4)])
+    ]
+    dashed = [c for c in ax.collections if c.get_linestyle()[0][1] is not None]
+    assert len(dashed) == 1
+    (seg,) = dashed[0].get_segments()
+    assert sorted(y for _, y in seg) == pytest.approx([2e-4, 2e-3])
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert legend[:2] == ["A", "B"] and "cut" in legend[2] and "0.1 x mean" in legend[2]
+    plt.close(fig)
+    # no bar cut: no legend line about it
+    saved.clear()
+    compare._figure({"CP3/A": results["CP3/A"]}, tmp_path / "g.png", ["CP3"], ["A"])
+    assert [t.get_text() for t in saved[0].axes[0].get_legend().get_texts()] == ["A"]
+    assert not [ln for ln in saved[0].axes[0].lines if ln.get_marker() == "v"]
+    plt.close(saved[0])
+
+
+def test_the_models_section_says_how_cut_bars_are_drawn(compare):
+    meta = {"invocations": [{"wall_seconds": 0.0, "command": "c"}], "date": "d", "version": "v",
+            "torch": "t", "cpus": 2, "sizes": [800, 100, 100], "tasks": ["CP3"],
+            "models": [OURS]}  # fmt: skip
+    r = {"rel_err_mean": 1e-3, "rel_err_ci95": 2e-3, "epochs": 1, "skipped_steps": 0,
+         "train_seconds": 1.0, "eval_seconds": 1.0}  # fmt: skip
+    body = compare.render_models({"CP3/CM-CD-CLNN": r}, meta, "figures/x.png")
+    caption = body.split("](figures/x.png)", 1)[1]
+    assert "below 0.1 times the mean" in caption and "drawn cut" in caption

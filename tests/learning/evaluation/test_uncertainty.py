@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -185,3 +186,120 @@ def test_evaluate_reports_an_uncertainty_it_cannot_assess(tmp_path, dataset, mon
         None, tmp_path / "out", model=model, data_dir=dataset, n_gif=0, steps=3
     )
     assert m["uncertainty"]["error"].startswith("parameter uncertainty not assessed: ")
+
+
+# ---------------------------------------------------------------- experiments/uncertainty.py
+
+
+@pytest.fixture
+def script(monkeypatch):
+    """experiments/uncertainty.py with its training and assessment replaced (no data, no
+    training): each assessment has a new mean residual, so a part shows which run made it."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[3] / "experiments" / "uncertainty.py"
+    spec = importlib.util.spec_from_file_location("_uncertainty_script", path)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "_uncertainty_script", module)
+    spec.loader.exec_module(module)
+    made: list[dict] = []
+
+    def assess(task, data, run):
+        def entry(value):
+            return {"value": [value], "ci95": [[value - 0.01, value + 0.01]],
+                    "determined": [True], "reason": [""]}  # fmt: skip
+
+        r = {
+            "task": task,
+            "uncertainty": {
+                "tolerances": {"mass_ratio_relative": 0.005, "mu": 0.01, "cor": 0.02},
+                "mass_ratios": entry(1.0), "mu": entry(0.5), "cor": entry(0.0),
+                "residual_mean_abs": 1.25e-3 * (len(made) + 1), "n_residuals": 10,
+                "n_parameters": 3,
+            },
+            "regimes": {"impacts": [4], "sliding": [1], "sticking": [2], "separating": [1]},
+            "seconds": 1.0, "contact_names": ["ground"],
+            "truth": {"mass_ratios": [1.0], "mu": [0.5], "cor": [0.0]},
+        }  # fmt: skip
+        made.append(r)
+        return r
+
+    monkeypatch.setattr(module, "train_model", lambda task, out, epochs: (out, out, 0.0))
+    monkeypatch.setattr(module, "assess", assess)
+    module.made = made
+    return module
+
+
+def _part(doc, module, task: str) -> str:
+    text = doc.read_text()
+    assert text.count(module.BEGIN) == 1 and text.count(module.END) == 1
+    return text.split(f"### {task}\n", 1)[1].split("###", 1)[0]
+
+
+def test_uncertainty_script_keeps_the_other_tasks(script, tmp_path, capsys):
+    """``--tasks BP5`` rewrote the section (and uncertainty.json) with BP5 alone, dropping
+    BD5's results; now it replaces BP5's and keeps BD5's, and names both commands."""
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    doc.write_text("# results\n\nkept text\n")
+    commands = []
+    for task in ("BP5", "BD5", "BP5"):
+        argv = ["--tasks", task, "--out", str(out), "--doc", str(doc)]
+        assert script.main(argv) == 0
+        commands.append("python experiments/uncertainty.py " + " ".join(argv))
+    first_bp5, bd5, bp5 = script.made
+    section = doc.read_text().split(script.BEGIN, 1)[1]
+    assert "kept text" in doc.read_text()
+    assert "### BD5" in section and "### BP5" in section
+    assert section.index("### BD5") < section.index("### BP5")  # TASKS' order
+    assert "(BD5, BP5)" in section
+    assert f"{bd5['uncertainty']['residual_mean_abs']:.2e}" in _part(doc, script, "BD5")
+    assert f"{bp5['uncertainty']['residual_mean_abs']:.2e}" in _part(doc, script, "BP5")
+    assert f"{first_bp5['uncertainty']['residual_mean_abs']:.2e}" not in section
+    assert f"`{commands[1]}` (BD5; " in section and f"`{commands[2]}` (BP5; " in section
+    assert section.count("--tasks BP5") == 1  # the first BP5 run made nothing shown
+    stored = json.loads((out / "uncertainty.json").read_text())
+    assert [r["task"] for r in stored["results"]] == ["BD5", "BP5"]
+    assert (out / "uncertainty.md").read_text() == script.BEGIN + section
+    capsys.readouterr()
+
+
+def test_uncertainty_script_drops_results_of_another_setup(script, tmp_path, capsys):
+    """A stored result made with other epochs (or sizes, scan, model) is not reported
+    beside today's; one stored before results recorded their set-up is the file's."""
+    out = tmp_path / "out"
+    assert script.main(["--tasks", "BD5", "--out", str(out)]) == 0
+    file = out / "uncertainty.json"
+    stored = json.loads(file.read_text())
+    stored["results"][0]["setup"]["epochs"] = 5
+    file.write_text(json.dumps(stored))
+    assert script.main(["--tasks", "BP5", "--out", str(out)]) == 0
+    assert [r["task"] for r in json.loads(file.read_text())["results"]] == ["BP5"]
+    # a file of before: no command, set-up or producer per result
+    stored = json.loads(file.read_text())
+    legacy = {k: stored["meta"][k] for k in ("date", "torch", "machine")}
+    for r in stored["results"]:
+        del r["setup"], r["produced"]
+    file.write_text(json.dumps({"meta": legacy, "results": stored["results"]}))
+    assert script.main(["--tasks", "BD5", "--out", str(out)]) == 0
+    text = (out / "uncertainty.md").read_text()
+    assert "### BD5" in text and "### BP5" in text
+    assert f"`{script.DEFAULT_COMMAND}` (BP5; " in text
+    capsys.readouterr()
+
+
+def test_uncertainty_script_refuses_a_bad_results_file(script, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "uncertainty.json").write_text('{"results": []}')
+
+    def no_work(*args):
+        raise AssertionError("work started")
+
+    monkeypatch.setattr(script, "train_model", no_work)
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--out", str(out)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "uncertainty.json is not a results file of uncertainty.py" in err and "--out" in err
