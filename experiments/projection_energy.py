@@ -11,9 +11,10 @@ with Poisson's restitution on the others (systems/projection.py, "Restitution").
 script simulates ``--n`` trajectories of each task over its config's horizon with the
 given ``cor`` and ``mu``, without the projection, with both projections, and with the
 positions projected alone, and prints the smallest and largest relative energy change
-``(E(t) - E(0)) / |E(0)|`` over all states, the mean at the end, and the deepest
-penetration (the most negative gap). With ``cor`` 1 and ``mu`` 0 the true motion keeps
-its energy.
+``(E(t) - E(0)) / |E(0)|`` over all states, the mean at the end, the deepest
+penetration (the most negative gap) and, for systems with equality constraints (rigid
+bodies, the chain pendulum), their largest drift ``|Phi(x(t)) - Phi(x(0))|`` (``-``
+without). With ``cor`` 1 and ``mu`` 0 the true motion keeps its energy.
 """
 
 from __future__ import annotations
@@ -24,6 +25,17 @@ import sys
 from collections.abc import Sequence
 
 import torch
+
+
+def _drift(system, traj: torch.Tensor) -> str:
+    """The equality constraints' largest drift ``|Phi(x(t)) - Phi(x(0))|`` over the
+    trajectories ``traj: (N, T, 2, P, dim)``, formatted; ``-`` for a system without."""
+    constraints = system.constraints
+    if constraints is None or constraints.num_equations == 0:
+        return "-"
+    n, T = traj.shape[:2]
+    phi = constraints.phi(traj[:, :, 0].flatten(0, 1)).view(n, T, -1)
+    return f"{float((phi - phi[:, :1]).abs().max()):.3g}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -53,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"cor {args.cor:g}, mu {args.mu:g}; {args.n} trajectories per task")
     print(
         f"{'task':>8} {'setting':>24} {'min dE/E':>10} {'max dE/E':>10} {'mean final':>10} "
-        f"{'deepest':>10}"
+        f"{'deepest':>10} {'drift':>10}"
     )
     settings = [
         ("no projection", {"position_projection": 0}),
@@ -73,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             deepest = float(system.gaps(traj[:, :, 0]).min())
             print(
                 f"{task:>8} {label:>24} {float(change.min()):>10.3g} {float(change.max()):>10.3g} "
-                f"{float(change[:, -1].mean()):>10.3g} {deepest:>10.3g}",
+                f"{float(change[:, -1].mean()):>10.3g} {deepest:>10.3g} {_drift(system, traj):>10}",
                 flush=True,
             )
     return 0

@@ -88,7 +88,11 @@ def test_projection_keeps_equality_constraints_and_velocities():
         assert float(system.gaps(zp[:, 0]).min()) > -1e-10
         phi = system.constraints.phi
         assert float((phi(zp[:, 0]) - phi(z[:, 0])).abs().max()) < 1e-12
-        assert torch.equal(zp[:, 1], z[:, 1])  # velocities untouched
+        # the velocities keep the constraints' rates (tangent at the new positions; they
+        # were left as they were before, off the constraints, test_projection_constraints.py)
+        J = system.constraints.jacobian
+        rates, rates_p = (J(s[:, 0]) @ s[:, 1].flatten(1).unsqueeze(-1) for s in (z, zp))
+        assert float((rates_p - rates).abs().max()) < 1e-10
         k = int(hit.sum().clamp(max=4))
         assert torch.equal(zp[k:], z[k:])  # admissible states untouched
         assert float((zp[:k, 0] - z[:k, 0]).abs().max()) > 1e-4

@@ -425,17 +425,28 @@ def test_gradient_through_the_restitution():
 
 
 def test_projection_energy_script_compares_the_settings(capsys):
-    """experiments/projection_energy.py (docs/config.md, ``velocity_projection``): elastic
-    billiards keep their energy with and without the projection, and the projection
-    removes the penetration."""
+    """experiments/projection_energy.py (docs/config.md, ``velocity_projection`` and
+    ``position_projection``): elastic billiards keep their energy with and without the
+    projection, and the projection removes the penetration; a gyroscope's constraints
+    drift no more with the projection than without."""
     script = _experiment("projection_energy")
-    assert script.main(["--tasks", "BP5", "--n", "4"]) == 0
+    assert script.main(["--tasks", "BP5", "Gyro", "--n", "4"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "cor 1, mu 0; 4 trajectories per task"
+    assert lines[1].split()[-2:] == ["deepest", "drift"]
     rows = {}
     for line in lines[2:]:
-        rows[" ".join(line.split()[1:-4])] = [float(v) for v in line.split()[-4:]]
-    assert set(rows) == {"no projection", "projection 10", "positions only 10"}
-    for low, high, _, _ in rows.values():
+        words = line.split()
+        rows[(words[0], " ".join(words[1:-5]))] = words[-5:]
+    settings = {"no projection", "projection 10", "positions only 10"}
+    assert set(rows) == {(task, s) for task in ("BP5", "Gyro") for s in settings}
+    for setting in settings:
+        low, high, _, _ = (float(v) for v in rows["BP5", setting][:4])
         assert -1e-9 < low <= high < 1e-9
-    assert rows["no projection"][-1] < -1e-3 < -1e-9 < rows["projection 10"][-1]
+        assert rows["BP5", setting][-1] == "-"  # no equality constraints
+    deepest = {s: float(rows["BP5", s][3]) for s in settings}
+    assert deepest["no projection"] < -1e-3 < -1e-9 < deepest["projection 10"]
+    free = float(rows["Gyro", "no projection"][-1])
+    assert 0 < free < 0.01
+    for setting in ("projection 10", "positions only 10"):
+        assert float(rows["Gyro", setting][-1]) < 1.5 * free

@@ -88,6 +88,7 @@ from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import (
     ReadFree,
     closed_below,
+    keep_constraint_rates,
     project_positions,
     project_state,
 )
@@ -1244,7 +1245,16 @@ class System:
             kwargs["restitution"] = ctx.cor if ctx.has_restitution() else None
             x, v = project_state(x, v, *args, **kwargs, dt=dt, foresee=ctx.cor == 0)
         else:
-            x = project_positions(x, *args, **kwargs)
+            x_p = project_positions(x, *args, **kwargs)
+            if ctx.constraints is not None and ctx.constraints.num_equations > 0:
+                # the velocities tangent to the constraints at the projected positions
+                M_inv = ctx.M_inv
+                if self._point_masses:
+                    M_inv = M_inv.diagonal(dim1=-2, dim2=-1)
+                v = keep_constraint_rates(
+                    x, x_p, v, ctx.constraints, M_inv, diagonal=self._point_masses
+                )
+            x = x_p
         return torch.stack([x, v], dim=-3)
 
     def _read_free_projection(self, device: torch.device, iterations: int) -> ReadFree | None:
