@@ -149,6 +149,86 @@ def test_validation_errors_name_the_key(override, pattern):
         dc.load_system("BP5", **override)
 
 
+NOT_FROM_STRINGS = "numbers are not read from strings or booleans"
+
+
+@pytest.mark.parametrize(
+    ("task", "override", "lines"),
+    [
+        ("Rope", {"mass": -0.1}, ["mass: Input should be greater than 0 (got -0.1)"]),
+        ("Rope", {"mass": [0.1] * 9 + [-1]}, ["mass.9: Input should be greater than 0 (got -1)"]),
+        ("Rope", {"mass": float("nan")}, ["mass: Input should be a finite number (got nan)"]),
+        (
+            "Rope",
+            {"mass": "5"},
+            [f"mass: Input should be a valid number (got '5'; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"mass": (0.1, "x")},
+            [f"mass.1: Input should be a valid number (got 'x'; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"mass": -0.1, "rest_length": 0},
+            [
+                "mass: Input should be greater than 0 (got -0.1)",
+                "rest_length: Input should be greater than 0 (got 0)",
+            ],
+        ),
+        (
+            "Rope",
+            {"mu": "a"},
+            [f"mu: Input should be a valid number (got 'a'; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"mu": [0.1, True]},
+            [f"mu.1: Input should be a valid number (got True; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"cor": {"bending": [0.1, "a"], "stretch": 0.0}},
+            [f"cor.bending.1: Input should be a valid number (got 'a'; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"cor": {"bending": 0.0, "stretch": 0.0, "walls2": 1}},
+            ["cor.walls2: unknown key (not part of the schema; see docs/config.md)"],
+        ),
+        (
+            "BP5",
+            {"mu": {"pairs": "0.1", "walls": 0.1}},
+            [f"mu.pairs: Input should be a valid number (got '0.1'; {NOT_FROM_STRINGS})"],
+        ),
+        ("Gyro", {"mass": -1}, ["mass: Input should be greater than 0 (got -1)"]),
+    ],
+)
+def test_number_or_list_errors_name_only_the_form_given(task, override, lines):
+    """A key taking one number or a list (or, per contact, a mapping of groups) reports
+    what is wrong with the value given, not also that it is not of the other forms
+    ("mass: Input should be greater than 0; mass: Input should be a valid list (got
+    -0.1 ...)"), each error on one line with the value that broke the range."""
+    with pytest.raises(ValueError) as info:
+        load_config(task, **override)
+    header, *got = str(info.value).splitlines()
+    assert header == f"invalid system config of built-in task {task!r}:"
+    assert got == [f"  {line}" for line in lines]
+
+
+def test_number_or_list_keys_accept_every_form():
+    as_list = load_config("Rope", mass=[0.1] * 10, cor={"bending": 0.5, "stretch": [0.2] * 10})
+    assert as_list.point_masses() == [0.1] * 10
+    assert as_list.per_contact("cor") == [0.5] * 9 + [0.2] * 10
+    assert load_config("Rope", mass=(0.1,) * 10).mass == [0.1] * 10  # a tuple is a list
+    assert load_config("Rope", mass=2).point_masses() == [2.0] * 10  # an integer is a number
+    assert load_config("Rope", mu=[0.0] * 19).per_contact("mu") == [0.0] * 19
+    groups = load_config("Rope", cor=as_list.cor)  # a ContactGroups instance
+    assert groups.cor == as_list.cor
+    again = load_config("Rope", **as_list.model_dump())
+    assert again == as_list
+
+
 def test_validation_errors_other_types():
     with pytest.raises(ValueError, match=r"link_lengths: expected 3 values"):
         dc.load_system("CP3", link_lengths=[0.3, 0.4])

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import diffcontact as dc
+from diffcontact.systems import load_config
 from diffcontact.testing import assert_gradients_close, count_host_reads
 
 F64 = torch.float64
@@ -178,6 +179,40 @@ def test_bad_parameters_are_named():
     batched = p.replace(mass=torch.ones(3, 5, dtype=F64))
     with pytest.raises(ValueError, match="need a leading batch dimension"):
         system.potential(z0[0, 0], params=batched)
+
+
+@pytest.mark.parametrize(
+    ("task", "field", "bad", "edge", "pattern"),
+    [
+        ("BP5", "gravity", -9.81, 0.0, r"gravity must be >= 0, got -9\.81"),
+        ("CP3", "gravity", -1e-12, 0.0, r"gravity must be >= 0, got -1e-12"),
+        ("Rope", "stiffness", -1.0, 0.0, r"stiffness must be >= 0, got -1"),
+        ("Rope", "rest_length", 0.0, None, r"rest_length must be positive, got 0"),
+        ("Gyro", "mu", -0.1, 0.0, r"mu must be >= 0, got -0\.1"),
+        ("Gyro", "cor", 1.1, 1.0, r"cor must be in \[0, 1\], got 1\.1"),
+    ],
+)
+def test_params_refuse_what_the_config_refuses(task, field, bad, edge, pattern):
+    """A value passed through ``params`` is held to the config's range: gravity is a
+    magnitude (>= 0; -9.81 made gravity point up, silently), like the config's key."""
+    system = dc.load_system(task)
+    z0 = system.sample_initial_conditions(2, seed=0)
+    p = system.parameters()
+    with pytest.raises(ValueError, match=rf"\n  {field}: "):
+        load_config(task, **{field: bad})
+    for value in (
+        torch.tensor(bad, dtype=F64),
+        torch.tensor(bad, dtype=F64, requires_grad=True),  # a learned model's parameter
+    ):
+        with pytest.raises(ValueError, match=pattern):
+            system.simulate(z0, 1, params=p.replace(**{field: value}))
+    batched = getattr(p, field).detach().expand(2, *getattr(p, field).shape).clone()
+    batched[1] = bad  # one trajectory's set
+    with pytest.raises(ValueError, match=rf"{field} must be"):
+        system.simulate(z0, 1, params=p.replace(**{field: batched}))
+    if edge is not None:  # the bound itself is valid in both
+        load_config(task, **{field: edge})
+        system.simulate(z0, 1, params=p.replace(**{field: torch.tensor(edge, dtype=F64)}))
 
 
 def test_valid_parameters_are_checked_with_one_read_per_device():

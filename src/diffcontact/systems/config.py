@@ -21,7 +21,16 @@ import os
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
 
 __all__ = [
     "ALLOW_LARGE_ENV",
@@ -52,6 +61,32 @@ Plane = tuple[Finite, Finite, Finite, Finite]
 Pair = tuple[Finite, Finite]
 
 
+# A key that takes one number or a list (or, per contact, a mapping of groups) is
+# validated as the one branch its input's type picks: a list or tuple as the list, a
+# mapping as the groups, anything else as the number. A plain union would try every
+# branch and report all their failures ("mass: Input should be greater than 0; mass:
+# Input should be a valid list"); picked, an error names only what is wrong with the
+# value given. The tags show in pydantic's error locations; _format_error drops them.
+_NUMBER, _LIST, _GROUPS = "<number>", "<list>", "<groups>"
+
+
+def _number_or_list(value: Any) -> str:
+    """The branch of a number-or-list key that ``value`` is validated as."""
+    return _LIST if isinstance(value, (list, tuple)) else _NUMBER
+
+
+RealOrList = Annotated[
+    Annotated[Real, Tag(_NUMBER)] | Annotated[list[Real], Tag(_LIST)],
+    Discriminator(_number_or_list),
+]
+"""One number or a list of numbers."""
+PositiveOrList = Annotated[
+    Annotated[PositiveFloat, Tag(_NUMBER)] | Annotated[list[PositiveFloat], Tag(_LIST)],
+    Discriminator(_number_or_list),
+]
+"""One positive finite number or a list of them."""
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -64,13 +99,24 @@ class ContactGroups(_Strict):
     ``bending`` and ``stretch`` for the rope.
     """
 
-    pairs: Real | list[Real] | None = None
-    walls: Real | list[Real] | None = None
-    bending: Real | list[Real] | None = None
-    stretch: Real | list[Real] | None = None
+    pairs: RealOrList | None = None
+    walls: RealOrList | None = None
+    bending: RealOrList | None = None
+    stretch: RealOrList | None = None
 
 
-PerContact = Real | list[Real] | ContactGroups
+def _per_contact(value: Any) -> str:
+    """The branch of a per-contact key (``mu``, ``cor``) that ``value`` is validated as."""
+    return _GROUPS if isinstance(value, (Mapping, ContactGroups)) else _number_or_list(value)
+
+
+PerContact = Annotated[
+    Annotated[Real, Tag(_NUMBER)]
+    | Annotated[list[Real], Tag(_LIST)]
+    | Annotated[ContactGroups, Tag(_GROUPS)],
+    Discriminator(_per_contact),
+]
+"""One number for all contacts, one per contact, or a mapping of groups to either."""
 
 
 # --------------------------------------------------------------- initial conditions
@@ -453,7 +499,7 @@ class RopeConfig(_SystemBase):
 
     type: Literal["rope"]
     n_points: int = Field(ge=2, strict=True)
-    mass: PositiveFloat | list[PositiveFloat]
+    mass: PositiveOrList
     rest_length: PositiveFloat
     stiffness: NonNegFloat
     max_angle: Annotated[float, Field(gt=0, le=math.pi, strict=True)] = 0.2
@@ -527,14 +573,9 @@ SYSTEM_TYPES = ("bouncing_masses", "bouncing_disks", "chain_pendulum", "gyroscop
 _ADAPTER: TypeAdapter = TypeAdapter(SystemConfig)
 
 
-# pydantic's names of union branches in error locations, and its wrong-type errors
-_BRANCHES = {
-    "float",
-    "list[float]",
-    "constrained-float",
-    "list[constrained-float]",
-    "ContactGroups",
-}
+# the union branches' tags in error locations (RealOrList, PositiveOrList, PerContact),
+# pydantic's wrong-type errors, and its range errors of a number (shown with the number)
+_BRANCHES = {_NUMBER, _LIST, _GROUPS}
 _TYPE_ERRORS = {
     "float_type",
     "int_type",
@@ -544,6 +585,13 @@ _TYPE_ERRORS = {
     "model_type",
     "dict_type",
 }
+_RANGE_ERRORS = {
+    "greater_than",
+    "greater_than_equal",
+    "less_than",
+    "less_than_equal",
+    "finite_number",
+}
 
 
 def _format_error(err: ValidationError, source: str) -> str:
@@ -551,7 +599,7 @@ def _format_error(err: ValidationError, source: str) -> str:
     typed: set[str] = set()
     for e in err.errors():
         loc = [str(p) for p in e["loc"]]
-        # drop the discriminator tag and pydantic's union-branch names
+        # drop the system type (the config's discriminator) and the union branches' tags
         if loc and loc[0] in SYSTEM_TYPES:
             loc = loc[1:]
         loc = [p for p in loc if p not in _BRANCHES]
@@ -569,10 +617,12 @@ def _format_error(err: ValidationError, source: str) -> str:
             msg = f"missing key 'type' (one of {list(SYSTEM_TYPES)})"
         key = ".".join(loc)
         if e["type"] in _TYPE_ERRORS:
-            if key in typed:  # one wrong-type message per key, not one per union branch
+            if key in typed:  # one wrong-type message per key
                 continue
             typed.add(key)
             msg = f"{msg} (got {e['input']!r}; numbers are not read from strings or booleans)"
+        elif e["type"] in _RANGE_ERRORS:
+            msg = f"{msg} (got {e['input']!r})"
         line = f"{key}: {msg}" if key else msg
         if line not in lines:
             lines.append(line)

@@ -61,7 +61,7 @@ class PhysicalParams:
             (rigid bodies), or ``None`` (point masses).
         mu: friction coefficients, one per candidate contact (or one shared).
         cor: Poisson's coefficients of restitution e_P in [0, 1], likewise.
-        gravity: magnitude of gravity (along -y in 2D, -z in 3D).
+        gravity: magnitude of gravity, >= 0 (along -y in 2D, -z in 3D).
         stiffness: the rope's segment-spring stiffness, or ``None``.
         rest_length: the rope's segment rest length, or ``None``.
         eps: CMr's regulariser (used by contact models that have one).
@@ -181,7 +181,8 @@ class PhysicalParams:
                 "eps": (0.0, math.inf, "positive"),
                 "mu": (0.0, math.inf, ">= 0"),
                 "stiffness": (0.0, math.inf, ">= 0"),
-                "gravity": (-math.inf, math.inf, "finite"),
+                # a magnitude along the fixed direction -y (-z in 3D), as in the config
+                "gravity": (0.0, math.inf, ">= 0"),
                 "cor": (0.0, 1.0, "in [0, 1]"),
             }[name]
             strict = rng == "positive"
