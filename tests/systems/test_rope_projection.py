@@ -7,6 +7,8 @@ positions onto the admissible set, keeping the equality constraints' values;
 the rope tasks switch it on by default.
 """
 
+import warnings
+
 import pytest
 import torch
 
@@ -340,3 +342,24 @@ def test_gradient_through_a_damped_projection(monkeypatch):
     inputs = [base.mass.detach().clone(), base.stiffness.detach().clone(), z]
     results = assert_gradients_close(step, inputs, n_directions=2, rtol=1e-4)
     assert all(float(r.finite_difference.abs().max()) > 0 for r in results)
+
+
+def test_a_projection_that_does_not_converge_warns():
+    """A rope stretched to twice its length is far from its limits: 100 iterations leave
+    it stretched (ratios up to 2.1), which the public call said nothing about."""
+    system = dc.load_system("Rope")
+    z = system.sample_initial_conditions(2, seed=0)
+    far = z.clone()
+    far[:, 0] *= 2
+    with pytest.warns(RuntimeWarning, match=r"did not converge within 100 iterations for 2 of 2"):
+        out = system.project_positions(far, iterations=100)
+    assert float(system.gaps(out[:, 0]).min()) < -0.01
+    # a state one step from its limits converges, and nothing is said
+    traj = system.simulate(z, 20)
+    near = traj[:, -1].clone()
+    near[:, 0] *= 1.01
+    assert float(system.gaps(near[:, 0]).min()) < 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = system.project_positions(near)
+    assert float(system.gaps(out[:, 0]).min()) > -1e-10

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import diffcontact as dc
-from diffcontact.systems.projection import CLOSED, ReadFree, project_state
+from diffcontact.systems.projection import CLOSED, ReadFree, project_positions, project_state
 from diffcontact.testing import assert_gradients_close
 
 
@@ -450,3 +450,46 @@ def test_projection_energy_script_compares_the_settings(capsys):
     assert 0 < free < 0.01
     for setting in ("projection 10", "positions only 10"):
         assert float(rows["Gyro", setting][-1]) < 1.5 * free
+
+
+def test_bad_arguments_of_the_public_projections_are_clear_errors():
+    """``project_state`` and ``project_positions`` called directly (a stress test found
+    IndexErrors from deep inside, a misleading solver error for a negative ``M_inv``, NaN
+    returned for NaN input, and a ``gaps`` of too few states leaving a state unprojected)."""
+    system, z = _pre_projection_states(n=3)
+    x, v = z[:3, 0], z[:3, 1]
+    M_inv = system.inverse_mass_matrix()
+    geometry = system.geometry
+    N, P = x.shape[:2]
+    K = system.n_contacts
+    nan = x.clone()
+    nan[0, 0, 0] = float("nan")
+    good = (x, v, geometry, M_inv, 10)
+    cases = [
+        ((x, v[:, :5], geometry, M_inv, 10), {}, r"v must have the shape of x"),
+        ((x, v[:2], geometry, M_inv, 10), {}, r"v must have the shape of x"),
+        ((x, v, geometry, M_inv[:5, :5], 10), {}, rf"M_inv must have shape \({P}, {P}\)"),
+        ((x, v, geometry, -M_inv, 10), {}, r"diagonal must be positive"),
+        ((x.float(), v.float(), geometry, M_inv, 10), {}, r"M_inv has dtype torch.float64"),
+        ((x, v.float(), geometry, M_inv, 10), {}, r"v has dtype torch.float32"),
+        ((nan, v, geometry, M_inv, 10), {}, r"x contains NaN"),
+        ((x, nan, geometry, M_inv, 10), {}, r"v contains NaN"),
+        ((x, v, geometry, M_inv, -1), {}, r"iterations must be an integer >= 0"),
+        (good, {"tol": float("nan")}, r"tol must be a number >= 0"),
+        (good, {"tol": -1.0}, r"tol must be a number >= 0"),
+        (good, {"gaps": system.gaps(x)[:2]}, rf"gaps must have shape \({N}, {K}\)"),
+        (good, {"restitution": "0.5"}, r"restitution must be a number or a tensor"),
+        (good, {"dt": 0.01, "foresee": torch.ones(K)}, r"foresee must be a bool tensor"),
+        ((x[0], v[0], geometry, M_inv, 10), {}, r"x must be a floating-point tensor of shape"),
+    ]
+    for args, kwargs, message in cases:
+        with pytest.raises(ValueError, match=message):
+            project_state(*args, **kwargs)
+        if "dt" not in kwargs and "restitution" not in kwargs and args[1] is v:
+            with pytest.raises(ValueError, match=message):
+                project_positions(args[0], *args[2:], **kwargs)
+    # a number for restitution is every candidate's
+    number = project_state(x, v, geometry, M_inv, 10, restitution=0.5)
+    tensor = project_state(x, v, geometry, M_inv, 10, restitution=torch.full((K,), 0.5))
+    for a, b in zip(number, tensor, strict=True):
+        assert torch.equal(a, b)

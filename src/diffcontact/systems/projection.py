@@ -147,6 +147,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -167,7 +168,13 @@ from diffcontact.geometry.base import (
 from diffcontact.geometry.sparse_gram import MIN_DENSE_SIZE, sparse_gram, sparse_gram_available
 from diffcontact.mechanics import EqualityConstraints, Mhat_inv
 
-__all__ = ["ReadFree", "keep_constraint_rates", "project_positions", "project_state"]
+__all__ = [
+    "ReadFree",
+    "keep_constraint_rates",
+    "project_positions",
+    "project_state",
+    "warn_unconverged",
+]
 
 STEPS = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Step lengths tried along each Gauss-Newton direction (the one with the least violation wins)."""
@@ -454,6 +461,84 @@ def _smallest_correction(
     return (dx, lam) if impulse else dx
 
 
+def _check_inputs(
+    x: Tensor,
+    v: Tensor | None,
+    geometry: Any,
+    M_inv: Tensor,
+    iterations: int,
+    gaps: Tensor | None,
+    tol: float | None,
+    read_free: ReadFree | None,
+) -> None:
+    """The public functions' arguments, checked before any work: a ``ValueError`` naming
+    the argument (``System`` calls :func:`_project` with its own, already checked). The
+    values (finite positions and velocities, positive masses) are read from the device
+    once; with ``read_free`` only shapes and dtypes are checked."""
+
+    def shape(t: Tensor) -> tuple[int, ...]:
+        return tuple(t.shape)
+
+    if not isinstance(x, Tensor) or x.dim() != 3 or not x.is_floating_point():
+        got = shape(x) if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"x must be a floating-point tensor of shape (N, P, dim), got {got}")
+    N, P, _ = x.shape
+    if v is not None and (not isinstance(v, Tensor) or shape(v) != shape(x)):
+        got = shape(v) if isinstance(v, Tensor) else type(v).__name__
+        raise ValueError(f"v must have the shape of x, {shape(x)}, got {got}")
+    if not isinstance(M_inv, Tensor) or shape(M_inv) not in ((P, P), (N, P, P)):
+        got = shape(M_inv) if isinstance(M_inv, Tensor) else type(M_inv).__name__
+        raise ValueError(f"M_inv must have shape ({P}, {P}) or ({N}, {P}, {P}), got {got}")
+    for name, t in (("v", v), ("M_inv", M_inv)):
+        if t is not None and t.dtype != x.dtype:
+            raise ValueError(f"{name} has dtype {t.dtype} but x has {x.dtype}: give them one dtype")
+    K = getattr(geometry, "n_candidates", None)
+    if gaps is not None and (not isinstance(gaps, Tensor) or shape(gaps) != (N, K)):
+        got = shape(gaps) if isinstance(gaps, Tensor) else type(gaps).__name__
+        raise ValueError(f"gaps must have shape ({N}, {K}), one per state and candidate, got {got}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
+        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+    if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a number >= 0 or None, got {tol!r}")
+    if read_free is not None or x.shape[0] == 0:
+        return
+    checks = [torch.isfinite(x).all(), M_inv.diagonal(dim1=-2, dim2=-1).gt(0).all()]
+    checks.append(torch.isfinite(v).all() if v is not None else checks[0])
+    finite_x, positive, finite_v = torch.stack(checks).tolist()  # one read
+    if not finite_x:
+        raise ValueError("x contains NaN or infinite values")
+    if not finite_v:
+        raise ValueError("v contains NaN or infinite values")
+    if not positive:
+        raise ValueError("M_inv must be an inverse mass matrix: its diagonal must be positive")
+
+
+def warn_unconverged(geometry: Any, x: Tensor, iterations: int, tol: float | None = None) -> None:
+    """Warn (once per call) where projected positions ``x: (N, P, dim)`` still violate a
+    candidate by more than ``tol`` (the projection's default per dtype): the iterations
+    ran out before the state reached the admissible set (a state far from it, such as a
+    rope stretched to twice its limits). One read of the device."""
+    if x.shape[0] == 0:
+        return
+    if tol is None:
+        tol = 1e-10 if x.dtype == torch.float64 else 1e-5
+    with torch.no_grad():
+        worst = geometry.gaps(x.detach()).amin(-1)  # (N,)
+        bad = worst < -tol
+        count, first, gap = torch.stack(
+            [bad.sum().to(worst), bad.to(torch.uint8).argmax().to(worst), worst.min()]
+        ).tolist()
+    if count:
+        warnings.warn(
+            f"the position projection did not converge within {iterations} iterations for "
+            f"{int(count)} of {x.shape[0]} states (the first: state {int(first)}; the worst "
+            f"gap left: {gap:.3g}): more iterations, or states nearer the admissible set "
+            "(the projection corrects the small violations of a step)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
 def project_positions(
     x: Tensor,
     geometry: Any,
@@ -487,9 +572,21 @@ def project_positions(
     Returns:
         ``(N, P, dim)``: ``x`` with the states that violated a candidate projected;
         the others are returned unchanged (the same values, no extra graph).
+
+    Raises:
+        ValueError: an argument of the wrong shape or dtype, NaN positions, or an
+            ``M_inv`` without a positive diagonal (read-free: shapes and dtypes only).
+
+    Warns:
+        RuntimeWarning: a state still violates a candidate after ``iterations``
+            (:func:`warn_unconverged`; not read-free).
     """
+    _check_inputs(x, None, geometry, M_inv, iterations, gaps, tol, read_free)
     args = (constraints, gaps, settings, tol, read_free)
-    return _project(x, None, geometry, M_inv, iterations, *args)[0]
+    out = _project(x, None, geometry, M_inv, iterations, *args)[0]
+    if read_free is None and iterations > 0:
+        warn_unconverged(geometry, out, iterations, tol)
+    return out
 
 
 def project_state(
@@ -523,21 +620,40 @@ def project_state(
             limits closed there (``J v+ >= 0``).
         foresee: ``(K,)`` or ``(N, K)`` bool, the candidates whose crossing within ``dt``
             is foreseen (``System``: the inelastic ones, ``cor == 0``); default all.
-        restitution: ``(K,)`` or ``(N, K)`` Poisson's coefficients of restitution in [0, 1]
-            (``System``: ``cor``, where one is positive): a closed limit that the
-            correction stopped then gets a restitution impulse of at least its
-            coefficient times that one (module docstring, "Restitution"). ``None``
-            (default): inelastic.
+        restitution: ``(K,)`` or ``(N, K)`` Poisson's coefficients of restitution in [0, 1],
+            or one number for every candidate (``System``: ``cor``, where one is
+            positive): a closed limit that the correction stopped then gets a
+            restitution impulse of at least its coefficient times that one (module
+            docstring, "Restitution"). ``None`` (default): inelastic.
 
     Returns:
         ``x, v``: ``(N, P, dim)`` each; the states without a violated candidate unchanged.
+
+    Raises:
+        ValueError: as :func:`project_positions` (and NaN velocities), and a ``dt``,
+            ``restitution`` or ``foresee`` of the wrong kind.
+
+    Warns:
+        RuntimeWarning: as :func:`project_positions`.
     """
     if dt is not None and not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number or None, got {dt!r}")
+    _check_inputs(x, v, geometry, M_inv, iterations, gaps, tol, read_free)
+    if restitution is not None and not isinstance(restitution, Tensor):
+        if not isinstance(restitution, (int, float)):
+            kind = type(restitution).__name__
+            raise ValueError(f"restitution must be a number or a tensor, got {kind}")
+        restitution = torch.full((geometry.n_candidates,), float(restitution), dtype=x.dtype)
+        restitution = restitution.to(x.device)
+    if foresee is not None and (not isinstance(foresee, Tensor) or foresee.dtype != torch.bool):
+        what = foresee.dtype if isinstance(foresee, Tensor) else type(foresee).__name__
+        raise ValueError(f"foresee must be a bool tensor, got {what}")
     x, v1 = _project(
         x, v, geometry, M_inv, iterations, constraints, gaps, settings, tol, read_free, dt,
         foresee, restitution,
     )  # fmt: skip
+    if read_free is None and iterations > 0:
+        warn_unconverged(geometry, x, iterations, tol)
     return x, v if v1 is None else v1
 
 

@@ -87,10 +87,10 @@ from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import (
     ReadFree,
+    _project,
     closed_below,
     keep_constraint_rates,
-    project_positions,
-    project_state,
+    warn_unconverged,
 )
 from diffcontact.systems.rollout import PROJECTION_ROWS, Rollout, RolloutOptions
 
@@ -1232,20 +1232,20 @@ class System:
         """``z: (N, 2, P, dim)`` with its positions projected, and its velocities where
         ``velocities`` (``gaps``: at ``z``'s positions, if known)."""
         x, v = z[..., 0, :, :], z[..., 1, :, :]
-        args = (ctx.geometry, ctx.M_inv, iterations)
-        kwargs = {
-            "constraints": ctx.constraints,
-            "gaps": gaps,
-            "settings": self._inner_settings(settings),
-            "read_free": read_free,
-        }
+        # the projection's own function: the public ones check their arguments, reading
+        # the device (the states here are checked at the system's boundary, and a rollout
+        # goes on after an overflow)
+        args = (
+            ctx.geometry, ctx.M_inv, iterations, ctx.constraints, gaps,
+            self._inner_settings(settings), None, read_free,
+        )  # fmt: skip
         if velocities:  # foreseeing the crossings of the inelastic limits within a step,
             # with Poisson's restitution on the closed limits that have it
             dt = self.dt if self.foresee_crossings else None
-            kwargs["restitution"] = ctx.cor if ctx.has_restitution() else None
-            x, v = project_state(x, v, *args, **kwargs, dt=dt, foresee=ctx.cor == 0)
+            restitution = ctx.cor if ctx.has_restitution() else None
+            x, v = _project(x, v, *args, dt, ctx.cor == 0, restitution)
         else:
-            x_p = project_positions(x, *args, **kwargs)
+            x_p = _project(x, None, *args)[0]
             if ctx.constraints is not None and ctx.constraints.num_equations > 0:
                 # the velocities tangent to the constraints at the projected positions
                 M_inv = ctx.M_inv
@@ -1331,6 +1331,10 @@ class System:
 
         Returns:
             ``(N, 2, P, dim)``.
+
+        Warns:
+            RuntimeWarning: where a state still violates a candidate after the iterations
+                (a state far from the admissible set; more iterations may help).
         """
         self._check_state(z, "z")
         if iterations is None:
@@ -1341,7 +1345,10 @@ class System:
         if not isinstance(velocities, bool):
             raise ValueError(f"velocities must be True, False or None, got {velocities!r}")
         ctx = self._context(z, params, z.shape[0])
-        return self._project_state(z, ctx, iterations, solver_settings, velocities)
+        out = self._project_state(z, ctx, iterations, solver_settings, velocities)
+        if iterations > 0:  # a state the iterations did not bring to its limits: said
+            warn_unconverged(ctx.geometry, out[..., 0, :, :], iterations)
+        return out
 
     def integrate(
         self, z: Tensor, *, params: PhysicalParams | None = None, dynamics: str | None = None
