@@ -104,6 +104,7 @@ def test_impulses_are_physical(task):
         assert float(system.constraints.phi_dot(x, v).abs().max()) < 1e-10 * v_scale
 
 
+@pytest.mark.filterwarnings("ignore:rope limits with cor > 0")  # on purpose
 @pytest.mark.parametrize("task", FAST_TASKS)
 def test_restitution_over_compression_equals_cor(task):
     """With one frictionless contact, f_r,n = e_P f_c,n exactly (Poisson's hypothesis).

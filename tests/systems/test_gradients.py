@@ -117,6 +117,7 @@ def test_gradients_gyroscope():
     assert abs(float(grad.sum())) < 1e-8 and abs(float(plus - minus) / 2e-4) < 1e-8
 
 
+@pytest.mark.filterwarnings("ignore:rope limits with cor > 0")  # on purpose
 def test_gradients_rope():
     system = dc.load_system("Rope", cor=0.3)
     z0 = system.sample_initial_conditions(4, seed=0)[1:3]

@@ -363,3 +363,19 @@ def test_a_projection_that_does_not_converge_warns():
         warnings.simplefilter("error")
         out = system.project_positions(near)
     assert float(system.gaps(out[:, 0]).min()) > -1e-10
+
+
+def test_a_rope_with_restitution_and_the_projection_warns():
+    """Restitution on a rope's limits with the position projection can raise its energy
+    without bound (docs/config.md, rope, "Restitution"): loading such a rope says so; the
+    defaults (cor 0) and a rope without the projection do not."""
+    from diffcontact.systems.system import ROPE_RESTITUTION_WARNING
+
+    with pytest.warns(UserWarning, match="rope limits with cor > 0") as record:
+        dc.load_system("Rope", cor=0.5)
+    assert str(record[0].message) == ROPE_RESTITUTION_WARNING
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dc.load_system("Rope")
+        dc.load_system("Rope", cor=0.5, position_projection=0)
+        dc.load_system("BP5", cor=0.5, position_projection=10)

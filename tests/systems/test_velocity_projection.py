@@ -84,6 +84,7 @@ def test_no_open_limit_is_crossed_within_the_next_step():
     assert worst_crossing(closed_only) < -1e-3  # the defect, with the closed limits alone
 
 
+@pytest.mark.filterwarnings("ignore:rope limits with cor > 0")  # on purpose
 def test_only_the_inelastic_limits_are_foreseen():
     """A limit with restitution keeps its approach: closing it within ``dt`` would take
     the speed its bounce needs. ``foresee`` all false is the closed limits alone."""
@@ -352,6 +353,7 @@ def test_elastic_billiards_keep_their_energy_with_the_projection():
     assert float(change.abs().max()) < 1e-9, float(change.min())
 
 
+@pytest.mark.filterwarnings("ignore:rope limits with cor > 0")  # on purpose
 @pytest.mark.parametrize("cor", [0.0, 0.5, 1.0])
 def test_a_limit_closed_by_the_projection_bounces_with_its_restitution(cor):
     """A 2-point rope whose first segment is stretched past its limit and still
@@ -406,6 +408,7 @@ def test_bad_restitution_and_foresee_are_clear_errors():
             project_state(*args, restitution=torch.full((K,), bad, dtype=torch.float64))
 
 
+@pytest.mark.filterwarnings("ignore:rope limits with cor > 0")  # on purpose
 def test_gradient_through_the_restitution():
     """The bounce of a limit closed by the projection, against finite differences in its
     ``cor`` and the state."""

@@ -99,6 +99,14 @@ __all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"
 _F = torch.float64
 _TASK_DIR = Path(__file__).parent / "tasks"
 DYNAMICS = ("lagrangian", "hamiltonian")
+ROPE_RESTITUTION_WARNING = (
+    "rope limits with cor > 0 and the position projection: the rope's energy can rise where "
+    "the projection lifts it and a bounce keeps the speed, and with an end much heavier "
+    "than the other points without bound, breaking the limits (docs/config.md, rope, "
+    "'Restitution'); cor 0, the rope's default, keeps the energy"
+)
+"""Warned when a rope is loaded with restitution on its limits and the position
+projection on."""
 TUNNELLING_FRACTION = 1.0
 """Penetration deeper than this fraction of the smaller body's radius counts as tunnelling
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
@@ -387,6 +395,8 @@ class System:
         self.d: int = self.geometry.d
         self.mu: Tensor = torch.tensor(cfg.per_contact("mu"), dtype=_F)
         self.cor: Tensor = torch.tensor(cfg.per_contact("cor"), dtype=_F)
+        if cfg.type == "rope" and self.position_projection > 0 and bool((self.cor > 0).any()):
+            warnings.warn(ROPE_RESTITUTION_WARNING, UserWarning, stacklevel=3)
         self.gravity: Tensor = torch.tensor(float(cfg.gravity), dtype=_F)
         self.eps: float | Tensor = 0.01  # CMr's regulariser (contact models that use one)
         # an extra potential V(x): (..., P, dim) -> (...), e.g. a learned network, added
