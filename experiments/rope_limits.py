@@ -20,8 +20,10 @@ before the damping; systems/projection.py, "Damping"); ``--cor`` gives the limit
 restitution (default the config's 0, inelastic). This script simulates ``--n``
 trajectories over ``--horizon`` seconds for every time step, once per setting, and
 prints the largest and smallest segment-length ratio, the largest bend beyond
-``max_angle`` (radians), the energy change (mean over trajectories of ``E(T) - E(0)``,
-and the largest rise ``max_t E(t) - E(0)``), and the wall time.
+``max_angle`` (radians), the most negative gap of any limit (radians for bends, metres
+for lengths: how far a limit was left violated), the energy change (mean over
+trajectories of ``E(T) - E(0)``, and the largest rise ``max_t E(t) - E(0)``), and the wall
+time.
 """
 
 from __future__ import annotations
@@ -130,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     print(
         f"{'dt':>7} {'setting':>16} {'steps':>5} {'max ratio':>10} {'min ratio':>9} "
-        f"{'max bend-lim':>12} {'mean dE':>9} {'max rise':>9} {'s':>5}"
+        f"{'max bend-lim':>12} {'min gap':>9} {'mean dE':>9} {'max rise':>9} {'s':>5}"
     )
     # (label, config keys, simulate options[, projection.DAMPING])
     settings = [(f"projection {k}", {}, {"position_projection": k}) for k in args.projection]
@@ -165,9 +167,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             E = system.energy(traj)
             change = float((E[:, -1] - E[:, 0]).mean())
             rise = float((E - E[:, :1]).amax())
+            # the most negative gap of any limit and state (bends in rad, lengths in m)
+            gap = float(system.gaps(traj[:, :, 0]).min())
             print(
                 f"{dt:>7g} {label:>16} {steps:>5} {float(r.max()):>10.4g} {float(r.min()):>9.4g} "
-                f"{float(bend.max()):>12.3g} {change:>9.3g} {rise:>9.3g} {seconds:>5.0f}",
+                f"{float(bend.max()):>12.3g} {gap:>9.3g} {change:>9.3g} {rise:>9.3g} "
+                f"{seconds:>5.0f}",
                 flush=True,
             )
     return 0
