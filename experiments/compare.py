@@ -88,6 +88,7 @@ from reproduce import (
     _training_seconds,
     completed,
     job_pool,
+    wait_for_datasets,
 )
 
 OURS = "CM-CD-CLNN"
@@ -520,8 +521,11 @@ def _header(experiment: str, meta: dict[str, Any], runs: list[dict[str, Any]]) -
             f"the {len(calls)} invocations listed with their wall times below (each row as its "
             f"last run left it), the last {made}"
         )
+    # the date the last invocation shown ran (a later one that trained nothing, e.g. one
+    # whose dataset failed, is not recorded and does not change it)
+    date = str(calls[-1].get("date", meta["date"]))[:10]
     return [
-        f"Produced by {made} ({meta['date']}; diffcontact {meta['version']}, "
+        f"Produced by {made} ({date}; diffcontact {meta['version']}, "
         f"torch {meta['torch']}, {meta['cpus']} CPU cores, one torch thread per run). "
         f"Data: {meta['sizes'][0]} / {meta['sizes'][1]} / {meta['sizes'][2]} trajectories "
         "(train / val / test) unless the row says otherwise, seed 0; package-default "
@@ -1258,11 +1262,17 @@ def _main(argv: Sequence[str] | None = None) -> int:
             ): d.key
             for d in datasets
         }  # fmt: skip
-        for fut in completed(futures):
-            print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
+        bad_data = wait_for_datasets(futures, t0)
+        for r in runs:  # a run on a dataset that failed is not run (and said so)
+            bad = [bad_data[d.key] for d in (r.data, *r.also_on) if d.key in bad_data]
+            if bad:
+                failed.append(f"{r.key}: not run, its dataset failed ({bad[0]})")
         # slow ones first (rigid bodies, many contacts, large data), so the pool ends evenly
         slow = ("Gyro", "BD5", "BP5", "Rope-D400", "Rope-D200")
-        order = sorted(runs, key=lambda r: (r.data.task not in slow, -(r.data.n_train or 0)))
+        order = sorted(
+            (r for r in runs if not any(d.key in bad_data for d in (r.data, *r.also_on))),
+            key=lambda r: (r.data.task not in slow, -(r.data.n_train or 0)),
+        )
         futures = {
             pool.submit(
                 train_and_evaluate, asdict(r), str(out), args.epochs or EPOCHS.get(r.data.task, 60),

@@ -774,6 +774,24 @@ def completed(futures: Any) -> Iterator[Future]:
         yield fut
 
 
+def wait_for_datasets(futures: dict[Any, str], t0: float) -> dict[str, str]:
+    """Wait for the dataset jobs ``futures`` (future -> dataset key), printing each as it
+    is ready. A dataset that cannot be made (e.g. its folder holds one made with other
+    arguments) is reported on one line, not as a traceback; the returned ``{key: error}``
+    lets the caller skip its runs and go on with the others."""
+    from diffcontact.cli_args import one_line
+
+    failed: dict[str, str] = {}
+    for fut in completed(futures):
+        key = futures[fut]
+        try:
+            print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
+        except Exception as err:  # its runs are skipped; the others go on
+            failed[key] = f"{type(err).__name__}: {one_line(err)}"
+            print(f"  data {key}: FAILED: {one_line(err)}", flush=True)
+    return failed
+
+
 def _report_only(out: Path, doc: str | None) -> int:
     results_file = out / "results.json"
     if not results_file.is_file():
@@ -948,15 +966,17 @@ def _main(argv: Sequence[str] | None = None) -> int:
 
     print(f"{len(runs)} run(s) on {len(tasks)} task(s), {args.jobs} job(s) x {threads} thread(s)")
     with job_pool(args.jobs) as pool:
-        futures = [
-            pool.submit(make_dataset, t, str(out / "data" / t), threads, *sizes) for t in tasks
-        ]
-        for fut in completed(futures):
-            print(f"  data ready: {fut.result()}  ({time.perf_counter() - t0:.0f} s)", flush=True)
+        datasets = {
+            pool.submit(make_dataset, t, str(out / "data" / t), threads, *sizes): t for t in tasks
+        }
+        bad_data = wait_for_datasets(datasets, t0)
         # longest first (most epochs, then rigid bodies and many contacts), so that the
         # two workers finish close together
         slow = ("BD5", "Gyro", "Gyro-e", "BP5")
-        order = sorted(runs, key=lambda r: (-(args.epochs or epochs_for(*r)), r[0] not in slow))
+        order = sorted(
+            (r for r in runs if r[0] not in bad_data),
+            key=lambda r: (-(args.epochs or epochs_for(*r)), r[0] not in slow),
+        )
         futures = {
             pool.submit(
                 train_and_evaluate, t, m, str(out / "data" / t), str(out / "runs" / t / m),
@@ -970,7 +990,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if results_file.is_file():
             stored = json.loads(results_file.read_text())
             results, old_meta = stored.get("runs", {}), stored.get("meta", {})
-        failed = []
+        failed = [
+            f"{t} {m}: not run, its dataset failed ({bad_data[t]})"
+            for t, m in runs
+            if t in bad_data
+        ]
         for i, fut in enumerate(completed(futures), start=1):
             t, m = futures[fut]
             try:

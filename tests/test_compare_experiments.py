@@ -449,3 +449,37 @@ def test_the_models_section_says_how_cut_bars_are_drawn(compare):
     body = compare.render_models({"CP3/CM-CD-CLNN": r}, meta, "figures/x.png")
     caption = body.split("](figures/x.png)", 1)[1]
     assert "below 0.1 times the mean" in caption and "drawn cut" in caption
+
+
+def test_a_dataset_that_cannot_be_made_skips_its_runs(compare, fake_runs, monkeypatch, tmp_path,
+                                                      capsys):  # fmt: skip
+    """A dataset folder holding data made with other arguments (older code) ended the
+    command with a traceback from the worker; now that dataset's runs are reported on one
+    line each and skipped, the others run, and the exit is 1."""
+    make = compare.make_dataset
+
+    def make_dataset(data, out, threads, sizes):
+        if data["task"] == "Gyro":
+            raise ValueError(f"{out} already holds a dataset made with different arguments")
+        return make(data, out, threads, sizes)
+
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    common = ["--models", "CM-CD-CLNN", "--out", str(out), "--doc", str(doc), *FAST]
+    assert compare.main(["models", "--tasks", "CP3", *common]) == 0
+    stored = json.loads((out / "results-models.json").read_text())
+    stored["meta"]["invocations"][-1]["date"] = "2020-01-02T03:04:05+00:00"  # an older run
+    (out / "results-models.json").write_text(json.dumps(stored))
+    monkeypatch.setattr(compare, "make_dataset", make_dataset)
+    # only the failing dataset: nothing trained, the section keeps the date of its rows
+    assert compare.main(["models", "--tasks", "Gyro", *common]) == 1
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert "data Gyro: FAILED: " in captured.out and "different arguments" in captured.out
+    assert "FAILED Gyro/CM-CD-CLNN: not run, its dataset failed (ValueError: " in captured.err
+    assert set(_results(out, "models")) == {"CP3/CM-CD-CLNN"}
+    assert "` (2020-01-02; diffcontact" in _section(doc, "models")
+    # with another task: that one runs
+    made = len(fake_runs)
+    assert compare.main(["models", "--tasks", "Gyro", "CP3", *common]) == 1
+    assert len(fake_runs) == made + 1 and fake_runs[-1]["key"] == "CP3/CM-CD-CLNN"
+    capsys.readouterr()

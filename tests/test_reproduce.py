@@ -311,3 +311,20 @@ def test_inline_jobs_run_one_by_one_as_they_are_reached(repro):
     (fut,) = list(repro.completed([failing]))
     with pytest.raises(ValueError):
         fut.result()
+
+
+def test_a_dataset_that_cannot_be_made_is_one_line(repro, monkeypatch, tmp_path, capsys):
+    """A data folder holding a dataset made with other arguments ended the command with a
+    traceback from the worker; now its runs are reported on one line each and skipped."""
+
+    def make_dataset(task, out, *args):
+        raise ValueError(f"{out} already holds a dataset made with different arguments")
+
+    monkeypatch.setattr(repro, "make_dataset", make_dataset)
+    code = repro.main(["--only", "BP5:CM-CD-CLNN", "--epochs", "1", "--jobs", "1",
+                       "--out", str(tmp_path / "repro")])  # fmt: skip
+    assert code == 1
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    assert "data BP5: FAILED: " in captured.out
+    assert "BP5 CM-CD-CLNN: not run, its dataset failed (ValueError: " in captured.err
