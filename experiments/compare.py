@@ -1004,6 +1004,7 @@ def _meta(
 
     from diffcontact import __version__
 
+    quick = QUICK if args.quick else {}
     this_call = {
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "wall_seconds": wall,
@@ -1011,12 +1012,18 @@ def _meta(
         "trained": sum(bool(results[r.key].get("trained")) for r in runs if r.key in results),
         "finished": finished,
         "setup": _args_setup(args),
+        # scalability: the parts run and the network/size task (the report's tables show
+        # that of the last invocation that ran those parts)
+        "parts": list(args.parts or quick.get("parts", SCALE_PARTS)),
+        "size_task": args.size_task or quick.get("size_task", SIZE_TASK),
     }
-    # invocations recorded before the set-up was: that of the file's meta, the only record
+    # invocations recorded before these fields were: those of the file's meta, the only record
     before = _setup(old) if old else None
-    calls = [{**c, "setup": c.get("setup", before)} for c in (old or {}).get("invocations", [])]
+    legacy = {k: old[k] for k in ("parts", "size_task") if k in old} if old else {}
+    calls = [
+        {**legacy, **c, "setup": c.get("setup", before)} for c in (old or {}).get("invocations", [])
+    ]
     calls += [this_call] if this_call["trained"] or not calls else []
-    quick = QUICK if args.quick else {}
     experiment = args.experiment
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
@@ -1142,7 +1149,11 @@ def _shown(experiment: str, results: dict[str, Any], meta: dict[str, Any]) -> di
         defaults = [e for e in labels if _is_default(e)]
         view["eps"] = [e for e in labels if not _is_default(e) or e == defaults[0]]
     elif experiment == "scalability":
-        task = meta["size_task"]
+        # the network/size task of the last invocation that ran those parts (a later one
+        # of the rope part alone keeps the tables; the last invocation's otherwise)
+        sized = [c for c in calls if {"network", "size"} & set(c.get("parts") or ())]
+        task = (sized[-1].get("size_task") if sized else None) or meta["size_task"]
+        view["size_task"] = task
         rows = [
             r
             for r in parsed

@@ -483,3 +483,21 @@ def test_a_dataset_that_cannot_be_made_skips_its_runs(compare, fake_runs, monkey
     assert compare.main(["models", "--tasks", "Gyro", "CP3", *common]) == 1
     assert len(fake_runs) == made + 1 and fake_runs[-1]["key"] == "CP3/CM-CD-CLNN"
     capsys.readouterr()
+
+
+def test_a_rope_part_run_keeps_the_network_tables_task(compare, fake_runs, tmp_path, capsys):
+    """The scalability tables of network and training size show one task: that of the
+    last invocation. A later run of the rope part alone (without --size-task, whose
+    default is another task) emptied those tables; now they keep the task of the last
+    invocation that ran them."""
+    out, doc = tmp_path / "out", tmp_path / "results.md"
+    common = ["--models", "CM-CD-CLNN", "--out", str(out), "--doc", str(doc), *FAST]
+    argv = ["scalability", "--parts", "network", "--size-task", "Rope", *common]
+    assert compare.main(argv) == 0
+    network = {r["key"]: compare._err(r) for r in fake_runs}
+    assert set(network) == {"Rope/CM-CD-CLNN", "Rope/CM-CD-CLNN_hidden512x6"}
+    assert compare.main(["scalability", "--parts", "rope", "--ds", "100", *common]) == 0
+    body = _section(doc, "scalability")
+    assert all(err in body for err in network.values())
+    assert compare._err(fake_runs[-1]) in body  # the rope row
+    capsys.readouterr()
