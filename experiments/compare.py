@@ -1114,8 +1114,8 @@ def _shown(experiment: str, results: dict[str, Any], meta: dict[str, Any]) -> di
     the stored rows, in the experiment's default order and then in the order first
     stored. A stored row of another set-up (data sizes, evaluation steps; see
     :func:`_args_setup`) is left out, and so are the invocations that made only such
-    rows. The scalability tables show one network/size task (the last invocation's);
-    another's rows are left out as well.
+    rows. The scalability tables show one network/size task (that of the last invocation
+    that ran those parts); another's rows are left out as well.
     """
     setup = _setup(meta)
     # rows stored before the set-up was: that of the file (main() stamps them on a run)
