@@ -291,16 +291,21 @@ def test_rope_limits_script_compares_with_the_positions_only(capsys):
     script = _rope_limits_script()
     argv = ["--task", "Rope", "--horizon", "0.5", "--dt", "0.01", "--n", "4", "--positions-only"]
     assert script.main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    columns = ["steps", "max ratio", "min ratio", "max bend-lim", "min gap", "mean dE"]
+    assert all(c in lines[1] for c in columns)
     rows = {}
-    for line in capsys.readouterr().out.splitlines()[2:]:
-        label = " ".join(line.split()[1:-7])
-        rows[label] = [float(v) for v in line.split()[-7:]]
+    for line in lines[2:]:
+        label = " ".join(line.split()[1:-8])
+        rows[label] = [float(v) for v in line.split()[-8:]]
     assert set(rows) == {"projection 10", "positions only 10", "fraction 0.125"}
     rise = {label: values[-2] for label, values in rows.items()}
     assert rise["projection 10"] < 1e-6 < 0.1 < rise["positions only 10"]
-    # limits: ratio within [0.8, 1.2] and no bend past the limit with the projection
-    steps, max_ratio, min_ratio, bend = rows["projection 10"][:4]
+    # limits: ratio within [0.8, 1.2], no bend past the limit and no gap below the
+    # projection's tolerance with the projection; without it, violated
+    steps, max_ratio, min_ratio, bend, gap = rows["projection 10"][:5]
     assert steps == 50 and max_ratio < 1.2 + 1e-8 and min_ratio > 0.8 - 1e-8 and bend < 1e-8
+    assert gap > -1e-9 and rows["fraction 0.125"][4] < -1e-3
     for bad in (["--dt", "0"], ["--n", "0"], ["--fraction", "2"], ["--projection", "0"]):
         with pytest.raises(SystemExit) as exit_info:
             script.main(["--task", "Rope", *bad])
@@ -317,7 +322,7 @@ def test_rope_limits_script_compares_a_heavy_tip_with_the_undamped_projection(ca
     assert script.main([*argv, "--tip-mass", "100", "--undamped"]) == 0
     out = capsys.readouterr().out
     assert "tip mass 100 (the others' 0.1)" in out.splitlines()[0]
-    rows = {" ".join(line.split()[1:-7]): line.split()[-6] for line in out.splitlines()[2:]}
+    rows = {" ".join(line.split()[1:-8]): line.split()[-7] for line in out.splitlines()[2:]}
     assert set(rows) == {"projection 10", "undamped 10", "fraction 0.125"}
     assert float(rows["projection 10"]) < 1.2 + 1e-8 < 1.5 < float(rows["undamped 10"])
     assert projection.DAMPING == 1.0  # put back after the undamped rows
