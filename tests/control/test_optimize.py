@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -336,6 +338,31 @@ def test_a_position_moved_into_an_overlap_is_never_the_plan():
     assert (system.gaps(res.z0[None, 0]) > 0).all()  # a state simulate accepts
     traj = system.simulate(res.z0[None], 5, params=res.params)
     assert float(objective(traj)[0]) == pytest.approx(float(res.objective), rel=1e-12)
+
+
+def test_random_starts_moved_into_an_overlap_count_as_infinite():
+    """Several random starts of a Position: the first iteration checked every start for
+    overlaps, so a drawn start inside another ball or a wall stopped the call
+    (ControlError), where the docs promise it counts as infinite. The caller's own z0 is
+    still checked."""
+    system = dc.load_system("BP5-e")
+    z0 = system.sample_initial_conditions(1, seed=0)[0]
+    z0[1] = 0
+    target = torch.tensor([0.3, 0.7], dtype=torch.float64)
+
+    def objective(traj):
+        return (traj[:, -1, 0, 0] - target).norm(dim=-1)
+
+    kwargs = {"variables": [Position(0, bounds=(0.05, 0.95))], "steps": 10, "starts": 8,
+              "iterations": 1, "progress": False}  # fmt: skip
+    with pytest.warns(UserWarning, match=r"moved start\(s\) \[1, 5, 6, 7\] into an overlap"):
+        res = dc.optimize(system, z0, objective, **kwargs)
+    assert torch.isinf(res.start_objective[[1, 5, 6, 7]]).all()
+    assert torch.isfinite(res.start_objective[[0, 2, 3, 4]]).all() and math.isfinite(res.objective)
+    inside = z0.clone()
+    inside[0, 1] = inside[0, 0] + 0.01  # ball 1 inside ball 0
+    with pytest.raises(ControlError, match=r"z0 has overlapping bodies"):
+        dc.optimize(system, inside, objective, **kwargs)
 
 
 def test_a_number_parameter_is_read_exactly():

@@ -308,6 +308,17 @@ def optimize(
         def evaluate(vals: list[Tensor], check: bool) -> tuple[Tensor, Tensor]:
             z, p = build(vals)
             bad = overlapping(z)
+            if check and moves:
+                # the caller's own state (start 0, where the starts are drawn) must hold no
+                # overlap; another start a Position moved into one counts as infinite
+                # (below), it does not stop the call
+                check = False
+                if not isinstance(starts, Mapping):
+                    first = z.reshape(N, S, *z.shape[1:])[:, 0].detach().to(torch.float64)
+                    try:
+                        planner.truth._check_no_overlap(first, "z0")
+                    except ValueError as err:
+                        raise ControlError(f"simulation failed: {err}") from None
             try:
                 with warnings.catch_warnings():
                     if bool(bad.any()):  # the tunnelling check would blame dt for the overlap

@@ -273,3 +273,30 @@ def test_the_error_plot_says_when_no_rollout_is_finite(tmp_path):
     out = plot_rel_error(np.zeros((0, 50)), 0.01, tmp_path / "r.png", "t", n_left_out=4)
     with Image.open(out) as im:
         assert im.format == "PNG"
+
+
+@pytest.mark.parametrize("first", [True, False], ids=["first state", "before the impact"])
+def test_recorded_states_that_penetrate_are_evaluated(tmp_path, first):
+    """A recording with soft contacts (MuJoCo's) holds states slightly inside a wall:
+    ``generate --from-arrays`` and ``train`` accepted them, and ``evaluate`` then stopped
+    on the overlap check of ``simulate`` (for a test trajectory's first state, and for the
+    state before its first impact), the docs' own MuJoCo example included."""
+    from diffcontact.learning import create_model
+
+    cfg = {"name": "ball", "type": "bouncing_masses", "masses": [1.0], "radii": [0.1],
+           "walls": [[0.0, 1.0, 0.0]], "gravity": 0.0, "mu": 0.1, "cor": 0.8, "dt": 0.01,
+           "horizon": 0.3}  # fmt: skip
+    T = 30
+    traj = np.zeros((6, T, 2, 1, 2))
+    traj[..., 0, 0, 0] = 0.5
+    if first:  # moving away from the wall from 1 mm inside it
+        traj[..., 0, 0, 1] = 0.099 + 0.01 * np.arange(T)
+        traj[..., 1, 0, 1] = 1.0
+    else:  # approaching, 1 mm inside at step 10, bouncing off
+        t = np.arange(T)
+        traj[..., 0, 0, 1] = np.where(t <= 10, 0.199 - 0.01 * t, 0.099 + 0.008 * (t - 10))
+        traj[..., 1, 0, 1] = np.where(t <= 10, -1.0, 0.8)
+    data = dataset_from_arrays(traj, cfg, tmp_path / "data", val_fraction=0.2, test_fraction=0.2)
+    metrics = evaluate(None, tmp_path / "ev", model=create_model("CM-CD-CLNN", cfg),
+                       data_dir=data, n_gif=0)  # fmt: skip
+    assert metrics["n_nonfinite"] == 0 and np.isfinite(metrics["rel_err_mean"])

@@ -26,6 +26,7 @@ evaluation (of another run or data set) without ``force``.
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import os
@@ -258,12 +259,32 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
 # ---------------------------------------------------------------------------
 
 
+def simulate_data_states(model: Any, z0: torch.Tensor, steps: int) -> Any:
+    """``model.simulate(z0, steps)`` from states of the data, without the overlap check
+    where the model's ``simulate`` takes ``check_overlap`` (the protocol's; a model that
+    takes only ``(z0, steps)`` is called so): a recording may hold its states slightly
+    penetrating (MuJoCo's soft contacts), and the contact model pushes such a state out
+    as a step would."""
+    try:
+        takes = inspect.signature(model.simulate).parameters
+    except (TypeError, ValueError):  # no signature to read (a builtin): as the protocol
+        takes = {"check_overlap": None}
+    known = "check_overlap" in takes or any(p.kind is p.VAR_KEYWORD for p in takes.values())
+    if known:
+        return model.simulate(z0, steps, check_overlap=False)
+    return model.simulate(z0, steps)
+
+
 def _rollouts(model: Any, z0: torch.Tensor, steps: int) -> tuple[np.ndarray, list[int]]:
     """``model.simulate(z0, steps)`` as numpy; a trajectory whose contact solve fails
     (``ConeQPError`` naming its states) or whose rollout diverges
     (:class:`~diffcontact.systems.NonFiniteRolloutError`) is left out and returned as
     NaN, so that it counts as diverged (``n_nonfinite``) instead of stopping the
-    evaluation. Returns the rollouts and the trajectories whose contact solve failed."""
+    evaluation. Returns the rollouts and the trajectories whose contact solve failed.
+
+    The states ``z0`` are the data's (a test trajectory's first state, a state before an
+    impact), not a user's initial conditions: they are not checked for overlaps
+    (:func:`simulate_data_states`)."""
     from diffcontact.contact import ConeQPError
     from diffcontact.systems import NonFiniteRolloutError
 
@@ -272,7 +293,7 @@ def _rollouts(model: Any, z0: torch.Tensor, steps: int) -> tuple[np.ndarray, lis
     out = None
     while len(keep):
         try:
-            out = model.simulate(z0[keep], steps)
+            out = simulate_data_states(model, z0[keep], steps)
             break
         except (ConeQPError, NonFiniteRolloutError) as err:
             if not err.states or (isinstance(err, ConeQPError) and len(keep) == len(err.states)):

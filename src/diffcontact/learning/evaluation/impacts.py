@@ -132,7 +132,13 @@ def impact_ratios(
     rows, steps, k = (torch.from_numpy(a) for a in (found.trajectory, found.step, found.contact))
     z_pre, z_post = z[rows, steps], z[rows, steps + 1]  # (M, 2, P, dim)
     with torch.no_grad():
-        run = model.simulate if simulate is None else simulate
+        if simulate is None:  # the data's states, which a recording may hold penetrating
+            from diffcontact.learning.evaluation.evaluate import simulate_data_states
+
+            def simulate(z: torch.Tensor, n: int) -> Any:
+                return simulate_data_states(model, z, n)
+
+        run = simulate
         pred = torch.as_tensor(run(z_pre.to(device), 1))[:, 1].detach().to("cpu", torch.float64)
         take = k[:, None]
         u_pre = system.contact_velocities(z_pre)[torch.arange(M), k]  # (M, d)
