@@ -74,9 +74,26 @@ def test_arrays_validation_messages(recorded, tmp_path):
     overlapping[4, :, 0, 0] = (-0.5, 0.5)  # body 0 beyond the left wall at every state
     fails(
         overlapping,
-        r"1 of 12 trajectories \(4\) are in contact .* at every state that could start a "
-        r"chunk \(states 0\.\.15\).*body 0 penetrates wall 0",
+        r"1 of 12 trajectories \(4\) are flagged in contact at every state that could start "
+        r"a chunk \(states 0\.\.15\).* flagged by a gap below gap_tol=0 at 16.*smallest gap "
+        r"is -0\.\d+, below gap_tol=0 \(candidate 'body 0 penetrates wall 0'\)\. Drop them, "
+        r"or check the config's geometry",
     )
+
+
+def test_flags_given_at_every_chunk_start_are_named_as_the_cause(recorded, tmp_path):
+    """Flags given at every state were reported as "body 0 penetrates wall 2 (gap 0.00944)"."""
+    out = tmp_path / "rec"
+    flags = np.zeros(recorded.shape[:2], dtype=bool)
+    flags[7] = True
+    with pytest.raises(ValueError) as info:
+        dataset_from_arrays(recorded, BP5, out, contact=flags)
+    msg = str(info.value)
+    assert "1 of 12 trajectories (7) are flagged in contact at every state" in msg, msg
+    assert "are flagged by the contact flags given at 16" in msg, msg
+    assert "not below gap_tol=0 (candidate '" in msg and "check the contact flags" in msg, msg
+    assert "\n" not in msg
+    assert not out.exists()
 
 
 def test_interrupted_write_leaves_no_partial_file(recorded, tmp_path, monkeypatch):

@@ -12,7 +12,7 @@ import pytest
 from diffcontact.learning.data.cli import register_cli
 from diffcontact.learning.data.format import load_dataset
 
-from .support import BP5, short_config
+from .support import BP5, read_only_storage, short_config
 
 
 def cli(capsys, *argv: str) -> tuple[int, str, str]:
@@ -84,6 +84,36 @@ def test_cli_from_arrays_summary_and_reuse(recorded, tmp_path, capsys):
     assert code == 0 and "reused" in stdout
     code, _, err = cli(capsys, *argv, "--seed", "3", "--out", str(out))
     assert_one_line_error(code, err, "different arguments", "seed (0 there, 3 requested)")
+
+
+def test_cli_reuses_a_finished_dataset_on_read_only_storage(
+    recorded, bp5_dir, tmp_path, monkeypatch, capsys
+):
+    """``OSError: [Errno 30] Read-only file system: '.../.generating.json'``, exit 1."""
+    np.savez(tmp_path / "rec.npz", traj=recorded, dt=0.01)
+    argv = ["generate", "--from-arrays", str(tmp_path / "rec.npz"), "--config", "BP5"]
+    out = tmp_path / "ds"
+    code, _, err = cli(capsys, *argv, "--out", str(out), "--quiet")
+    assert code == 0, err
+    attempts = read_only_storage(monkeypatch, tmp_path)
+    code, stdout, err = cli(capsys, *argv, "--out", str(out))
+    assert code == 0 and "reused" in stdout and err == "", err
+    assert attempts == []
+    # a simulated one: the same arguments as bp5_dir's
+    folder = tmp_path / "sim"
+    monkeypatch.undo()
+    folder.mkdir()
+    for p in bp5_dir.iterdir():
+        (folder / p.name).write_bytes(p.read_bytes())
+    config = tmp_path / "bp5.json"
+    config.write_text(json.dumps(BP5))
+    attempts = read_only_storage(monkeypatch, tmp_path)
+    code, stdout, err = cli(
+        capsys, "generate", str(config), "--out", str(folder), "--n-train", "6", "--n-val", "3",
+        "--n-test", "3",
+    )  # fmt: skip
+    assert code == 0 and "reused" in stdout and err == "", err
+    assert attempts == []
 
 
 def test_cli_simulates_a_tiny_dataset(tmp_path, capsys):

@@ -8,6 +8,7 @@ positions, and rigid distances must stay constant.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -220,8 +221,6 @@ def test_convert_cli_mujoco_then_generate(tmp_path, capsys):
     raw = tmp_path / "mj.npz"
     np.savez(raw, qpos=rec["qpos"], qvel=rec["qvel"], dt=0.005)
     cfg = tmp_path / "chain.json"
-    import json
-
     cfg.write_text(json.dumps(load_config(CHAIN).model_dump(mode="json")))
     out = tmp_path / "chain.npz"
     argv = ["convert", "mujoco", str(raw), "--model", str(xml), "--config", str(cfg),
@@ -232,6 +231,62 @@ def test_convert_cli_mujoco_then_generate(tmp_path, capsys):
     data_dir = tmp_path / "data"
     assert main(["generate", "--from-arrays", str(out), "--out", str(data_dir), "--quiet",
                  "--val-fraction", "0.25", "--test-fraction", "0.25"]) == 0  # fmt: skip
+
+
+def test_mujoco_body_ids_and_a_body_given_twice(tmp_path, capsys):
+    """``--bodies 1 2`` said "the model has no body '1' (its bodys: ...)"; ``--bodies d1 d1``
+    mapped one MuJoCo body to two diffcontact bodies."""
+    mujoco = pytest.importorskip("mujoco")
+    from diffcontact.learning.data.mujoco import trajectories_from_mujoco
+
+    rec = _record(mujoco, SCENE_2D, n=1, T=12, every=5, seed=3)
+    m, q, v = rec["model"], rec["qpos"], rec["qvel"]
+    by_name = trajectories_from_mujoco(m, q, v, DISKS, bodies=["d1", "d2"], plane="xz")
+    for ids in ([1, 2], ["1", "2"], ["d1", "2"], [np.int64(1), "d2"]):
+        z = trajectories_from_mujoco(m, q, v, DISKS, bodies=ids, plane="xz")
+        assert np.array_equal(z, by_name), ids
+    with pytest.raises(ValueError, match=r"no body 'nope' \(its bodies: 'world', 'd1'"):
+        trajectories_from_mujoco(m, q, v, DISKS, bodies=["d1", "nope"], plane="xz")
+    with pytest.raises(ValueError, match=r"no site 'x' \(its sites: 'tip_a', 'tip_b'\)"):
+        trajectories_from_mujoco(m, q, v, CHAIN, bodies=["site:x", "site:tip_b"], plane="xz")
+    for twice in (["d1", "d1"], ["d1", 1], ["1", "d1"]):
+        with pytest.raises(
+            ValueError, match=r"bodies\[0\] and bodies\[1\] are both MuJoCo body 'd1'"
+        ):
+            trajectories_from_mujoco(m, q, v, DISKS, bodies=twice, plane="xz")
+    with pytest.raises(
+        ValueError, match=r"bodies\[0\] and bodies\[1\] are both MuJoCo site 'tip_a'"
+    ):
+        trajectories_from_mujoco(m, q, v, CHAIN, bodies=["site:tip_a"] * 2, plane="xz")
+    # a body whose name is digits wins over the id
+    named = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body name="2" pos="0 0 1"><freejoint/><geom size=".1"/></body>'
+        '<body name="b" pos="1 2 3"><freejoint/><geom size=".1"/></body></worldbody></mujoco>'
+    )
+    qn, vn = np.tile(named.qpos0, (1, 3, 1)), np.zeros((1, 3, named.nv))
+    point = {**CHAIN, "masses": [0.1], "link_lengths": [1.0], "radii": [0.1]}
+    for spec, x in (("2", 0.0), (2, 1.0), ("1", 0.0)):
+        z = trajectories_from_mujoco(named, qn, vn, point, bodies=[spec], plane="xz")
+        assert z[0, 0, 0, 0, 0] == x, spec
+    # the command line
+    xml = tmp_path / "scene.xml"
+    xml.write_text(SCENE_2D)
+    raw = tmp_path / "mj.npz"
+    np.savez(raw, qpos=q, qvel=v, dt=0.005)
+    cfg = tmp_path / "disks.json"
+    cfg.write_text(json.dumps(load_config(DISKS).model_dump(mode="json")))
+    out = tmp_path / "disks.npz"
+    argv = ["convert", "mujoco", str(raw), "--model", str(xml), "--config", str(cfg),
+            "--out", str(out), "--plane", "xz", "--quiet", "--bodies"]  # fmt: skip
+    assert main([*argv, "1", "2"]) == 0, capsys.readouterr().err
+    assert np.array_equal(np.load(out)["traj"], by_name)
+    capsys.readouterr()
+    for twice in (["d1", "d1"], ["d1", "1"]):
+        assert main([*argv, *twice, "--force"]) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and "are both MuJoCo body 'd1'" in err[0], err
+    assert main([*argv, "1", "7", "--force"]) == 2
+    assert "bodies[1] = 7: MuJoCo body ids run from 1 to 4" in capsys.readouterr().err
 
 
 def test_importing_diffcontact_does_not_import_mujoco():

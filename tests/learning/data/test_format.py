@@ -91,6 +91,14 @@ def test_checksum_corruption_and_missing_files(bp5_dir, tmp_path):
         load_dataset(folder)
     with pytest.raises(DatasetError, match="does not exist"):
         load_dataset(tmp_path / "nowhere")
+    # a file is not "a folder that does not exist"
+    (tmp_path / "rec.npz").write_bytes(b"")
+    hint = r"`diffcontact generate --from-arrays .*rec\.npz --out DATASET_DIR`"
+    with pytest.raises(DatasetError, match=r"rec\.npz is a file, not a dataset folder: .*" + hint):
+        load_dataset(tmp_path / "rec.npz")
+    (tmp_path / "notes.txt").write_text("")
+    with pytest.raises(DatasetError, match=r"notes\.txt is a file, not a dataset folder"):
+        load_dataset(tmp_path / "notes.txt")
 
 
 def test_a_split_is_hashed_once_unless_its_file_changed(bp5_dir, tmp_path, monkeypatch):

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from diffcontact.learning.data.format import load_dataset
+from diffcontact.learning.data.format import MARKER, load_dataset
 from diffcontact.learning.data.generate import generate_dataset
 from diffcontact.systems import System
 
-from .support import BP5, SIZES, copy_dataset, short_config
+from .support import BP5, SIZES, copy_dataset, read_only_storage, short_config
 
 
 def test_val_and_test_are_independent_of_train(bp5_dir):
@@ -31,6 +31,28 @@ def test_same_arguments_reuse_files(bp5_dir, tmp_path, monkeypatch, capsys):
     assert "reusing" in capsys.readouterr().out
     after = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in folder.iterdir()}
     assert after == before
+
+
+def test_a_finished_dataset_on_read_only_storage_is_reused(bp5_dir, tmp_path, monkeypatch, capsys):
+    """Reuse wrote (removed a marker that was not there): EROFS on read-only storage."""
+    folder = copy_dataset(bp5_dir, tmp_path)
+    attempts = read_only_storage(monkeypatch, folder)
+    assert generate_dataset(BP5, folder, **SIZES, seed=0, progress=True) == folder
+    assert "reusing" in capsys.readouterr().out
+    assert attempts == []
+    # a marker a run killed after metadata.json left behind: removed where it can be ...
+    monkeypatch.undo()
+    (folder / MARKER).write_text("{}")
+    assert generate_dataset(BP5, folder, **SIZES, seed=0, progress=False) == folder
+    assert not (folder / MARKER).exists()
+    # ... and kept, harmlessly, where it cannot
+    (folder / MARKER).write_text("{}")
+    attempts = read_only_storage(monkeypatch, folder)
+    assert generate_dataset(BP5, folder, **SIZES, seed=0, progress=False) == folder
+    assert (folder / MARKER).exists() and len(attempts) == 1
+    # other arguments are still refused, with the usual message
+    with pytest.raises(ValueError, match="different arguments"):
+        generate_dataset(BP5, folder, n_train=7, n_val=3, n_test=3)
 
 
 def test_different_arguments_raise_and_keep_files(bp5_dir, tmp_path):

@@ -23,8 +23,19 @@ def _run_cli(argv, capsys):
 
 def test_cli_bad_input_gives_one_line_and_exit_2(bp5_data, tmp_path, capsys):
     out = str(tmp_path / "run")
+    recording = tmp_path / "two_balls.npz"  # a file: "dataset folder ... does not exist"
+    recording.write_bytes(b"")
     cases = [
         (["train", str(tmp_path / "missing"), "--out", out], "does not exist"),
+        (
+            ["train", str(recording), "--out", out],
+            f"{recording} is a file, not a dataset folder: a recording",
+        ),
+        (["train", str(recording), "--out", out], f"generate --from-arrays {recording} --out"),
+        (
+            ["train", str(bp5_data / "metadata.json"), "--out", out],
+            f"pass the folder that holds it, {bp5_data}",
+        ),
         (["train", str(bp5_data), "--model", "XX-CD-CLNN", "--out", out], "unknown model"),
         (["train", str(bp5_data), "--dtype", "float16", "--out", out], "dtype"),
         (["train", str(bp5_data), "--threads", "0", "--out", out], "threads must be"),

@@ -108,6 +108,59 @@ def test_ctrl_c_stops_at_the_next_step_and_resume_gives_the_uninterrupted_result
     )  # fmt: skip
 
 
+class _TwoCtrlC(pl.Callback):
+    """Two SIGINTs at the start of step ``batch`` of ``epoch``: the second stops at once."""
+
+    def __init__(self, epoch, batch):
+        self.at = (epoch, batch)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if (trainer.current_epoch, batch_idx) == self.at:
+            signal.raise_signal(signal.SIGINT)  # stop after this step
+            signal.raise_signal(signal.SIGINT)  # no: at once
+
+
+def test_a_second_ctrl_c_stops_at_once_with_exit_status_130(
+    bp5_data, tmp_path, monkeypatch, capsys
+):
+    """The second Ctrl-C's KeyboardInterrupt became Lightning's ``sys.exit(1)``: exit status 1
+    and no message."""
+    run = tmp_path / "run"
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(TrainingInterrupted) as caught:
+        train(bp5_data, run, epochs=3, callbacks=[_TwoCtrlC(1, 1)], **OPTS)
+    stop = caught.value
+    assert (stop.signal_name, stop.exit_status, stop.checkpoint) == ("SIGINT", 130, None)
+    last = run / "checkpoints" / "last.ckpt"
+    assert str(stop) == (
+        f"SIGINT received twice: stopped at once in epoch 2, without a checkpoint; continue "
+        f"with --resume (from {last}, the last checkpoint written)"
+    )
+    assert signal.getsignal(signal.SIGINT) is before  # handlers restored (Lightning ignored it)
+    assert torch.load(last, weights_only=True)["epoch"] == 0  # the end of epoch 1: no new one
+    assert not (run / "model.pt").exists()
+    # through the command line: one line after the first signal's, exit status 130
+    from diffcontact.learning.training import run as run_module
+
+    real = run_module.train
+    monkeypatch.setattr(
+        run_module, "train", lambda *a, **k: real(*a, callbacks=[_TwoCtrlC(0, 1)], **k)
+    )
+    fresh = tmp_path / "fresh"
+    code, _, err = run_cli(
+        capsys, "train", str(bp5_data), "--out", str(fresh), "--epochs", "2", "--batch-size",
+        "2", "--hidden", "16,16", "--quiet",
+    )  # fmt: skip
+    assert code == 130, err
+    lines = err.strip().splitlines()
+    assert lines[-2].startswith("diffcontact train: SIGINT received: stopping after this step")
+    assert lines[-1] == (
+        "diffcontact train: SIGINT received twice: stopped at once in epoch 1, without a "
+        "checkpoint; no checkpoint was written yet: --resume starts the run again"
+    )
+    assert "Traceback" not in err and not (fresh / "checkpoints" / "last.ckpt").exists()
+
+
 SIGTERM_SCRIPT = textwrap.dedent(
     """
     import os, signal, sys

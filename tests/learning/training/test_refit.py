@@ -3,6 +3,7 @@ that lower the validation error, the run-directory files, and bad input."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -12,7 +13,9 @@ import torch
 
 from diffcontact.learning.data.format import load_dataset
 from diffcontact.learning.models import LearnedModel
-from diffcontact.learning.models.storage import load_model
+from diffcontact.learning.models.storage import load_model, save_model
+from diffcontact.learning.training import refit as refit_module
+from diffcontact.learning.training.cli import _run_refit_cli
 from diffcontact.learning.training.options import TrainingInputError
 from diffcontact.learning.training.refit import (
     _free_entries,
@@ -22,6 +25,7 @@ from diffcontact.learning.training.refit import (
 )
 from diffcontact.learning.training.run import train
 
+from ..data.support import read_only_storage
 from .support import SMALL, write_dataset
 
 
@@ -114,6 +118,7 @@ def test_refit_run_writes_the_files(cp3_data, tmp_path, monkeypatch):
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
+    assert "no iteration was run (--iterations 0)" in out.stdout
     assert "is unchanged" in out.stdout and "wrote" not in out.stdout
     assert {f.name: f.read_bytes() for f in run.iterdir() if f.is_file()} == files
     # refitting again keeps model_adam.pt (the model before the first refit)
@@ -153,3 +158,49 @@ def test_bad_input(cp3_data, tmp_path):
     assert out.returncode == 2
     assert "diffcontact refit: error:" in out.stderr and "no model.pt" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def _fake_run(folder, data):
+    """A run directory holding what refit reads: model.pt and run.json's data_dir."""
+    folder.mkdir()
+    save_model(_model(), folder / "model.pt")
+    (folder / "run.json").write_text(json.dumps({"data_dir": str(data)}))
+    return folder
+
+
+def _refit_cli(capsys, run, iterations: int) -> tuple[int, str, str]:
+    code = _run_refit_cli(argparse.Namespace(run_dir=str(run), iterations=iterations, data=None))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_refit_with_no_iterations_says_so(cp3_data, tmp_path, capsys):
+    """``--iterations 0`` said "no step lowered the validation MSE", though none was tried."""
+    run = _fake_run(tmp_path / "run", cp3_data)
+    code, out, err = _refit_cli(capsys, run, 0)
+    assert code == 0, err
+    assert f"no iteration was run (--iterations 0): {run} is unchanged" in out
+    assert "no step lowered" not in out
+
+
+def test_refit_refuses_a_read_only_run_before_any_work(cp3_data, tmp_path, monkeypatch, capsys):
+    """A run on read-only storage ran every iteration, then failed writing
+    ``.model_adam.tmp-*.pt`` (``OSError``, exit 1)."""
+    run = _fake_run(tmp_path / "run", cp3_data)
+    files = {f.name: f.read_bytes() for f in run.iterdir()}
+
+    def no_refit(*args, **kwargs):
+        raise AssertionError("refit ran on a run it cannot write")
+
+    monkeypatch.setattr(refit_module, "refit", no_refit)
+    attempts = read_only_storage(monkeypatch, run)
+    with pytest.raises(ValueError, match=r"cannot refit .*run: folder .*run is not writable"):
+        refit_module.refit_run(run, 2)
+    code, out, err = _refit_cli(capsys, run, 2)
+    assert code == 2 and out == ""
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("diffcontact refit: error: cannot refit"), err
+    assert "is not writable" in lines[0]
+    assert attempts == []
+    monkeypatch.undo()
+    assert {f.name: f.read_bytes() for f in run.iterdir()} == files

@@ -15,10 +15,15 @@ from torch import Tensor
 from diffcontact.cli_args import one_line
 from diffcontact.io import jsonable, read_npz
 from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
-from diffcontact.learning.data.chunks import DEFAULT_IMPACT_TOL, chunk_split, contact_flags
+from diffcontact.learning.data.chunks import (
+    DEFAULT_IMPACT_TOL,
+    chunk_split,
+    contact_cues,
+    merge_cues,
+)
 from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
 from diffcontact.learning.data.write import prepare_folder, write_dataset
-from diffcontact.systems import load_system
+from diffcontact.systems import System, load_system
 
 __all__ = ["dataset_from_arrays", "read_arrays_file", "read_flag_entries"]
 
@@ -173,27 +178,15 @@ def dataset_from_arrays(
             "(at least one each): no trajectory is left for training"
         )
 
-    contact, flag_counts = contact_flags(
+    cues = contact_cues(
         system, arr, gap_tol=gap_tol, impact_tol=impact_tol, contact=contact,
         event_times=event_times,
     )  # fmt: skip
+    contact, flag_counts = merge_cues(cues)
     S = T - chunk_length + 1
     stuck = contact[:, :S].all(1)
     if stuck.any():
-        rows = np.flatnonzero(stuck)
-        with torch.no_grad():
-            gaps = system.gaps(torch.from_numpy(arr[rows[0], 0, 0]))
-        k = int(gaps.argmin())
-        listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
-        raise ValueError(
-            f"{rows.size} of {N} trajectories ({listed}) are in contact (gap < {gap_tol:g}: "
-            "overlapping bodies or a violated limit; or flagged by an impact or the flags "
-            f"given) at every state that could start a chunk "
-            f"(states 0..{S - 1}), so they cannot be chunked (a chunk must start out of "
-            f"contact); e.g. trajectory {rows[0]} state 0: {system.contact_names[k]} "
-            f"(gap {float(gaps[k]):.3g}). Drop them, or check that the config's geometry "
-            "(radii, walls, limits) matches the data"
-        )
+        raise ValueError(_stuck_message(system, arr, cues, np.flatnonzero(stuck), S, gap_tol))
 
     digest = hashlib.sha256(repr(arr.shape).encode() + arr.tobytes()).hexdigest()
     arguments = {
@@ -248,6 +241,54 @@ def dataset_from_arrays(
         contact_flags=flag_counts,
     )  # fmt: skip
     return folder
+
+
+# what flags a state (contact_cues), and where to look when it flags too many
+_CUE_WORDS = {
+    "gap": ("a gap below gap_tol={tol:g}", "the config's geometry (radii, walls, limits)"),
+    "impact": ("a velocity jump before it", "impact_tol (inf: off)"),
+    "given": ("the contact flags given", "the contact flags"),
+    "events": ("an event time before it", "the event times"),
+}
+
+
+def _stuck_message(
+    system: System,
+    arr: np.ndarray,
+    cues: dict[str, np.ndarray],
+    rows: np.ndarray,
+    S: int,
+    gap_tol: float,
+) -> str:
+    """Why trajectories ``rows`` are flagged at every chunk start ``0..S-1`` (one line).
+
+    Names the cues that flag the first of them, with how many of those states each
+    flags (most first), and its first state's smallest gap, below ``gap_tol`` or not.
+    """
+    N = arr.shape[0]
+    r = int(rows[0])
+    listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
+    counts = {name: int(flags[r, :S].sum()) for name, flags in cues.items()}
+    named = sorted((name for name in counts if counts[name]), key=lambda c: -counts[c])
+    by = ", ".join(f"{_CUE_WORDS[name][0].format(tol=gap_tol)} at {counts[name]}" for name in named)
+    where = ", ".join(_CUE_WORDS[name][1] for name in named)
+    with torch.no_grad():
+        gaps = system.gaps(torch.from_numpy(arr[r, 0, 0]))
+    nearest = ""
+    if gaps.numel():
+        k = int(gaps.argmin())
+        gap = float(gaps[k])
+        within = "below" if gap < gap_tol else "not below"
+        nearest = (
+            f"; its state 0's smallest gap is {gap:.3g}, {within} gap_tol={gap_tol:g} "
+            f"(candidate {system.contact_names[k]!r})"
+        )
+    return (
+        f"{rows.size} of {N} trajectories ({listed}) are flagged in contact at every state "
+        f"that could start a chunk (states 0..{S - 1}), so they cannot be chunked (a chunk "
+        f"must start out of contact); trajectory {r}'s states 0..{S - 1} are flagged by "
+        f"{by}{nearest}. Drop them, or check {where}"
+    )
 
 
 def read_flag_entries(path: str) -> tuple[np.ndarray | None, np.ndarray | None]:

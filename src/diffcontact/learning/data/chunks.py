@@ -18,10 +18,12 @@ from diffcontact.systems import System
 __all__ = [
     "DEFAULT_IMPACT_TOL",
     "chunk_split",
+    "contact_cues",
     "contact_flags",
     "contact_states",
     "event_states",
     "impact_intervals",
+    "merge_cues",
     "select_chunks",
     "window_chunks",
 ]
@@ -166,6 +168,27 @@ def contact_flags(
         ``(flags, counts)``: counts of states flagged by each cue (``gap``,
         ``impact``, ``given``, ``events``) and in all (``total``).
     """
+    cues = contact_cues(
+        system, traj, gap_tol=gap_tol, impact_tol=impact_tol, contact=contact,
+        event_times=event_times,
+    )  # fmt: skip
+    return merge_cues(cues)
+
+
+def contact_cues(
+    system: System,
+    traj: np.ndarray,
+    *,
+    gap_tol: float = 0.0,
+    impact_tol: float = DEFAULT_IMPACT_TOL,
+    contact: Any = None,
+    event_times: Any = None,
+) -> dict[str, np.ndarray]:
+    """The ``(N, T)`` bool flags of each cue of :func:`contact_flags`, by name.
+
+    ``{"gap": ..., "impact": ..., "given": ..., "events": ...}``; their union is
+    :func:`contact_flags`'s flags (:func:`merge_cues`).
+    """
     traj = np.asarray(traj, dtype=np.float64)
     N, T = traj.shape[:2]
     gap = contact_states(system, traj, gap_tol)
@@ -188,14 +211,14 @@ def contact_flags(
     events = np.zeros((N, T), dtype=bool)
     if event_times is not None:
         events = event_states(event_times, N, T, system.dt)
-    flags = gap | impact | given | events
-    counts = {
-        "gap": int(gap.sum()),
-        "impact": int(impact.sum()),
-        "given": int(given.sum()),
-        "events": int(events.sum()),
-        "total": int(flags.sum()),
-    }
+    return {"gap": gap, "impact": impact, "given": given, "events": events}
+
+
+def merge_cues(cues: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, int]]:
+    """The union of :func:`contact_cues`' flags and the count of each cue and in all."""
+    flags = np.logical_or.reduce(list(cues.values()))
+    counts = {name: int(c.sum()) for name, c in cues.items()}
+    counts["total"] = int(flags.sum())
     return flags, counts
 
 
@@ -249,7 +272,7 @@ def select_chunks(
         rows = np.flatnonzero(stuck)
         listed = ", ".join(map(str, rows[:10])) + (" ..." if rows.size > 10 else "")
         raise ValueError(
-            f"{rows.size} of {N} trajectories ({listed}) are in contact (gap < 0) at every "
+            f"{rows.size} of {N} trajectories ({listed}) are flagged in contact at every "
             f"state that could start a chunk (states 0..{S - 1}), so no chunk can start "
             "out of contact"
         )

@@ -70,10 +70,11 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--bodies",
         nargs="+",
-        metavar="NAME",
+        metavar="NAME|ID",
         default=None,
-        help="mujoco: one MuJoCo body name (or site:NAME) per diffcontact body, in "
-        "its order (default: all bodies but the world, in the model's order)",
+        help="mujoco: one MuJoCo body name or id (or site:NAME) per diffcontact body, in "
+        "its order, each at most once; digits are an id unless a body has that name "
+        "(default: all bodies but the world, in the model's order)",
     )
     p.add_argument(
         "--plane",

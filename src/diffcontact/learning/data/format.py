@@ -501,17 +501,34 @@ class Dataset:
         return self.split("test")
 
 
+def _not_a_folder(path: Path) -> str:
+    """Why the file ``path`` is no dataset, and what to pass instead (one line)."""
+    start = f"{path} is a file, not a dataset folder"
+    if path.name == METADATA:
+        return f"{start}: pass the folder that holds it, {path.parent}"
+    if path.suffix in (".npz", ".npy"):
+        return (
+            f"{start}: a recording (trajectories 'traj', e.g. from `diffcontact simulate` or "
+            f"`diffcontact convert`) becomes a dataset with `diffcontact generate "
+            f"--from-arrays {path} --out DATASET_DIR` (docs/own-data.md)"
+        )
+    return f"{start} (one that `diffcontact generate` writes)"
+
+
 def load_dataset(data_dir: str | os.PathLike[str]) -> Dataset:
     """Read a dataset folder written by ``generate_dataset`` or ``dataset_from_arrays``.
 
     Every file's sha256 is checked against ``metadata.json``.
 
     Raises:
-        DatasetError (a ``ValueError``): the folder or a file is missing, a
+        DatasetError (a ``ValueError``): the folder or a file is missing, ``data_dir``
+            is a file (a recording's ``.npz`` names ``generate --from-arrays``), a
             checksum does not match, or the metadata is unreadable or of
             another format version.
     """
     folder = Path(data_dir)
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(_not_a_folder(folder))
     if not folder.is_dir():
         raise DatasetError(f"dataset folder {folder} does not exist")
     meta_path = folder / METADATA

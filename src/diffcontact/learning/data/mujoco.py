@@ -15,9 +15,10 @@ free joint's linear velocity of the body frame's origin in world coordinates
 then its angular velocity in the body frame, a ball joint's angular velocity
 in the body frame.
 
-Body correspondence (``bodies``): one MuJoCo body or site per diffcontact body,
-in diffcontact's body order (default: every MuJoCo body but the world, in the
-model's order). Each gives the points of its diffcontact kind:
+Body correspondence (``bodies``): one MuJoCo body (name or id) or site per
+diffcontact body, in diffcontact's body order, each at most once (default: every
+MuJoCo body but the world, in the model's order). Each gives the points of its
+diffcontact kind:
 
 - ``"point"``: the body's centre of mass (``xipos``), or a site's position
   (``"site:NAME"``, e.g. the tip of a pendulum link);
@@ -89,7 +90,15 @@ def _names(model: Any, kind: str, count: int) -> list[str]:
 
 
 def _resolve(model: Any, spec: Any, position: int) -> tuple[str, int, str]:
-    """``("body" | "site", id, label)`` of one entry of ``bodies``."""
+    """``("body" | "site", id, label)`` of one entry of ``bodies``.
+
+    An integer is a body id; so is a string of ASCII digits that is not the name of a
+    body of the model (as the command line's ``--bodies`` gives ids): a body named
+    ``"2"`` wins over the id 2.
+    """
+    if isinstance(spec, str) and spec.isascii() and spec.isdigit():
+        if spec not in _names(model, "body", model.nbody):
+            spec = int(spec)
     if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
         i = int(spec)
         if not 1 <= i < model.nbody:
@@ -97,7 +106,8 @@ def _resolve(model: Any, spec: Any, position: int) -> tuple[str, int, str]:
                 f"bodies[{position}] = {i}: MuJoCo body ids run from 1 to {model.nbody - 1} "
                 "(0 is the world)"
             )
-        return "body", i, f"body {_names(model, 'body', model.nbody)[i] or i}"
+        name = _names(model, "body", model.nbody)[i]
+        return "body", i, f"body {name!r} (id {i})" if name else f"body {i}"
     if not isinstance(spec, str):
         raise ValueError(f"bodies[{position}] must be a body name, 'site:NAME' or an id")
     kind, name = ("site", spec[5:]) if spec.startswith("site:") else ("body", spec)
@@ -105,8 +115,9 @@ def _resolve(model: Any, spec: Any, position: int) -> tuple[str, int, str]:
     names = _names(model, kind, count)
     if name not in names:
         known = ", ".join(repr(n) for n in names if n) or "none with a name"
+        plural = "bodies" if kind == "body" else "sites"
         raise ValueError(
-            f"bodies[{position}]: the model has no {kind} {name!r} (its {kind}s: {known})"
+            f"bodies[{position}]: the model has no {kind} {name!r} (its {plural}: {known})"
         )
     i = names.index(name)
     if kind == "body" and i == 0:
@@ -241,8 +252,10 @@ def trajectories_from_mujoco(
         config: the diffcontact system (task name, ``.yaml``/``.json`` path, dict or
             ``System``): its bodies' kinds and dimension define the points.
         bodies: one entry per diffcontact body, in its order: a MuJoCo body name or
-            id, or ``"site:NAME"`` (a site, for point bodies). Default: every MuJoCo
-            body but the world, in the model's order.
+            id (an ``int``, or a string of digits that names no body of the model:
+            ``"2"`` is the body named ``"2"`` if there is one, else id 2), or
+            ``"site:NAME"`` (a site, for point bodies). Each MuJoCo body or site may
+            appear once. Default: every MuJoCo body but the world, in the model's order.
         plane: 2D systems: two of ``"xyz"``, the world axes that become diffcontact's
             x and y (``"xz"``: a vertical plane with gravity along -z). ``None`` in 3D.
         axes: ``"inertial"`` (principal axes, default) or ``"body"`` (the XML body
@@ -259,8 +272,9 @@ def trajectories_from_mujoco(
 
     Raises:
         ValueError: wrong shapes, unknown body or site names, a count of bodies
-            different from the config's, an unsupported joint (with its type), a disk
-            that does not rotate about the plane's normal, a site for a rigid body.
+            different from the config's, a MuJoCo body or site given twice, an
+            unsupported joint (with its type), a disk that does not rotate about the
+            plane's normal, a site for a rigid body.
         ImportError: an XML path was given and MuJoCo is not installed.
     """
     model = load_mujoco_model(model)
@@ -295,6 +309,14 @@ def trajectories_from_mujoco(
             f"body in its order); the model's bodies: {listed}"
         )
     resolved = [_resolve(model, s, i) for i, s in enumerate(specs)]
+    first: dict[tuple[str, int], int] = {}
+    for j, (kind, i, label) in enumerate(resolved):
+        k = first.setdefault((kind, i), j)
+        if k != j:
+            raise ValueError(
+                f"bodies[{k}] and bodies[{j}] are both MuJoCo {label}: each diffcontact "
+                "body needs its own MuJoCo body or site"
+            )
     owner = [i if k == "body" else int(model.site_bodyid[i]) for k, i, _ in resolved]
     frames = _kinematics(model, qp, qv, set(owner))
     shift = torch.zeros(3, dtype=_F) if origin is None else torch.as_tensor(origin, dtype=_F)

@@ -2,12 +2,14 @@
 
 Writes are atomic (temporary file + rename); ``metadata.json`` is written last
 (with its own checksum, ``metadata_sha256``), so a folder without it is
-unfinished. Re-running with the same arguments reuses the files; different
+unfinished. Re-running with the same arguments reuses the files (writing nothing,
+so a finished dataset on read-only storage is reused too); different
 arguments never overwrite them (``ValueError``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable
 from datetime import datetime, timezone
@@ -100,9 +102,23 @@ def _is_ours(path: Path) -> bool:
     return path.name in names or bool(TMP_NAME.match(path.name))
 
 
+def _remove_stale_marker(folder: Path) -> None:
+    """Remove the marker a run killed between ``metadata.json`` and its removal left behind.
+
+    Nothing is written when there is none (``unlink`` fails with ``EROFS`` on read-only
+    storage even for a missing file), and a marker that cannot be removed stays: next to
+    ``metadata.json`` it means nothing.
+    """
+    marker = folder / MARKER
+    if marker.exists():
+        with contextlib.suppress(OSError):
+            marker.unlink()
+
+
 def prepare_folder(folder: Path, arguments: dict[str, Any], progress: bool) -> bool:
     """Check ``folder`` against ``arguments``; True when a finished dataset is reused.
 
+    Reusing a finished dataset writes nothing (it works on read-only storage).
     Otherwise the folder exists afterwards, holds at most the leftovers of an
     interrupted run with the same arguments, and carries the marker file.
     """
@@ -118,7 +134,7 @@ def prepare_folder(folder: Path, arguments: dict[str, Any], progress: bool) -> b
                 "or delete this one"
             )
         verify_files(folder, meta)
-        (folder / MARKER).unlink(missing_ok=True)
+        _remove_stale_marker(folder)
         say(progress, f"reusing the dataset in {folder} (same arguments, checksums verified)")
         return True
     if folder.is_dir():

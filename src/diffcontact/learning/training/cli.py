@@ -214,7 +214,9 @@ def _run_refit_cli(args: argparse.Namespace) -> int:
         from diffcontact.learning.training.refit import refit_run
 
         report = refit_run(args.run_dir, args.iterations, data_dir=args.data)
-        if not any(it.get("accepted") for it in report.iterations):
+        if not report.iterations:
+            print(f"no iteration was run (--iterations 0): {args.run_dir} is unchanged")
+        elif not any(it.get("accepted") for it in report.iterations):
             print(f"no step lowered the validation MSE: {args.run_dir} is unchanged")
         else:
             run = Path(args.run_dir)

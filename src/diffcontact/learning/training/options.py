@@ -71,7 +71,7 @@ class TrainingInterrupted(KeyboardInterrupt):
         signal_name: ``"SIGINT"`` or ``"SIGTERM"``.
         exit_status: ``128 + signal number`` (130, 143), the status of the command.
         checkpoint: the checkpoint written (resume with ``resume=True``), or
-            ``None`` when none could be written.
+            ``None`` when none was written (a second Ctrl-C stopped the run at once).
     """
 
     def __init__(self, message: str, signal_name: str, exit_status: int, checkpoint: Any) -> None:

@@ -328,16 +328,24 @@ def refit_run(
     ``data_dir`` is given. A refit that lowers nothing leaves every file as it was.
 
     Raises:
-        ValueError: no finished run in ``run_dir`` (no ``model.pt``), a model without a
-            potential network, an unreadable dataset, or a bad ``iterations``.
+        ValueError: no finished run in ``run_dir`` (no ``model.pt``), a run folder that
+            cannot be written (checked before any work, e.g. read-only storage), a model
+            without a potential network, an unreadable dataset, or a bad ``iterations``.
     """
-    from diffcontact.io import atomic_write_bytes, atomic_write_json
+    from diffcontact.io import atomic_write_bytes, atomic_write_json, check_writable_folder
     from diffcontact.learning.data.format import load_dataset
     from diffcontact.learning.models.storage import load_model, save_model
 
     run = Path(run_dir)
     if not (run / "model.pt").is_file():
         raise ValueError(f"{run}: no model.pt (not a finished run of diffcontact train)")
+    try:  # before the iterations (minutes), not when their result is written
+        check_writable_folder(run)
+    except OSError as err:
+        raise ValueError(
+            f"cannot refit {run}: {err} (refit rewrites model.pt and learned.json there; "
+            "copy the run to writable storage)"
+        ) from None
     info = _read_json(run / "run.json")
     source = data_dir if data_dir is not None else info.get("data_dir")
     if source is None:

@@ -30,6 +30,7 @@ import json
 import logging
 import math
 import os
+import signal
 import warnings
 from collections.abc import Mapping, Sequence
 from datetime import datetime, timezone
@@ -467,7 +468,9 @@ def train(
             more than tensors and plain data to load.
         TrainingInterrupted (a ``KeyboardInterrupt``): SIGINT or SIGTERM
             stopped the run after the running step; a checkpoint was written
-            (``resume=True`` continues).
+            (``resume=True`` continues). A second SIGINT stops it at once, without
+            a checkpoint (its ``checkpoint`` is ``None``; ``resume=True`` continues
+            from the last one written).
     """
     check_options(
         model=model, epochs=epochs, batch_size=batch_size, lr=lr, physics_lr=physics_lr,
@@ -707,6 +710,11 @@ def _fit(
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         except Stopped:
             raise _interrupted(trainer, stop) from None
+        except (SystemExit, KeyboardInterrupt) as exc:
+            # a second Ctrl-C: Lightning shuts down and exits with status 1 (SystemExit)
+            if not stop.at_once or isinstance(exc, TrainingInterrupted):
+                raise
+            raise _interrupted_at_once(trainer, stop) from None
 
     trained = module.model.cpu()
     if trainer.is_global_zero:
@@ -735,6 +743,21 @@ def _interrupted(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted
         f"{epoch + 1}; wrote {stop.checkpoint}; continue with --resume"
     )
     return TrainingInterrupted(message, stop.signal_name, stop.exit_status, stop.checkpoint)
+
+
+def _interrupted_at_once(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted:
+    """A second Ctrl-C stopped the run at once: no checkpoint was written."""
+    last = stop.checkpoint
+    resume = (
+        f"continue with --resume (from {last}, the last checkpoint written)"
+        if last.is_file()
+        else "no checkpoint was written yet: --resume starts the run again"
+    )
+    message = (
+        f"SIGINT received twice: stopped at once in epoch {trainer.current_epoch + 1}, "
+        f"without a checkpoint; {resume}"
+    )
+    return TrainingInterrupted(message, "SIGINT", 128 + int(signal.SIGINT), None)
 
 
 def _schedule_cut(trainer: pl.Trainer, stop_after: StopAfter) -> dict[str, Any]:

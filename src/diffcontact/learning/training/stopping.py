@@ -5,7 +5,9 @@ step: the step that is running finishes, a checkpoint of the state before the
 next one is written (``last.ckpt``, mid-epoch; ``resume=True`` continues
 from it with the same result as an uninterrupted run) and ``train()`` raises
 :class:`~diffcontact.learning.training.options.TrainingInterrupted`. A second
-Ctrl-C stops at once (no checkpoint).
+Ctrl-C stops at once (no checkpoint): it raises ``KeyboardInterrupt``, which
+Lightning's ``fit`` turns into ``SystemExit(1)`` after its own shutdown;
+``train()`` reports it, seeing ``at_once``, as ``TrainingInterrupted`` too.
 
 ``StopAfter`` ends the run at the end of the first epoch that ends after a
 time limit; ``train()`` then warns that the learning-rate schedule was cut.
@@ -51,6 +53,7 @@ class GracefulStop(pl.Callback):
         self.checkpoint = Path(checkpoint)
         self.announce = announce
         self.received: int | None = None
+        self.at_once = False  # a second Ctrl-C raised KeyboardInterrupt: no checkpoint
         self.stopped_at: tuple[int, int] | None = None  # (epoch, batch) of the next step
         self._previous: dict[int, Any] = {}
 
@@ -81,6 +84,7 @@ class GracefulStop(pl.Callback):
     def _handle(self, signum: int, frame: Any) -> None:
         if self.received is not None:
             if signum == signal.SIGINT:  # the second Ctrl-C: stop at once
+                self.at_once = True
                 raise KeyboardInterrupt
             return
         self.received = signum
