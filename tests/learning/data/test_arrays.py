@@ -66,6 +66,10 @@ def test_arrays_validation_messages(recorded, tmp_path):
     fails(recorded, r"dt=0\.02 of the data differs from the config's dt=0\.01", dt=0.02)
     fails(recorded[:, :4], r"hold 4 states, fewer than chunk_length=5")
     fails(recorded[:2], r"2 trajectories are too few")
+    # a list of trajectories of different lengths (numpy's "inhomogeneous shape" before)
+    ragged = [*recorded[:5], recorded[5, :15], *recorded[6:]]
+    fails(ragged, r"share one shape \(T, 2, P, d\): trajectory 0 has \(20, 2, 5, 2\), "
+          r"trajectory 5 \(15, 2, 5, 2\); cut them to a common length")  # fmt: skip
     fails(recorded, r"val_fraction \+ test_fraction must be below 1", val_fraction=0.5,
           test_fraction=0.5)  # fmt: skip
     fails(recorded, r"val_fraction must be a finite number in \[0, 1\)", val_fraction=1.0)

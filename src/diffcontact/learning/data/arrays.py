@@ -31,6 +31,16 @@ __all__ = ["dataset_from_arrays", "read_arrays_file", "read_flag_entries"]
 def _as_array(trajectories: Any) -> np.ndarray:
     if isinstance(trajectories, Tensor):
         trajectories = trajectories.detach().cpu().numpy()
+    if isinstance(trajectories, (list, tuple)):  # one array per trajectory: one length
+        shapes = [tuple(np.shape(t)) for t in trajectories]
+        if len(set(shapes)) > 1:
+            first = shapes[0]
+            i = next(i for i, sh in enumerate(shapes) if sh != first)
+            raise ValueError(
+                f"trajectories must share one shape (T, 2, P, d): trajectory 0 has {first}, "
+                f"trajectory {i} {shapes[i]}; cut them to a common length T (or split the "
+                "longer ones into several trajectories)"
+            )
     try:
         arr = np.asarray(trajectories)
     except (TypeError, ValueError) as err:
