@@ -463,6 +463,13 @@ def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
         "options of another kind": lambda d: d["options"].update(nonsense=1),
         "options not a dict": lambda d: d.update(options=[1, 2]),
         "a newer format": lambda d: d.update(format_version=99),
+        # loaded silently before: NaN learned values, or the file's other model name
+        "a NaN weight": lambda d: d["state_dict"].update(
+            {k: v * float("nan") for k, v in list(d["state_dict"].items())[:1]}
+        ),
+        "a model name the options disagree with": lambda d: d.update(
+            model_name="CMr-CD-CLNN" if model == "CM-CD-CLNN" else "IN-CP-CLNN"
+        ),
     }
     for what, edit in edits.items():
         data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
@@ -473,6 +480,10 @@ def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
         assert "\n" not in str(caught.value), what
         if what == "a newer format":
             assert "format 99 is not supported" in str(caught.value)
+        if what == "a NaN weight":
+            assert "weights with NaN or infinite values: " in str(caught.value)
+        if what == "a model name the options disagree with" and model == "CM-CD-CLNN":
+            assert "disagree" in str(caught.value)  # (a baseline's options name no model)
 
 
 @pytest.mark.parametrize("potential_dtype", [None, "float32"])

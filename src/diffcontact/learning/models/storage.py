@@ -121,9 +121,25 @@ def model_from_checkpoint(data: Mapping[str, Any]) -> Any:
     if not isinstance(data, Mapping) or "options" not in data or "config" not in data:
         raise ValueError("not a diffcontact model file: missing config or options")
     data = {**data, "config": stored_config(data["config"])}  # files of earlier versions
-    name = data.get("model_name") or dict(data["options"]).get("model")
+    named, option = data.get("model_name"), dict(data["options"]).get("model")
+    if named is not None and option is not None and named != option:
+        raise ValueError(
+            f"its model_name {named!r} and its options' model {option!r} disagree: was it edited?"
+        )
+    name = named or option
     if name is None:
         raise ValueError("not a diffcontact model file: no model name")
+    state = data.get("state_dict")
+    if isinstance(state, Mapping):  # a hand-edited or diverged file: not loaded silently
+        bad = [
+            str(k)
+            for k, v in state.items()
+            if isinstance(v, torch.Tensor)
+            and v.is_floating_point()
+            and not bool(v.isfinite().all())
+        ]
+        if bad:
+            raise ValueError(f"weights with NaN or infinite values: {', '.join(bad[:5])}")
     if is_physical_model(name):
         from diffcontact.learning.models.physical import LearnedModel
 
