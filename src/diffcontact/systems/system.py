@@ -1245,17 +1245,22 @@ class System:
         # the projection's own function: the public ones check their arguments, reading
         # the device (the states here are checked at the system's boundary, and a rollout
         # goes on after an overflow)
-        args = (
-            ctx.geometry, ctx.M_inv, iterations, ctx.constraints, gaps,
-            self._inner_settings(settings), None, read_free,
-        )  # fmt: skip
+        args = (ctx.geometry, ctx.M_inv, iterations)
+        kwargs = {
+            "constraints": ctx.constraints,
+            "gaps": gaps,
+            "settings": self._inner_settings(settings),
+            "tol": None,
+            "read_free": read_free,
+        }
         if velocities:  # foreseeing the crossings of the inelastic limits within a step,
             # with Poisson's restitution on the closed limits that have it
-            dt = self.dt if self.foresee_crossings else None
-            restitution = ctx.cor if ctx.has_restitution() else None
-            x, v = _project(x, v, *args, dt, ctx.cor == 0, restitution)
+            kwargs["dt"] = self.dt if self.foresee_crossings else None
+            kwargs["foresee"] = ctx.cor == 0
+            kwargs["restitution"] = ctx.cor if ctx.has_restitution() else None
+            x, v = _project(x, v, *args, **kwargs)
         else:
-            x_p = _project(x, None, *args)[0]
+            x_p = _project(x, None, *args, **kwargs)[0]
             if ctx.constraints is not None and ctx.constraints.num_equations > 0:
                 # the velocities tangent to the constraints at the projected positions
                 M_inv = ctx.M_inv
