@@ -375,13 +375,18 @@ def _evaluate(
     from diffcontact.learning.evaluation.evaluate import evaluate
 
     metrics_file, seconds_file = out_dir / "metrics.json", out_dir / "seconds.txt"
-    now = not _fresh(metrics_file, run / "model.pt")
+    # the rollout steps asked for ("default": evaluate's); an evaluation asked for with
+    # others (or before this file was written, the default) is done again, not reused
+    asked_file, asked = out_dir / "eval-steps.txt", "default" if steps is None else str(steps)
+    before = asked_file.read_text().strip() if asked_file.is_file() else "default"
+    now = not _fresh(metrics_file, run / "model.pt") or before != asked
     if now:
         t0 = time.perf_counter()
         evaluate(
             run, out_dir, data_dir=data_dir, n_gif=0, uncertainty=False, force=True, steps=steps,
         )  # fmt: skip
-        seconds_file.write_text(f"{time.perf_counter() - t0:.1f}\n")
+        _atomic_write(seconds_file, f"{time.perf_counter() - t0:.1f}\n")
+        _atomic_write(asked_file, f"{asked}\n")
     m = json.loads(metrics_file.read_text())
     return {
         "rel_err_mean": m["rel_err_mean"],

@@ -501,3 +501,32 @@ def test_a_rope_part_run_keeps_the_network_tables_task(compare, fake_runs, tmp_p
     assert all(err in body for err in network.values())
     assert compare._err(fake_runs[-1]) in body  # the rope row
     capsys.readouterr()
+
+
+def test_an_evaluation_asked_for_with_other_steps_is_done_again(compare, monkeypatch, tmp_path):
+    """``--eval-steps`` changed on the same ``--out``: the runs' evaluations are redone (they
+    were reused, while the header recorded the new value)."""
+    import diffcontact.learning.evaluation.evaluate as evaluation
+
+    asked = []
+
+    def evaluate(run, out_dir, *, steps=None, **_):
+        asked.append(steps)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        metrics = {"rel_err_mean": 0.1, "rel_err_ci95": 0.01, "steps": steps or 100}
+        (out_dir / "metrics.json").write_text(json.dumps(metrics))
+
+    monkeypatch.setattr(evaluation, "evaluate", evaluate)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.pt").write_bytes(b"")
+    for steps, redone in ((None, True), (None, False), (5, True), (5, False), (7, True),
+                          (None, True)):  # fmt: skip
+        before = len(asked)
+        _, now = compare._evaluate(run, run / "evaluation", None, steps)
+        assert now == redone and len(asked) == before + redone, (steps, asked)
+    assert asked == [None, 5, 7, None]
+    # an evaluation made before the steps were recorded counts as the default's
+    (run / "evaluation" / "eval-steps.txt").unlink()
+    assert not compare._evaluate(run, run / "evaluation", None, None)[1]
+    assert compare._evaluate(run, run / "evaluation", None, 5)[1]
