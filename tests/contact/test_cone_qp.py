@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import diffcontact as dc
-from diffcontact.contact import ConeQPError, SolverSettings, solve_cone_qp
+from diffcontact.contact import ConeQPError, SolverSettings, fused, solve_cone_qp
 from diffcontact.contact.cone import project_contact_set
 from diffcontact.testing import assert_gradients_close
 
@@ -681,6 +681,29 @@ def test_torch_func_grad_through_the_torch_backend_matches_autograd():
     (want,) = torch.autograd.grad(final(mu), mu)
     assert want != 0
     torch.testing.assert_close(torch.func.grad(final)(mu.detach()), want, rtol=0, atol=0)
+
+
+def test_torch_func_transforms_use_the_torch_backend_by_default():
+    """With the default backend ("auto": Warp where installed) torch.func.grad through a
+    rollout failed with torch's generic setup_context error; inside a transform "auto"
+    is the torch solver now, and Warp asked for there is refused by name."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(2, seed=0)
+
+    def final(z, settings=None):
+        traj = system.simulate(z, 20, progress=False, solver_settings=settings)
+        return traj[:, -1, 0].sum()
+
+    z = z0.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(final(z), z)
+    torch.testing.assert_close(torch.func.grad(final)(z0), want, rtol=0, atol=1e-12)
+    rope = dc.load_system("Rope")  # the projection's Warp J J^T (sparse_gram) falls back too
+    y0 = rope.sample_initial_conditions(1, seed=0)
+    assert torch.isfinite(torch.func.grad(lambda y: rope.simulate(y, 3)[:, -1, 0].sum())(y0)).all()
+    if fused.warp_installed():
+        warp = SolverSettings(backend="warp")
+        with pytest.raises(ValueError, match=r"Warp solver does not support torch\.func"):
+            torch.func.grad(lambda z: final(z, warp))(z0)
 
 
 def test_public_impulse_functions_check_restitution_and_take_empty_batches():

@@ -235,7 +235,9 @@ def test_non_finite_gradient_names_the_variable(two_balls):
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        (dict(variables=[]), "one or more"),
+        (dict(variables=[]), "or a list of them, got an empty list"),
+        (dict(variables=5), "or a list of them, got int"),
+        (dict(variables=[Velocity(0)], contact_model="XYZ"), "XYZ"),
         (dict(variables=[Velocity(0), Velocity(0)]), "distinct"),
         (dict(variables=[Velocity(5)]), r"velocity\[5\]: body must be one of 0..1"),
         (dict(variables=[Spin(0)]), "point .*has no spin"),
@@ -405,3 +407,48 @@ def test_a_short_plan_on_a_loaded_cpu_runs_its_backward_pass_on_one_thread(two_b
         dc.optimize(system, z0, objective, variables=[Velocity(0)], steps=3, iterations=2,
                     progress=False)  # fmt: skip
         assert seen and set(seen) == {want}, (loaded, seen)
+
+
+def test_one_variable_need_not_be_in_a_list(two_balls):
+    """``variables=Velocity(0)`` was a bare TypeError ('Velocity' object is not iterable)."""
+    system, z0 = two_balls
+    goal = _final(0, torch.full((2,), 0.5))
+    kwargs = dict(steps=3, iterations=2, progress=False, threads=None)
+    one = dc.optimize(system, z0, goal, variables=Velocity(0), **kwargs)
+    listed = dc.optimize(system, z0, goal, variables=[Velocity(0)], **kwargs)
+    assert torch.equal(one.variables["velocity[0]"], listed.variables["velocity[0]"])
+
+
+def test_starts_outside_the_bounds_are_clipped_with_a_warning(two_balls):
+    """Given starts (or a current value) outside a variable's bounds were clipped silently."""
+    system, z0 = two_balls
+    goal = _final(0, torch.full((2,), 0.5))
+    var = Velocity(0, bounds=(-4.0, 4.0))
+    starts = {"velocity[0]": [[10.0, 10.0], [1.0, 1.0]]}
+    with pytest.warns(UserWarning, match=r"starts\['velocity\[0\]'\] of velocity\[0\] lies "
+                      r"outside its bounds in 1 of 2 starts: clipped"):  # fmt: skip
+        res = dc.optimize(system, z0, goal, variables=[var], starts=starts,
+                          steps=3, iterations=1, progress=False, lr=1e-9)  # fmt: skip
+    clipped = res.start_variables["velocity[0]"][0]  # the best of start 0, from (4, 4)
+    torch.testing.assert_close(clipped, torch.tensor([4.0, 4.0], dtype=clipped.dtype))
+    fast = z0.clone()
+    fast[1, 0] = torch.tensor([6.0, 0.0])
+    with pytest.warns(UserWarning, match=r"the current value \(start 0\) of velocity\[0\]"):
+        dc.optimize(system, fast, goal, variables=[var], starts=2,
+                    steps=3, iterations=1, progress=False)  # fmt: skip
+
+
+def test_overlapping_z0_and_integer_objectives_are_named(two_balls):
+    """optimize's overlap error pointed to simulate's check_overlap, which it does not take;
+    an integer objective was accepted."""
+    system, z0 = two_balls
+    goal = _final(0, torch.full((2,), 0.5))
+    inside = z0.clone()
+    inside[0, 0] = inside[0, 1] - torch.tensor([0.1, 0.0])
+    with pytest.raises(ControlError, match="overlapping") as err:
+        dc.optimize(system, inside, goal, variables=[Position(0)],
+                    steps=2, progress=False)  # fmt: skip
+    assert "check_overlap" not in str(err.value) and "optimize starts from z0" in str(err.value)
+    with pytest.raises(ControlError, match="objective must return floating-point values"):
+        dc.optimize(system, z0, lambda tr: torch.zeros(tr.shape[0], dtype=torch.long),
+                    variables=[Velocity(0)], starts=2, steps=2, progress=False)  # fmt: skip

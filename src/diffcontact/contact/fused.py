@@ -38,7 +38,10 @@ fused (NVIDIA Warp) one.
   use it to look inside the algorithm);
 - ``"auto"`` (default): the environment variable ``DIFFCONTACT_SOLVER`` (``torch``,
   ``warp`` or ``auto``) if it is set, else Warp where it is installed, the device is the
-  CPU or CUDA and the solve runs in float32 or float64, else torch.
+  CPU or CUDA and the solve runs in float32 or float64, else torch. Inside a
+  ``torch.func`` transform (``grad``, ``jacrev``, ``vmap``) ``"auto"`` is torch: the
+  Warp backend's autograd Functions do not support the transforms, and asking for Warp
+  there is a ``ValueError`` that says so.
 
 Warp is imported (and initialised, with its console messages silenced) on the first solve
 that uses it, so the torch backend costs no import time. Its kernels are compiled on the
@@ -96,6 +99,12 @@ def _env_backend() -> str | None:
     return value
 
 
+def _in_func_transform() -> bool:
+    """Whether a ``torch.func`` transform (``grad``, ``jacrev``, ``vmap``, ...) is active."""
+    active = getattr(torch._C, "_are_functorch_transforms_active", None)
+    return bool(active()) if active is not None else False
+
+
 def resolve_backend(backend: str, dtype: torch.dtype, device: torch.device | None) -> str:
     """The backend that solves: ``"torch"`` or ``"warp"`` (see the module docstring).
 
@@ -116,6 +125,14 @@ def resolve_backend(backend: str, dtype: torch.dtype, device: torch.device | Non
         backend = _env_backend() or "auto"
     if backend == "torch":
         return "torch"
+    if _in_func_transform():
+        if backend == "auto":
+            return "torch"
+        where = "SolverSettings(backend='warp')" if explicit else f"{ENV_VAR}=warp"
+        raise ValueError(
+            f"{where}: the Warp solver does not support torch.func transforms (grad, jacrev, "
+            "vmap); use backend='torch' or 'auto' there"
+        )
     supported_dtype = dtype in (torch.float32, torch.float64)
     kind = "cpu" if device is None else torch.device(device).type
     if backend == "auto":

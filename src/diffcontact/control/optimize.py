@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import math
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -110,6 +110,21 @@ def _check_z0(z0: Any, planner: Planner) -> tuple[Tensor, bool]:
     return (z0.unsqueeze(0) if single else z0), single
 
 
+def _warn_outside(name: str, values: Tensor, box: tuple[Tensor, Tensor], what: str) -> None:
+    """Warn that start ``values: (N, S, size)`` of variable ``name`` lie outside its
+    ``box`` (they are clipped into it before the first iteration)."""
+    low, high = (b.to(values) for b in box)
+    outside = ((values < low) | (values > high)).any(-1)  # (N, S)
+    if bool(outside.any()):
+        warnings.warn(
+            f"{what} of {name} lies outside its bounds in {int(outside.sum())} of "
+            f"{outside.numel()} starts: clipped into them (low {low.tolist()}, high "
+            f"{high.tolist()})",
+            UserWarning,
+            stacklevel=4,
+        )
+
+
 def _initial_values(
     variables: Sequence[Variable],
     bounds: list[tuple[Tensor, Tensor]],
@@ -137,9 +152,10 @@ def _initial_values(
             raise ControlError("starts: every tensor needs shape (S, size) or (N, S, size)")
         (S,) = S
         out = []
-        for v, cur in zip(variables, current, strict=True):
+        for v, cur, box in zip(variables, current, bounds, strict=True):
             if v.name not in given:
                 out.append(cur.unsqueeze(1).expand(N, S, -1).clone())
+                _warn_outside(v.name, out[-1], box, "the current value")
                 continue
             t = given[v.name]
             if t.dim() == 2:
@@ -150,11 +166,13 @@ def _initial_values(
                     f"({N}, {S}, {cur.shape[-1]}), got {tuple(given[v.name].shape)}"
                 )
             out.append(t.clone())
+            _warn_outside(v.name, out[-1], box, f"starts[{v.name!r}]")
         return out, S
     S = _check_int("starts", starts, 1)
     gen = torch.Generator().manual_seed(int(seed))
     out = []
-    for cur, (low, high) in zip(current, bounds, strict=True):
+    for v, cur, (low, high) in zip(variables, current, bounds, strict=True):
+        _warn_outside(v.name, cur.unsqueeze(1), (low, high), "the current value (start 0)")
         size = cur.shape[-1]
         u = torch.rand(N, S, size, generator=gen, dtype=torch.float64)
         g = torch.randn(N, S, size, generator=gen, dtype=torch.float64)
@@ -197,7 +215,7 @@ def optimize(
             (``N`` present when ``z0`` is batched), the result ``([N,] S)``,
             smaller is better. It must be differentiable.
         variables: what to change (:class:`Velocity`, :class:`Spin`,
-            :class:`Position`, :class:`Parameter`), distinct names.
+            :class:`Position`, :class:`Parameter`): one, or a list with distinct names.
         steps: rollout steps (default: the task's ``horizon / dt - 1``).
         starts: ``S``: the number of starts per problem (start 0 is the value
             in ``z0``/the parameters, the others uniform in the box, or normal
@@ -229,13 +247,24 @@ def optimize(
     """
     import time
 
-    planner = as_planner(simulator, contact_model=contact_model)
+    try:
+        planner = as_planner(simulator, contact_model=contact_model)
+    except ValueError as err:
+        raise ControlError(str(err)) from None
     z0b, single = _check_z0(z0, planner)
     if not callable(objective):
         raise ControlError("objective must be callable: traj -> ([N,] S) values")
+    if isinstance(variables, Variable):
+        variables = [variables]
+    if isinstance(variables, (str, bytes)) or not isinstance(variables, Iterable):
+        variables = [variables]  # not a variable either: the error below names its type
     variables = list(variables)
     if not variables or not all(isinstance(v, Variable) for v in variables):
-        raise ControlError("variables: give one or more Velocity/Spin/Position/Parameter")
+        bad = [type(v).__name__ for v in variables if not isinstance(v, Variable)]
+        raise ControlError(
+            "variables: give a Velocity/Spin/Position/Parameter or a list of them"
+            + (f", got {bad[0]}" if bad else ", got an empty list")
+        )
     names = [v.name for v in variables]
     if len(set(names)) != len(names):
         raise ControlError(f"variables: names must be distinct, got {names}")
@@ -317,8 +346,12 @@ def optimize(
                     first = z.reshape(N, S, *z.shape[1:])[:, 0].detach().to(torch.float64)
                     try:
                         planner.truth._check_no_overlap(first, "z0")
-                    except ValueError as err:
-                        raise ControlError(f"simulation failed: {err}") from None
+                    except ValueError as err:  # simulate's hint (check_overlap) is not ours
+                        text = str(err).split("\n(a state a simulation ended in")[0]
+                        raise ControlError(
+                            f"{text}\n(optimize starts from z0: move its bodies apart, or give "
+                            "starts that place them)"
+                        ) from None
             try:
                 with warnings.catch_warnings():
                     if bool(bad.any()):  # the tunnelling check would blame dt for the overlap
@@ -328,6 +361,8 @@ def optimize(
                 raise ControlError(f"simulation failed: {err}") from None
             traj = traj.reshape(N, S, *traj.shape[1:])
             out = objective(traj if not single else traj[0])
+            if isinstance(out, Tensor) and not out.is_floating_point():
+                raise ControlError(f"objective must return floating-point values, got {out.dtype}")
             if not isinstance(out, Tensor) or tuple(out.shape) != ((S,) if single else (N, S)):
                 want = f"({S},)" if single else f"({N}, {S})"
                 got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__

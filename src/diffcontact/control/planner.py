@@ -156,6 +156,7 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
         ValueError: a string that names no run, model file, task or config; an
             object that is none of the above.
     """
+    from diffcontact.contact.registry import create_contact_model
     from diffcontact.systems import System, load_system
 
     if isinstance(obj, Planner):
@@ -165,6 +166,7 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
         obj, about_truth = _from_string(str(obj))
     if isinstance(obj, System):
         system = obj
+        create_contact_model(contact_model)  # an unknown name: an error now, not mid-rollout
 
         def simulate(z0: Tensor, steps: int, params: Any, check: bool) -> Tensor:
             return system.simulate(
