@@ -114,6 +114,26 @@ def test_simulate_from_config_file_is_reproducible(tmp_path, capsys):
 
 
 @needs_systems
+def test_simulate_keeps_a_file_it_did_not_write(tmp_path, capsys):
+    """``--out`` silently replaced any file, a user's recording too (convert refused)."""
+    recording = tmp_path / "recording.npz"
+    np.savez(recording, traj=np.zeros((1, 3, 2, 5, 2)), dt=0.01)
+    before = recording.read_bytes()
+    argv = ["simulate", "BP5", "--n", "1", "--steps", "2", "--quiet", "--out"]
+    code, _, err = run(capsys, *argv, str(recording))
+    assert_usage_error(code, err, "was not written by diffcontact simulate", "--force")
+    assert recording.read_bytes() == before
+    (tmp_path / "notes.npz").write_text("not an archive")
+    code, _, err = run(capsys, *argv, str(tmp_path / "notes.npz"))
+    assert_usage_error(code, err, "--force")
+    sim = tmp_path / "sim.npz"
+    assert run(capsys, *argv, str(sim))[0] == 0
+    assert run(capsys, *argv, str(sim), "--seed", "1")[0] == 0  # its own output: replaced
+    assert run(capsys, *argv, str(recording), "--force")[0] == 0
+    assert "energy" in np.load(recording).files
+
+
+@needs_systems
 def test_unknown_task(capsys, tmp_path):
     code, _, err = run(capsys, "simulate", "BP7", "--out", str(tmp_path / "x.npz"))
     assert_usage_error(code, err, "unknown task", "'BP7'", "BP5", "Rope-D400")

@@ -111,7 +111,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--seed", type=non_negative_int, default=0, help="initial-condition seed (default 0)"
     )
-    sim.add_argument("--out", default="sim.npz", help="output .npz file (default sim.npz)")
+    sim.add_argument(
+        "--out", default="sim.npz",
+        help="output .npz file (default sim.npz); an existing file that an earlier simulate "
+        "did not write (a recording) is replaced only with --force",
+    )  # fmt: skip
+    sim.add_argument("--force", action="store_true", help="replace --out whatever it holds")
     sim.add_argument("--gif", default=None, help="also write an animation to this .gif file")
     sim.add_argument(
         "--energy-plot", default=None, metavar="PNG", help="also plot the energy to this .png"
@@ -170,6 +175,23 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.out, learning=not args.no_learning, epochs=args.epochs)
 
 
+SIMULATE_KEYS = frozenset({"traj", "energy", "t", "config", "task", "contact_model"})
+"""Entries of the ``.npz`` that ``diffcontact simulate`` writes (another simulate may
+replace such a file without ``--force``)."""
+
+
+def _written_by_simulate(path: str) -> bool:
+    """Whether ``path`` is an ``.npz`` holding :data:`SIMULATE_KEYS` (its index only)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = {name.removesuffix(".npy") for name in archive.namelist()}
+    except (OSError, zipfile.BadZipFile):
+        return False
+    return SIMULATE_KEYS <= names
+
+
 def _check_outputs(args: argparse.Namespace) -> None:
     from diffcontact.io import check_writable
 
@@ -187,6 +209,12 @@ def _check_outputs(args: argparse.Namespace) -> None:
             check_writable(path)
         except OSError as err:
             raise UsageError(f"cannot write {flag} {path!r}: {err}") from None
+        if flag == "--out" and os.path.exists(path) and not args.force:
+            if not _written_by_simulate(path):
+                raise UsageError(
+                    f"--out {path!r} exists and was not written by diffcontact simulate (a "
+                    "recording?): pass --force to replace it, or choose another name"
+                )
         real = os.path.realpath(path)
         if real in seen:
             raise UsageError(f"{flag} and {seen[real]} name the same file {path!r}")

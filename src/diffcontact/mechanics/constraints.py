@@ -271,6 +271,34 @@ class EqualityConstraints:
         phi_dot, phi_lin = _common_batch(phi_dot, phi_lin)
         return torch.cat([phi_dot, phi_lin], dim=-1)
 
+    def relative_residual(self, x: Tensor) -> Tensor:
+        """Each equation's ``|Phi(x)|`` without units, for telling data that break the
+        constraints (wrong link lengths, pivot or axis points) from rounding and drift.
+
+        A dot-product equation ``u . w = c`` (a length squared, a unit axis, two
+        orthogonal axes) over ``max(|u| |w|, |c|)``; a linear one (a point held at a
+        pivot) over the state's extent, the largest coordinate range of its points
+        (at least ``1e-12``).
+
+        Args:
+            x: ``(..., P, dim)`` positions.
+
+        Returns:
+            ``(..., E)``, ordered as :meth:`phi`.
+        """
+        self._check(x)
+        G_ab, G_ce, u0, w0 = self._selectors(x)
+        u = _plus(G_ab @ x, u0)
+        w = _plus(G_ce @ x, w0)
+        target = self.dot_target.to(dtype=x.dtype, device=x.device)
+        scale = torch.maximum(u.norm(dim=-1) * w.norm(dim=-1), target.abs())
+        rel_dot = ((u * w).sum(-1) - target).abs() / scale.clamp_min(1e-300)
+        anchor = self.lin_anchor.to(dtype=x.dtype, device=x.device)
+        extent = (x.amax(-2) - x.amin(-2)).amax(-1).clamp_min(1e-12)  # (...,)
+        rel_lin = (self._lin_weight(x) @ x - anchor).abs() / extent[..., None, None]
+        rel_dot, rel_lin = _common_batch(rel_dot, rel_lin.flatten(-2))
+        return torch.cat([rel_dot, rel_lin], dim=-1)
+
     def jacobian(self, x: Tensor) -> Tensor:
         """Constraint Jacobian ``J_E = D_x Phi``.
 

@@ -198,3 +198,19 @@ def test_atomic_writes_replace_a_link_at_the_destination(tmp_path):
     (tmp_path / "out" / ".hidden").write_bytes(b"")
     assert remove_orphan_temporaries(tmp_path / "out") == [orphan]
     assert sorted(os.listdir(tmp_path / "out")) == [".hidden", "file.json"]
+
+
+def test_a_run_that_took_no_step_fails_after_writing_its_directory(tmp_path, capsys, caplog):
+    """Every batch held a NaN chunk, so every step was skipped: train exited 0 with an
+    untrained model.pt. It now fails (exit 1) naming the reasons, the run written."""
+    data = write_dataset(tmp_path / "data", "BP5", n=(3, 1, 1), steps=8, nan_train=(0,))
+    run = tmp_path / "run"
+    argv = ["train", str(data), "--out", str(run), "--epochs", "2", "--batch-size", "3",
+            "--hidden", "8", "--quiet"]  # fmt: skip
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 1
+    assert "TrainingFailed: no optimiser step was taken: all 2 steps were skipped" in err
+    assert "(2 nonfinite loss;" in err
+    assert (run / "model.pt").is_file() and (run / "learned.json").is_file()
+    skips = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert [m.split(":")[0] for m in skips] == ["epoch 1", "epoch 2"]  # counted from 1

@@ -14,7 +14,13 @@ from torch import Tensor
 
 from diffcontact.cli_args import one_line
 from diffcontact.io import jsonable, read_npz
-from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
+from diffcontact.learning.data.checks import (
+    DT_RTOL,
+    check_seed,
+    constraint_violation,
+    float_arg,
+    int_arg,
+)
 from diffcontact.learning.data.chunks import (
     DEFAULT_IMPACT_TOL,
     chunk_split,
@@ -140,10 +146,10 @@ def dataset_from_arrays(
             f"train on), got {vf} + {tf}"
         )
     if dt is not None:
-        dt_f = float_arg("dt", dt, 0.0, math.inf)
-        if not math.isclose(dt_f, system.dt, rel_tol=1e-6, abs_tol=1e-12):
+        dt_f = float_arg("dt", dt, 0.0, math.inf, low_open=True)
+        if not math.isclose(dt_f, system.dt, rel_tol=DT_RTOL, abs_tol=1e-12):
             raise ValueError(
-                f"dt={dt_f:g} of the data differs from the config's dt={system.dt:g}; models "
+                f"dt={dt_f!r} of the data differs from the config's dt={system.dt!r}; models "
                 "step with the config's dt: set dt in the config to the recording's step "
                 "(or resample the data)"
             )
@@ -173,6 +179,9 @@ def dataset_from_arrays(
         )
         more = f" and {rows.size - 5} more states" if rows.size > 5 else ""
         raise ValueError(f"trajectories contain NaN or infinite values at {where}{more}")
+    broken = constraint_violation(system, arr[:, :, 0])
+    if broken is not None:
+        raise ValueError(broken)
     if T < chunk_length:
         raise ValueError(
             f"trajectories hold {T} states, fewer than chunk_length={chunk_length}: each "

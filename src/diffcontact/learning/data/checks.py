@@ -7,7 +7,17 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_seed", "float_arg", "int_arg"]
+__all__ = [
+    "CONSTRAINT_TOL",
+    "DT_RTOL",
+    "check_seed",
+    "constraint_violation",
+    "float_arg",
+    "int_arg",
+]
+
+DT_RTOL = 1e-6
+"""A recording's time step and a config's agree within this relative difference."""
 
 
 def int_arg(name: str, value: Any, low: int) -> int:
@@ -18,20 +28,34 @@ def int_arg(name: str, value: Any, low: int) -> int:
 
 
 def float_arg(
-    name: str, value: Any, low: float, high: float, *, high_open=False, infinite=False
+    name: str,
+    value: Any,
+    low: float,
+    high: float,
+    *,
+    high_open: bool = False,
+    infinite: bool = False,
+    low_open: bool = False,
 ) -> float:
-    """``value`` as a ``float`` when it is finite and lies in ``[low, high]`` (``[low,
-    high)``: ``high_open``, or ``high`` infinite; ``infinite``: ``inf`` too, where it
-    means "off")."""
+    """``value`` as a ``float`` when it is a finite number (not a string or a bool) in
+    ``[low, high]`` (``(low, ...``: ``low_open``; ``..., high)``: ``high_open``, or
+    ``high`` infinite; ``infinite``: ``inf`` too, where it means "off")."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must be a number, not a string: got {value!r}")
     try:
         x = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
-    outside = not (low <= x <= high) or (high_open and x == high)
+    outside = not (low <= x <= high) or (high_open and x == high) or (low_open and x == low)
     if isinstance(value, bool) or outside or not (infinite or math.isfinite(x)):
-        bracket = ")" if high_open or (math.isinf(high) and not infinite) else "]"
         kind = "a number" if infinite else "a finite number"
-        raise ValueError(f"{name} must be {kind} in [{low:g}, {high:g}{bracket}, got {value!r}")
+        if low_open and math.isinf(high):
+            raise ValueError(f"{name} must be {kind} > {low:g}, got {value!r}")
+        bracket = ")" if high_open or (math.isinf(high) and not infinite) else "]"
+        start = "(" if low_open else "["
+        raise ValueError(
+            f"{name} must be {kind} in {start}{low:g}, {high:g}{bracket}, got {value!r}"
+        )
     return x
 
 
@@ -41,3 +65,36 @@ def check_seed(seed: Any) -> int:
     if seed * 1000 + 2 >= 2**63:
         raise ValueError(f"seed must be below {(2**63 - 3) // 1000}, got {seed}")
     return seed
+
+
+CONSTRAINT_TOL = 0.25
+"""Recorded positions whose equality constraints are off by more than this (relative,
+:meth:`~diffcontact.mechanics.EqualityConstraints.relative_residual`) do not belong to the
+config: its link lengths, pivot, rigid bodies' axis points or units differ from the data
+(a wrong origin, or axis points at the rim, are off by more than 0.5). A simulation's
+drift stays far below it (``tests/learning/data/test_constraint_check.py`` checks every
+built-in task with equality constraints over its horizon)."""
+
+
+def constraint_violation(system: Any, x: np.ndarray) -> str | None:
+    """Where positions ``x: (N, T, P, d)`` break ``system``'s equality constraints by more
+    than :data:`CONSTRAINT_TOL`: one line naming the worst trajectory and state and the
+    count, or ``None`` (also for a system without equality constraints)."""
+    import torch
+
+    constraints = system.constraints
+    if constraints is None or constraints.num_equations == 0:
+        return None
+    rel = constraints.relative_residual(torch.as_tensor(x, dtype=torch.float64))
+    worst = rel.amax(-1)  # (N, T)
+    above = int((worst > CONSTRAINT_TOL).sum())
+    if above == 0:
+        return None
+    n, t = divmod(int(worst.argmax()), worst.shape[1])
+    return (
+        f"the positions break the config's equality constraints (link lengths, pivot, rigid "
+        f"bodies' unit axis points) by up to {float(worst.max()):.3g} relative (trajectory "
+        f"{n}, state {t}; {above} of {worst.numel()} states above {CONSTRAINT_TOL:g}): the "
+        "config does not describe the data, or its origin or units differ "
+        "(docs/own-data.md, 'What to check')"
+    )

@@ -7,12 +7,15 @@ modules when it runs.
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from diffcontact.cli_args import float_in, int_at_least, report_errors
 from diffcontact.contact.registry import contact_models
+from diffcontact.learning.data.checks import DT_RTOL
 
 __all__ = ["register_cli", "run_generate_cli"]
 
@@ -158,6 +161,24 @@ def _stride(text: str) -> int:
     return int_at_least(0)(text)
 
 
+def _config_differs(spec: Any, file_config: Any, traj: Any) -> str | None:
+    """How the system of ``--config`` differs from the one stored in an arrays file, on
+    the recording's first positions (``None``: the same dt, geometry and constraints;
+    masses, friction and restitution may differ)."""
+    import torch
+
+    from diffcontact.learning.data.format import structure_mismatch
+    from diffcontact.systems import load_system
+
+    given, stored = load_system(spec), load_system(file_config)
+    if not math.isclose(given.dt, stored.dt, rel_tol=DT_RTOL, abs_tol=1e-12):
+        return f"dt {given.dt!r} against the file's {stored.dt!r}"
+    if tuple(given.state_shape) != tuple(stored.state_shape):
+        return f"states of shape {tuple(given.state_shape)}, the file's {tuple(stored.state_shape)}"
+    x = torch.as_tensor(traj[:64, 0, 0], dtype=torch.float64)
+    return structure_mismatch(given, stored, x, "--config", "the file's")
+
+
 def _given(**options: Any) -> dict[str, Any]:
     """The options given on the command line (the functions' defaults apply to the others)."""
     return {key: value for key, value in options.items() if value is not None}
@@ -200,9 +221,13 @@ def _cli_generate(args: argparse.Namespace) -> int:
                     "--val-fraction/--test-fraction; recorded data gets no noise)"
                 )
         traj, file_dt, file_config = read_arrays_file(args.from_arrays)
-        if args.dt is not None and file_dt is not None and abs(args.dt - file_dt) > 1e-9 * file_dt:
+        if (
+            args.dt is not None
+            and file_dt is not None
+            and not math.isclose(args.dt, file_dt, rel_tol=DT_RTOL, abs_tol=1e-12)
+        ):
             raise ValueError(
-                f"--dt {args.dt:g} contradicts the dt {file_dt:g} stored in {args.from_arrays} "
+                f"--dt {args.dt!r} contradicts the dt {file_dt!r} stored in {args.from_arrays} "
                 "(the recording's own step): leave --dt out, or fix the file"
             )
         contact, event_times = read_flag_entries(args.from_arrays)
@@ -213,6 +238,14 @@ def _cli_generate(args: argparse.Namespace) -> int:
                     "or a .yaml/.json file)"
                 )
             spec = file_config
+        elif file_config is not None:
+            differs = _config_differs(spec, file_config, traj)
+            if differs:  # (also with --quiet, as convert's warnings)
+                print(
+                    f"warning: --config differs from the config stored in {args.from_arrays} "
+                    f"({differs}); the dataset uses --config",
+                    file=sys.stderr,
+                )
         reused = (folder / METADATA).is_file()
         dataset_from_arrays(
             traj,

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffcontact.learning.data.checks import DT_RTOL
 from diffcontact.mechanics.bodies import (
     chain_points_2d,
     disk_points_2d,
@@ -139,9 +140,9 @@ def _check_dt(dt: float | None, system: Any) -> float:
         raise ValueError(f"dt must be a positive number, got {dt!r}") from None
     if not (dt_f > 0 and math.isfinite(dt_f)):
         raise ValueError(f"dt must be a positive number, got {dt!r}")
-    if system is not None and not math.isclose(dt_f, system.dt, rel_tol=1e-6, abs_tol=1e-12):
+    if system is not None and not math.isclose(dt_f, system.dt, rel_tol=DT_RTOL, abs_tol=1e-12):
         raise ValueError(
-            f"dt={dt_f:g} of the data differs from the config's dt={system.dt:g}; models step "
+            f"dt={dt_f!r} of the data differs from the config's dt={system.dt!r}; models step "
             "with the config's dt: set dt in the config to the recording's step (or resample)"
         )
     return dt_f

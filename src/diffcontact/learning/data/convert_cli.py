@@ -166,6 +166,7 @@ def _cli_convert(args: argparse.Namespace) -> int:
     from diffcontact import __version__
     from diffcontact.io import atomic_save_npz
     from diffcontact.learning.data import convert
+    from diffcontact.learning.data.checks import constraint_violation
     from diffcontact.systems import load_system
 
     system = load_system(args.config)
@@ -217,6 +218,9 @@ def _cli_convert(args: argparse.Namespace) -> int:
     )
     checks = convert.trajectory_checks(system, z)
     notes = [one_line(w.message) for w in caught]
+    broken = constraint_violation(system, np.asarray(z)[:, :, 0])
+    if broken is not None:
+        notes.append(f"{broken}; `diffcontact generate --from-arrays` refuses such data")
     if checks["share_of_states_in_contact"] > CONTACT_SHARE_WARN:
         notes.append(
             f"{checks['share_of_states_in_contact']:.0%} of the states are in contact (min_gap "

@@ -62,6 +62,7 @@ __all__ = [
     "read_metadata",
     "sha256_file",
     "split_seeds",
+    "structure_mismatch",
     "verify_files",
 ]
 
@@ -380,36 +381,7 @@ class Dataset:
                 break
         if x is None or x.shape[0] == 0:
             return None
-        with torch.no_grad():
-            ours, model_gaps = system.gaps(x), theirs.gaps(x)
-        if ours.shape != model_gaps.shape:
-            return (
-                f"the data's system has {ours.shape[-1]} candidate contacts, the model's "
-                f"{model_gaps.shape[-1]}"
-            )
-        diff = float((ours - model_gaps).abs().max()) if ours.numel() else 0.0
-        if diff > 1e-9 * (1.0 + float(ours.abs().max())):
-            return (
-                f"the contact geometry differs (walls, radii or limits): the gaps of its "
-                f"states differ by up to {diff:.3g} under the model's config"
-            )
-        # the equality constraints (link lengths, pivots, rigid bodies) likewise
-        both = (system.constraints, theirs.constraints)
-        cons = [c if c is None or c.num_equations else None for c in both]
-        if (cons[0] is None) != (cons[1] is None):
-            return "one of the two systems has equality constraints, the other none"
-        if cons[0] is not None:
-            with torch.no_grad():
-                phi, phi_model = cons[0].phi(x), cons[1].phi(x)
-            far = phi.shape != phi_model.shape or float((phi - phi_model).abs().max()) > 1e-9 * (
-                1.0 + float(x.abs().max())
-            )
-            if far:
-                return (
-                    "the equality constraints differ (link lengths, pivots or body shapes): "
-                    "the data's states do not satisfy the model's"
-                )
-        return None
+        return structure_mismatch(system, theirs, x, "the data's system", "the model's")
 
     def __repr__(self) -> str:
         c = self.counts
@@ -553,3 +525,38 @@ def load_dataset(data_dir: str | os.PathLike[str]) -> Dataset:
     except ValueError as err:
         raise DatasetError(f"{meta_path}: invalid config: {err}") from None
     return Dataset(folder, meta, config, verified)
+
+
+def structure_mismatch(
+    ours: Any, theirs: Any, x: Tensor, name: str = "the first", other: str = "the second"
+) -> str | None:
+    """How two systems' known structure differs at positions ``x: (n, P, dim)``, or
+    ``None``: the contact geometry (every candidate's gap: walls, radii, limits) and the
+    equality constraints (their values: link lengths, pivots, rigid bodies). ``name`` and
+    ``other`` name the two in the message."""
+    with torch.no_grad():
+        gaps, their_gaps = ours.gaps(x), theirs.gaps(x)
+    if gaps.shape != their_gaps.shape:
+        return f"{name} has {gaps.shape[-1]} candidate contacts, {other} {their_gaps.shape[-1]}"
+    diff = float((gaps - their_gaps).abs().max()) if gaps.numel() else 0.0
+    if diff > 1e-9 * (1.0 + float(gaps.abs().max())):
+        return (
+            f"the contact geometry differs (walls, radii or limits): the gaps of the states "
+            f"differ by up to {diff:.3g} under {other} config"
+        )
+    both = (ours.constraints, theirs.constraints)
+    cons = [c if c is None or c.num_equations else None for c in both]
+    if (cons[0] is None) != (cons[1] is None):
+        return "one of the two systems has equality constraints, the other none"
+    if cons[0] is not None:
+        with torch.no_grad():
+            phi, their_phi = cons[0].phi(x), cons[1].phi(x)
+        far = phi.shape != their_phi.shape or float((phi - their_phi).abs().max()) > 1e-9 * (
+            1.0 + float(x.abs().max())
+        )
+        if far:
+            return (
+                "the equality constraints differ (link lengths, pivots or body shapes): the "
+                f"data's states do not satisfy {other}"
+            )
+    return None

@@ -23,6 +23,7 @@ from diffcontact.learning._lazy import lazy_exports
 _MODULE = "diffcontact.learning.training.module"
 _RUN = "diffcontact.learning.training.run"
 _EXPORTS: dict[str, str] = {
+    "TrainingFailed": "diffcontact.learning.training.options",
     "TrainingInputError": "diffcontact.learning.training.options",
     "TrainingInterrupted": "diffcontact.learning.training.options",
     "RolloutModule": _MODULE,

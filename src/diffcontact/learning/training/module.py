@@ -453,7 +453,8 @@ class RolloutModule(pl.LightningModule):
         if n_skipped and self.trainer.is_global_zero:
             detail = ", ".join(f"{c} {r.replace('_', ' ')}" for r, c in skipped_by.items() if c)
             first = f"; first: {self._epoch_first_error}" if self._epoch_first_error else ""
-            log.warning("epoch %d: skipped %d step(s) (%s)%s", epoch, n_skipped, detail, first)
+            # (counted from 1, as the epoch's summary line that follows)
+            log.warning("epoch %d: skipped %d step(s) (%s)%s", epoch + 1, n_skipped, detail, first)
         self.last_epoch_summary = {
             "epoch": epoch,
             "global_step": int(self.global_step),

@@ -64,6 +64,12 @@ class TrainingInputError(ValueError):
     """Bad input to ``train()`` (data, options, run directory); one-line message."""
 
 
+class TrainingFailed(RuntimeError):
+    """``train()`` ran every epoch but took no optimiser step: every step was skipped
+    (non-finite losses or gradients, solver failures, spikes). The run directory is
+    written (its ``model.pt`` holds the untrained model); the message names the reasons."""
+
+
 class TrainingInterrupted(KeyboardInterrupt):
     """``train()`` stopped on SIGINT (Ctrl-C) or SIGTERM after writing a checkpoint.
 

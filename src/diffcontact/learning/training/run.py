@@ -70,6 +70,7 @@ from diffcontact.learning.training.options import (
     DEFAULT_SCHEDULE,
     DEFAULT_SEED,
     DEFAULT_WEIGHT_DECAY,
+    TrainingFailed,
     TrainingInputError,
     TrainingInterrupted,
     check_options,
@@ -732,6 +733,15 @@ def _fit(
         write_learned(out, summary)
         for stale in ("refit.json", "model_adam.pt"):  # of an earlier model.pt
             (out / stale).unlink(missing_ok=True)
+        skipped = {r: c for r, c in module.skipped_total.items() if c}
+        if skipped and int(trainer.global_step) == 0:
+            reasons = ", ".join(f"{c} {r.replace('_', ' ')}" for r, c in skipped.items())
+            raise TrainingFailed(
+                f"no optimiser step was taken: all {sum(skipped.values())} steps were skipped "
+                f"({reasons}; the warnings above name each epoch's first), so {out / 'model.pt'} "
+                "holds the untrained model: check the data for NaN chunks (docs/training.md, "
+                "'Skipped steps')"
+            )
     return trained
 
 
