@@ -289,6 +289,9 @@ def test_check_writable(tmp_path):
     with pytest.raises(FileNotFoundError):
         check_writable(tmp_path / "missing" / "x.npz")
     assert list(tmp_path.iterdir()) == []  # the write probe leaves nothing behind
+    (tmp_path / "afile").write_text("")  # a file where a folder should be: not "missing"
+    with pytest.raises(NotADirectoryError, match="afile is not a folder"):
+        check_writable(tmp_path / "afile" / "x.npz")
 
 
 def test_check_writable_tries_a_file(monkeypatch):

@@ -90,6 +90,8 @@ def check_writable(path: str | os.PathLike[str]) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     if p.is_dir():
         raise IsADirectoryError(f"{p} is a directory")
+    if parent.exists() and not parent.is_dir():
+        raise NotADirectoryError(f"{parent} is not a folder")
     if not parent.is_dir():
         raise FileNotFoundError(f"folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):

@@ -151,8 +151,9 @@ def test_bad_input(cp3_data, tmp_path):
         refit(_model(), chunks, chunks, -1)
     with pytest.raises(ValueError, match="float64"):
         refit(LearnedModel("CP3", hidden=(4,)).float(), chunks, chunks)
+    (tmp_path / "unfinished").mkdir()
     out = subprocess.run(
-        [sys.executable, "-m", "diffcontact", "refit", str(tmp_path / "missing")],
+        [sys.executable, "-m", "diffcontact", "refit", str(tmp_path / "unfinished")],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert out.returncode == 2
@@ -204,3 +205,9 @@ def test_refit_refuses_a_read_only_run_before_any_work(cp3_data, tmp_path, monke
     assert attempts == []
     monkeypatch.undo()
     assert {f.name: f.read_bytes() for f in run.iterdir()} == files
+
+
+def test_refit_of_a_missing_folder_says_it_does_not_exist(tmp_path, capsys):
+    """``refit nope`` said "nope: no model.pt (not a finished run ...)"."""
+    code, _, err = _refit_cli(capsys, tmp_path / "nope", 2)
+    assert code == 2 and f"run directory {tmp_path / 'nope'} does not exist" in err

@@ -193,7 +193,8 @@ def dataset_from_arrays(
     n_train = N - n_val - n_test
     if n_train < 1:
         raise ValueError(
-            f"{N} trajectories are too few for val_fraction={vf:g} and test_fraction={tf:g} "
+            f"{N} {'trajectory is' if N == 1 else 'trajectories are'} too few for "
+            f"val_fraction={vf:g} and test_fraction={tf:g} "
             "(at least one each): no trajectory is left for training"
         )
 
@@ -289,7 +290,9 @@ def _stuck_message(
     listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
     counts = {name: int(flags[r, :S].sum()) for name, flags in cues.items()}
     named = sorted((name for name in counts if counts[name]), key=lambda c: -counts[c])
-    by = ", ".join(f"{_CUE_WORDS[name][0].format(tol=gap_tol)} at {counts[name]}" for name in named)
+    by = ", ".join(
+        f"{_CUE_WORDS[name][0].format(tol=gap_tol)} at {counts[name]} of them" for name in named
+    )
     where = ", ".join(_CUE_WORDS[name][1] for name in named)
     with torch.no_grad():
         gaps = system.gaps(torch.from_numpy(arr[r, 0, 0]))

@@ -168,7 +168,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from diffcontact.learning.evaluation.evaluate import evaluate
 
-    if not args.no_uncertainty:
+    if not args.no_uncertainty and Path(args.run_dir).is_dir():  # (else evaluate's error)
         print(
             "evaluating; for a physical model this includes the parameter uncertainty "
             "(2 rollouts of the training chunks per parameter; --no-uncertainty skips it)",
@@ -187,10 +187,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         uncertainty=not args.no_uncertainty,
     )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
+    n = m["n_test"]
     print(
-        f"{m['task']}: {m['model']}, {m['n_test']} test trajectories x {m['steps']} steps "
-        f"(dt {m['dt']:g} s; ground truth: {m['ground_truth']})"
+        f"{m['task']}: {m['model']}, {n} test {'trajectory' if n == 1 else 'trajectories'} x "
+        f"{m['steps']} steps (dt {m['dt']:g} s; ground truth: {m['ground_truth']})"
     )
+    if args.n_test is not None and n < args.n_test:
+        print(f"  note: --n-test {args.n_test}, but the test split holds {n}: all of them used")
     if m.get("model_note"):
         print(f"  WARNING: {m['model_note']}")
     if m.get("rollout_note"):

@@ -337,6 +337,8 @@ def refit_run(
     from diffcontact.learning.models.storage import load_model, save_model
 
     run = Path(run_dir)
+    if not run.exists():
+        raise ValueError(f"run directory {run} does not exist")
     if not (run / "model.pt").is_file():
         raise ValueError(f"{run}: no model.pt (not a finished run of diffcontact train)")
     try:  # before the iterations (minutes), not when their result is written
