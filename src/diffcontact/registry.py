@@ -9,6 +9,8 @@ entry-point group, read the first time the registry is used.
 from __future__ import annotations
 
 import importlib
+import inspect
+import re
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -99,10 +101,20 @@ class Registry:
                 product lacking one of ``required``.
         """
         factory = self.factory(name)
+        unknown, takes = _unknown_options(factory, options)
+        if unknown:
+            raise ValueError(
+                f"{self.kind} {name!r} has no option {', '.join(map(repr, unknown))}; it takes: "
+                f"{', '.join(takes) or 'none'}"
+            )
         try:
             product = factory(*args, **options)
         except TypeError as err:
-            raise ValueError(f"{self.kind} {name!r}: bad options {options}: {err}") from None
+            # a factory taking **options passes them on: name the option, not the class
+            match = re.search(r"unexpected keyword argument '(\w+)'", str(err))
+            if match:
+                raise ValueError(f"{self.kind} {name!r} has no option {match[1]!r}") from None
+            raise ValueError(f"{self.kind} {name!r}: bad options: {err}") from None
         for attr in required:
             if not callable(getattr(product, attr, None)):
                 raise ValueError(
@@ -110,3 +122,18 @@ class Registry:
                     f"which has no {attr} method"
                 )
         return product
+
+
+def _unknown_options(factory: Callable[..., Any], options: dict[str, Any]) -> tuple[list, list]:
+    """The ``options`` that ``factory`` does not take, and the keyword options it does
+    (none unknown where its signature cannot be read or takes ``**kwargs``)."""
+    try:
+        params = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return [], []
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return [], []
+    kinds = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    takes = [p.name for p in params if p.kind in kinds and p.default is not inspect.Parameter.empty]
+    named = {p.name for p in params if p.kind in kinds}
+    return [k for k in options if k not in named], takes

@@ -375,7 +375,7 @@ def test_registry_options_and_errors():
         LCP(max_pivots=0)
     with pytest.raises(ValueError, match="tol must be"):
         LCP(tol=-1.0)
-    with pytest.raises(ValueError, match="bad options"):
+    with pytest.raises(ValueError, match="no option 'eps'; it takes: directions, max_pivots, tol"):
         create_contact_model("LCP", eps=0.1)
     J, Mi, v, mu, cor, active, _ = random_problem(0, 2, 2, 2)
     with pytest.raises(ValueError, match="d must be 1, 2 or 3"):

@@ -271,6 +271,13 @@ def test_bad_options_are_named(name, options, needle):
         create_model(name, "CP3", **options)
 
 
+def test_an_unknown_option_is_named_without_the_class_internals():
+    """``--model-option foo=1`` showed the options dict and ``LearnedModel.__init__()``."""
+    for name in ("CM-CD-CLNN", "IN-SP-CP"):
+        with pytest.raises(ValueError, match=rf"^model '{name}' has no option 'foo'$"):
+            create_model(name, "CP3", foo=1)
+
+
 def test_eps_is_refused_and_hidden_given_twice_is_refused(cp3_data, tmp_path, capsys):
     for extra, needle in [(["--eps", "0.1"], "eps"), (["--model-option", "hidden=[4]"], "twice")]:
         code, _, err = run_cli(
