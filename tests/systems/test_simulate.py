@@ -161,6 +161,40 @@ def test_linear_momentum_is_conserved_in_body_body_impacts():
         assert float((traj[0, -1, 1] - traj[0, 0, 1]).abs().max()) > 0.1  # they did collide
 
 
+def test_a_frictional_disk_impact_changes_angular_momentum_by_gap_times_impulse():
+    """No walls, no gravity: the total angular momentum sum_pq M_pq x_p x v_q of two disks
+    changes only in the impact step, by exactly ``gap * f_t`` (the penetration at which
+    the contact is resolved times the tangential impulse, geometry/circles.py): each disk
+    takes the impulse at its own rim point. Frictionless, it is kept."""
+    from diffcontact.mechanics import disk_points_2d
+
+    centre = torch.tensor([[0.0, 0.0], [0.25, 0.05]], dtype=F64)
+    vel = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=F64)
+    z0 = disk_points_2d(centre, torch.zeros(2, dtype=F64), vel, torch.zeros(2, dtype=F64))
+    z0 = z0.transpose(0, 1).reshape(1, 2, 6, 2)
+    for mu, dt in ((0.5, 0.01), (0.5, 0.001), (0.0, 0.01)):
+        system = dc.load_system({"type": "bouncing_disks", "masses": [1.0, 1.0],
+                                 "radii": [0.1, 0.1], "walls": [], "mu": mu, "cor": 0.5,
+                                 "dt": dt, "horizon": 0.2})  # fmt: skip
+        traj = system.simulate(z0)[0]
+        x, p = traj[:, 0], system.mass_matrix() @ traj[:, 1]  # (T, 6, 2): x_q, (M v)_q
+        L = (x[..., 0] * p[..., 1] - x[..., 1] * p[..., 0]).sum(-1)  # (T,)
+        dL = L[1:] - L[:-1]
+        k = int(dL.abs().argmax())  # the impact: resolved at state k + 1
+        gap = float(system.gaps(x[k + 1]).min())
+        n = x[k + 1, 3] - x[k + 1, 0]
+        n = n / n.norm()
+        f_t = float((p[k + 1, 3:] - p[k, 3:]).sum(0) @ torch.stack((-n[1], n[0])))
+        assert gap < -1e-3  # resolved with penetration
+        rest = torch.cat((dL[:k], dL[k + 1 :])).abs().max()
+        assert float(rest) < 1e-12, (mu, dt)
+        if mu == 0:
+            assert abs(float(dL[k])) < 1e-12
+        else:
+            assert abs(f_t) > 0.05
+            assert float(dL[k]) == pytest.approx(gap * f_t, rel=1e-9), (dt, float(dL[k]))
+
+
 def test_constraints_hold_along_rollouts():
     """Impulses keep J_E v = 0 exactly; positions drift only by RK4 truncation."""
     for task in ("BD5", "CP3", "Gyro"):

@@ -17,6 +17,17 @@ row of ``J_C`` is ``D_x gap`` (centres only); the tangent row is the tangential
 velocity of the rim point(s) as material points of their bodies (extended-body
 weights). On velocities that respect the rigid-body constraints the normal row
 also equals the normal velocity of the rim points.
+
+Angular momentum. A contact is resolved at the state after the step that made the
+gap negative: the two rim points then lie ``-gap`` apart along ``n``, and a pair's
+tangential impulse ``f_t`` (on ``j``, ``-f_t`` on ``i``) changes the total angular
+momentum by exactly ``gap * f_t`` (``tests/systems/test_simulate.py``): each disk gets
+the spin of an impact at its own rim, as when the disks touch, while the centres are
+``-gap`` closer. Normal impulses (through the centres) and frictionless contacts keep
+it. The change vanishes with the penetration (it is of the order of ``dt`` times the
+approach speed). One contact point shared by both disks would keep the angular momentum
+but make each disk's spin depend on the penetration, i.e. on where the step grid falls
+in the impact; this module keeps the rim points.
 """
 
 from __future__ import annotations
