@@ -137,7 +137,8 @@ def test_a_file_that_is_not_a_config_is_named(tmp_path):
         ({"dt": 0.03}, r"horizon / dt must be a whole number"),
         ({"dt": -0.01}, r"dt: .*greater than 0"),
         ({"walls": [[0, 0, 1]]}, r"walls\[0\]: the normal part"),
-        ({"walls": [[0, 1]]}, r"walls\.0"),
+        ({"walls": [[0, 1]]}, r"walls\.0: too few numbers: got 2$"),  # was walls.0.2: missing key
+        ({"walls": [[0, 1, 0, 1]]}, r"walls\.0: too many values: at most 3, got 4"),
         ({"gravity": -9.81}, r"gravity: .*greater than or equal to 0"),
         ({"penetration_fraction": 2}, r"penetration_fraction"),
         ({"dynamics": "newtonian"}, r"dynamics"),

@@ -606,8 +606,18 @@ def _format_error(err: ValidationError, source: str) -> str:
         msg = e["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
-        if e["type"] == "missing":
+        if e["type"] == "missing" and len(loc) > 1 and loc[-1].isdigit():
+            # an item of a fixed-length list (a wall [a, b, c]): say how many were given
+            msg = f"too few numbers: got {loc[-1]}"
+            loc = loc[:-1]
+            if ".".join(loc) in typed:  # one message per list, not one per missing item
+                continue
+            typed.add(".".join(loc))
+        elif e["type"] == "missing":
             msg = "missing key (required)"
+        ctx = e.get("ctx", {})
+        if e["type"] == "too_long" and {"max_length", "actual_length"} <= set(ctx):
+            msg = f"too many values: at most {ctx['max_length']}, got {ctx['actual_length']}"
         if e["type"] == "extra_forbidden":
             msg = "unknown key (not part of the schema; see docs/config.md)"
         if e["type"] == "union_tag_invalid":
