@@ -8,7 +8,7 @@ import torch
 
 import diffcontact as dc
 from diffcontact.mechanics import potential_gradient
-from diffcontact.systems import list_tasks
+from diffcontact.systems import NonFiniteRolloutError, list_tasks
 from diffcontact.testing import count_host_reads
 
 F64 = torch.float64
@@ -279,12 +279,16 @@ def test_a_step_too_large_is_a_clear_error_naming_the_states():
     stops being positive definite; no raw linalg traceback, the states are named."""
     system = dc.load_system("Gyro", dt=0.5, horizon=5.0)
     z0 = system.sample_initial_conditions(4, seed=0)
-    with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 4 .*state \d at step"):
+    blown = r"NaN, infinite or blown-up values \(beyond 1e\+12 times the initial state's\) in"
+    with pytest.raises(ValueError, match=rf"{blown} \d of 4 .*state \d at step"):
         system.simulate(z0, 9)
+    # 3 steps: states of 1e38, finite, were returned with a tunnelling warning of 1e60 radii
+    with pytest.raises(NonFiniteRolloutError, match=rf"{blown} 1 of 2 .*state 0 at step 2;"):
+        system.simulate(system.sample_initial_conditions(2, seed=0), 3)
     # with these 8 states a blown-up state first meets the SVD of the penetration target
     # (it raised a raw LinAlgError); it is named the same way
     z0 = system.sample_initial_conditions(8, seed=0)
-    with pytest.raises(ValueError, match=r"NaN or infinite values in \d of 8 .*state \d at step"):
+    with pytest.raises(ValueError, match=rf"{blown} \d of 8 .*state \d at step"):
         system.simulate(z0, 20)
     from diffcontact.fastops import spd_solve
 

@@ -157,6 +157,14 @@ def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -
     its = f"{res.iterations} iteration{'s' if res.iterations != 1 else ''}"
     starts = f"{args.starts} start{'s' if args.starts != 1 else ''}"
     print(f"  {its} (stopped: {res.stopped}), {starts}, {seconds:.1f} s")
+    if info["distance_model"] > args.tolerance:
+        print(
+            f"diffcontact {args.command}: warning: target not reached: the best plan ends "
+            f"{info['distance_model']:.3g} from it under the planning model (--tolerance "
+            f"{args.tolerance:g}); more --starts or --iterations may find one, or no shot "
+            "reaches it in --time",
+            file=sys.stderr,
+        )
     if args.json:
         info.update(planner=planner.name, iterations=res.iterations, seconds=round(seconds, 3))
         atomic_write_json(args.json, info)

@@ -112,6 +112,10 @@ TUNNELLING_FRACTION = 1.0
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
 0.75 for BP5's smallest body, 0.46 for BD5)."""
 ON_TUNNELLING = ("warn", "raise", "ignore")
+BLOW_UP = 1e12
+"""A rollout whose largest ``|value|`` exceeds ``BLOW_UP`` times its initial state's (at
+least 1) has blown up, finite or not (Gyro at ``dt = 0.5`` reached 1e38 in 3 steps and
+overflowed later): :class:`NonFiniteRolloutError`, not a tunnelling report."""
 SPARSE_CONTACT_COLUMNS = 200
 """The contact impulse of point masses takes its products from the rows' sparse entries
 (:class:`~diffcontact.geometry.sparse_contact.SparseContact`) only where a dense row of
@@ -126,7 +130,7 @@ each, seconds): BP5 (10 columns) 0.34-0.41 dense against 0.47-0.75 sparse; Rope 
 
 
 class NonFiniteRolloutError(ValueError):
-    """A rollout reached NaN or infinite states.
+    """A rollout reached NaN or infinite states, or blew up (:data:`BLOW_UP`).
 
     Attributes:
         states: the indices of the trajectories (of the call's batch) that did, where
@@ -1596,7 +1600,7 @@ class System:
                 gaps, bad = self._tunnelling(traj, gaps)
             checks = [
                 no if pending is None else pending,
-                ~torch.isfinite(traj.detach()).all(),
+                ~torch.isfinite(traj.detach()).all() | _blown_up(traj, z0).any(),
                 bad.any() if check_tunnelling else no,
             ]
             failed, nonfinite, tunnelled = torch.stack(checks).tolist()
@@ -1604,12 +1608,13 @@ class System:
             run.grow_padding()  # (the next rollout's)
             traj, gaps, _ = run.eager(defer=False)
             with torch.no_grad():
-                nonfinite = not bool(torch.isfinite(traj.detach()).all())
+                finite = torch.isfinite(traj.detach()).all() & ~_blown_up(traj, z0).any()
+                nonfinite = not bool(finite)
                 if check_tunnelling:
                     gaps, bad = self._tunnelling(traj, gaps)
                     tunnelled = bool(bad.any())
         if nonfinite:
-            raise self._nonfinite_error(list(traj.unbind(1)), steps)
+            raise self._nonfinite_error(list(traj.unbind(1)), steps, z0)
         if tunnelled:
             learned = getattr(model, "needs_contact_state", False)  # a learned contact model
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
@@ -1711,11 +1716,16 @@ class System:
             f"Solver: {err}"
         )
 
-    def _nonfinite_error(self, states: list[Tensor], at: int) -> NonFiniteRolloutError:
-        """Which trajectories became NaN or infinite, when, and the likely cause."""
+    def _nonfinite_error(
+        self, states: list[Tensor], at: int, z0: Tensor | None = None
+    ) -> NonFiniteRolloutError:
+        """Which trajectories became NaN or infinite (or, given ``z0``, blew up past
+        :data:`BLOW_UP`), when, and the likely cause."""
         with torch.no_grad():
             traj = torch.stack([s.detach() for s in states], dim=1)
             bad = ~torch.isfinite(traj).flatten(2).all(-1)  # (N, T)
+            if z0 is not None:
+                bad = bad | _blown_up(traj, z0, per_state=True)
             rows = bad.any(-1).nonzero().flatten().tolist()
             first = bad.to(torch.int8).argmax(-1).tolist()
         if not rows:  # finite states whose contact problem overflowed (it said "0 of N")
@@ -1737,8 +1747,20 @@ class System:
         else:
             cause = "the motion blew up"
         message = (
-            f"simulate {self.name}: NaN or infinite values in {len(rows)} of "
+            f"simulate {self.name}: NaN, infinite or blown-up values (beyond {BLOW_UP:g} "
+            f"times the initial state's) in {len(rows)} of "
             f"{traj.shape[0]} trajectories ({where}{more}; step {at} was reached). Likely "
             f"cause: {cause}; dt = {self.dt} may be too large for this system: try a smaller dt"
         )
         return NonFiniteRolloutError(message, rows)
+
+
+def _blown_up(traj: Tensor, z0: Tensor, per_state: bool = False) -> Tensor:
+    """``(N,)`` (or with ``per_state`` ``(N, T)``) bool: where ``traj: (N, T, 2, P, dim)``
+    holds a finite value beyond :data:`BLOW_UP` times the largest of ``z0: (N, 2, P, dim)``
+    (at least 1): a blow-up that has not overflowed yet."""
+    t = traj.detach().abs()
+    scale = z0.detach().abs().flatten(1).amax(-1).clamp_min(1.0)  # (N,)
+    largest = t.flatten(2).amax(-1) if per_state else t.flatten(1).amax(-1)
+    limit = BLOW_UP * (scale[:, None] if per_state else scale)
+    return torch.isfinite(largest) & (largest > limit)
