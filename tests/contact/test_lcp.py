@@ -457,3 +457,57 @@ def test_degenerate_batches_solve_and_give_finite_gradients(d):
     (res.v_plus.pow(2).sum() + res.f_c.sum()).backward()
     for x in inputs:
         assert x.grad is None or bool(torch.isfinite(x.grad).all())
+
+
+@pytest.mark.parametrize("mu", [0.5, 0.0])
+def test_a_contact_landing_without_slip_is_differentiated_sticking(mu):
+    """A ball landing straight down (tangential velocity exactly 0): the friction variables
+    never enter Lemke's basis, and the backward pass differentiated the frictionless piece
+    (d vx+ / d vx0 = 1), valid on neither side; with friction the contact sticks for any
+    small vx0 (0 on both sides, as CM and Coulomb give). Without friction: 1."""
+    system = dc.load_system({"type": "bouncing_masses", "masses": [0.3], "radii": [0.1],
+                             "walls": [[0, 1, 0]], "gravity": 0.0, "mu": mu, "cor": 0.5,
+                             "dt": 0.01, "horizon": 1.0})  # fmt: skip
+    z0 = torch.tensor([[[[0.0, 0.0999]], [[0.0, -1.0]]]], dtype=F64)
+
+    def vx_plus(z, model="LCP"):
+        out = system.resolve_contacts(z, contact_model=model, penetration_fraction=0.0)
+        return out.z[0, 1, 0, 0]
+
+    x = z0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(vx_plus(x), x)
+    h, e = 1e-6, torch.zeros_like(z0)
+    e[0, 1, 0, 0] = h
+    with torch.no_grad():
+        right = (vx_plus(z0 + e) - vx_plus(z0)) / h
+        left = (vx_plus(z0) - vx_plus(z0 - e)) / h
+    want = 0.0 if mu > 0 else 1.0
+    assert float(right) == pytest.approx(want, abs=1e-8)
+    assert float(left) == pytest.approx(want, abs=1e-8)
+    assert float(grad[0, 1, 0, 0]) == pytest.approx(want, abs=1e-12)
+    assert float(torch.autograd.grad(vx_plus(x, "Coulomb"), x)[0][0, 1, 0, 0]) == pytest.approx(
+        want, abs=1e-12
+    )
+
+
+def test_a_rolling_disk_s_rollout_gradient_matches_finite_differences():
+    """BD1-ground: a disk that lands and rolls has slip exactly 0 at its contact; LCP's
+    derivative of the rollout to z0 was 7.5e-3 off the finite differences."""
+    from diffcontact.mechanics import disk_points_2d
+
+    system = dc.load_system("BD1-ground", mu=0.3, cor=0.6)
+    t = lambda *values: torch.tensor(values if len(values) > 1 else values[0], dtype=F64)  # noqa: E731
+    z0 = disk_points_2d(t(0.0, 0.14), t(0.4), t(0.0, -1.5), t(25.0))[None]
+    weights = torch.linspace(0.5, 1.5, 26 * z0[0].numel(), dtype=F64)
+
+    def loss(z):
+        traj = system.simulate(z, 25, contact_model="LCP", penetration_fraction=None)
+        return (traj.flatten() * weights).sum()
+
+    x = z0.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(loss(x), x)
+    direction = torch.randn(z0.shape, generator=torch.Generator().manual_seed(0), dtype=F64)
+    h = 1e-6
+    with torch.no_grad():
+        fd = (loss(z0 + h * direction) - loss(z0 - h * direction)) / (2 * h)
+    assert float((grad * direction).sum()) == pytest.approx(float(fd), rel=1e-6)

@@ -104,6 +104,14 @@ matrix, nonsingular by construction). At the degenerate points they are one-side
 - *the penetration target*: at ``-e min(v_n, 0) = v_n^*`` the restitution branch is
   taken (gradient to ``e`` and ``v_n``, none to ``v_C_star``, which carries none
   anyway);
+- *sticking*: a contact that presses (``p > 0``, ``mu > 0``) with zero tangential
+  velocity (a body landing straight down, a disk rolling without slip) has its
+  friction variables and their slacks all at zero, and Lemke's basis leaves the
+  friction out: that piece (no friction) holds for no tangential perturbation (the
+  derivative to ``v_t`` came out frictionless). The backward pass differentiates the sticking piece instead, the
+  contact's first ``d - 1`` directions added to the basis (:func:`solve_lcp`'s
+  ``stick``), which holds on both sides while friction is left (``mu p - 1^T beta >
+  0``), as CM's and Coulomb's derivatives do (``tests/contact/test_lcp.py``);
 - ``mu = 0``: the derivative of the piece (the cone is linear in ``mu``), the right
   derivative.
 
@@ -307,12 +315,14 @@ class _LCPFunction(torch.autograd.Function):
     """Autograd wrapper of the batched Lemke solve: implicit backward on the basis."""
 
     @staticmethod
-    def forward(M, q, active, max_pivots, tol, work):
+    def forward(M, q, active, max_pivots, tol, work, stick=None):
         Mw, qw = M.to(work), q.to(work)
         qw = torch.where(active, qw, 1)
         in_S, finished, ray, pivots = _lemke(Mw, qw, active, max_pivots, tol)
         z, LU, piv, res = _refine(Mw, qw, active, in_S)
         converged = finished & (res <= 1e3 * tol)
+        if stick is not None:  # the backward's basis where sticking is degenerate
+            LU, piv, in_S = _sticking_basis(Mw, qw, active, tol, z, LU, piv, in_S, res, stick)
         return z.to(q.dtype), converged, ray, pivots, res, (z, LU, piv, in_S)
 
     @staticmethod
@@ -332,7 +342,34 @@ class _LCPFunction(torch.autograd.Function):
             grad_M = (y.unsqueeze(-1) * z.unsqueeze(-2)).to(grad_z.dtype)
         if ctx.needs_input_grad[1]:
             grad_q = y.to(grad_z.dtype)
-        return grad_M, grad_q, None, None, None, None
+        return grad_M, grad_q, None, None, None, None, None
+
+
+def _sticking_basis(M, q, active, tol, z, LU, piv, in_S, res, stick):
+    """The basis the backward pass differentiates, with the ``stick`` variables added
+    where they are degenerate (module docstring, "sticking"); ``LU, piv, in_S`` where
+    nothing changes or the larger basis does not reproduce ``z``.
+
+    ``stick = (variables, guards)``, each ``(n,)``: ``variables`` (bool) may join the
+    basis where ``z_i = w_i = 0`` (within the tolerance) and ``w[guards_i] > 0`` (the
+    contact's friction capacity ``mu p - 1^T beta`` left).
+    """
+    variables, guards = (t.to(z.device) for t in stick)
+    w = torch.einsum("bij,bj->bi", torch.where(active[:, None, :], M, 0), z) + q
+    small = 1e3 * tol * z.abs().amax(-1, keepdim=True).clamp_min(1)  # (B, 1)
+    capacity = w.gather(-1, guards.expand_as(w)) > small
+    join = variables & active & ~in_S & (z <= small) & (w.abs() <= small) & capacity
+    if not bool(join.any()):
+        return LU, piv, in_S
+    wider = in_S | join
+    z2, LU2, piv2, res2 = _refine(M, q, active, wider)
+    same = (z2 - z).abs().amax(-1, keepdim=True) <= small
+    use = join.any(-1, keepdim=True) & same & (res2 <= res.clamp_min(1e3 * tol))[:, None]
+    return (
+        torch.where(use[:, :, None], LU2, LU),
+        torch.where(use, piv2, piv),
+        torch.where(use, wider, in_S),
+    )
 
 
 def solve_lcp(
@@ -344,6 +381,7 @@ def solve_lcp(
     tol: float | None = None,
     compute_dtype: torch.dtype | None = torch.float64,
     return_status: bool = False,
+    stick: tuple[Tensor, Tensor] | None = None,
 ) -> Tensor | tuple[Tensor, SolverStatus]:
     """Solve a batch of linear complementarity problems, differentiably.
 
@@ -368,6 +406,10 @@ def solve_lcp(
             input's); the result comes back in the input dtype.
         return_status: also return a :class:`~diffcontact.contact.SolverStatus`
             (``unbounded`` marks ray terminations, ``iterations`` counts pivots).
+        stick: ``(variables, guards)``, ``(n,)`` bool and long: variables that join
+            the basis of the backward pass where they are degenerate (``z_i = w_i =
+            0``) while ``w[guards_i] > 0`` (the contact LCP's sticking friction,
+            :func:`lcp_impulse`); ``None``: Lemke's final basis.
 
     Returns:
         z: (..., n), dtype and device of ``M`` (and the status if asked).
@@ -413,7 +455,7 @@ def solve_lcp(
         tol = 1e-10 if work == torch.float64 else 1e-5
     if max_pivots is None:
         max_pivots = 10 * n + 50
-    z, converged, ray, pivots, res, _ = _LCPFunction.apply(Mb, qb, ab, max_pivots, tol, work)
+    z, converged, ray, pivots, res, _ = _LCPFunction.apply(Mb, qb, ab, max_pivots, tol, work, stick)
     status = SolverStatus(
         converged=converged.reshape(batch),
         unbounded=ray.reshape(batch),
@@ -496,6 +538,20 @@ def lcp_matrices(
     M = M + torch.einsum("bk,kl,ij->bkilj", mu, eyeK, Mu).reshape(M.shape[0], K * w, K * w)
     q = (G.T @ q_C.unsqueeze(-1)).squeeze(-1)
     return M, q, G
+
+
+def _sticking_variables(K: int, d: int, width: int, device: torch.device):
+    """``(variables, guards)`` of :func:`solve_lcp`'s ``stick`` for the contact LCP of
+    ``K`` contacts of ``width`` variables ``(p, beta_1..beta_m, lambda)``: each contact's
+    first ``d - 1`` directions (independent: they span the tangent space), guarded by
+    its ``lambda`` row (``w = mu p - 1^T beta``, the friction left); ``None`` for
+    ``d = 1``."""
+    if d == 1:
+        return None
+    j = torch.arange(K * width, device=device) % width
+    variables = (j >= 1) & (j <= d - 1)
+    guards = torch.arange(K * width, device=device) - j + (width - 1)
+    return variables, guards
 
 
 def lcp_impulse(
@@ -603,6 +659,7 @@ def lcp_impulse(
         tol=tol,
         compute_dtype=compute_dtype,
         return_status=True,
+        stick=_sticking_variables(K, d, width, M.device),
     )
     f = (b / a)[:, None] * (z @ G.T)
     f = torch.where(act_c, f, 0).reshape(*batch, C)
