@@ -255,3 +255,15 @@ def test_high_friction_two_contact_problem_converges():
     for f in (f_c, f_r):
         assert bool((f[act, 1].abs() <= mu[act] * f[act, 0] + 1e-9).all())
     assert bool((f_r[act, 0] >= data["cor"].reshape(-1)[act] * f_c[act, 0] - 1e-9).all())
+
+
+def test_the_default_cap_finishes_generated_billiards():
+    """``max_iter`` 30 stopped one of BP5's 64 trajectories (seed 0) at step 59, so
+    ``diffcontact generate BP5 --contact-model Coulomb`` failed; the default finishes it,
+    and the state needs more than the old cap."""
+    system = dc.load_system("BP5")
+    z0 = system.sample_initial_conditions(64, seed=0)
+    traj = system.simulate(z0, contact_model="Coulomb")
+    assert bool(torch.isfinite(traj).all())
+    with pytest.raises(ConeQPError, match="failed at step 59 for 1 of 64 trajectories: state 3"):
+        system.simulate(z0, contact_model=create_contact_model("Coulomb", max_iter=30))

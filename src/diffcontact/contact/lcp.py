@@ -108,10 +108,11 @@ matrix, nonsingular by construction). At the degenerate points they are one-side
   velocity (a body landing straight down, a disk rolling without slip) has its
   friction variables and their slacks all at zero, and Lemke's basis leaves the
   friction out: that piece (no friction) holds for no tangential perturbation (the
-  derivative to ``v_t`` came out frictionless). The backward pass differentiates the sticking piece instead, the
-  contact's first ``d - 1`` directions added to the basis (:func:`solve_lcp`'s
-  ``stick``), which holds on both sides while friction is left (``mu p - 1^T beta >
-  0``), as CM's and Coulomb's derivatives do (``tests/contact/test_lcp.py``);
+  derivative to ``v_t`` came out frictionless). The backward pass differentiates the
+  sticking piece instead, the contact's first ``d - 1`` directions added to the basis
+  (:func:`solve_lcp`'s ``stick``), which holds on both sides while friction is left
+  (``mu p - 1^T beta > 0``), as CM's and Coulomb's derivatives do
+  (``tests/contact/test_lcp.py``);
 - ``mu = 0``: the derivative of the piece (the cone is linear in ``mu``), the right
   derivative.
 
