@@ -511,3 +511,22 @@ def test_a_rolling_disk_s_rollout_gradient_matches_finite_differences():
     with torch.no_grad():
         fd = (loss(z0 + h * direction) - loss(z0 - h * direction)) / (2 * h)
     assert float((grad * direction).sum()) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_newton_s_law_can_add_energy_in_simultaneous_impacts_and_poisson_s_cannot():
+    """A documented model difference (docs/contact-models.md): frictionless elastic
+    billiards without penetration compensation, so that only impulses change the
+    energy. Newton's restitution, applied to each of several coupled contacts, can add
+    kinetic energy; CM's two phases (each restitution impulse at most e times its
+    compression) never do."""
+    system = dc.load_system("BP5", cor=1.0, mu=0.0)
+    z0 = system.sample_initial_conditions(256, seed=0)
+    gain = {}
+    for model in ("CM", "LCP"):
+        traj = system.simulate(
+            z0, 100, contact_model=model, penetration_fraction=0.0, on_tunnelling="ignore"
+        )
+        energy = system.energy(traj)
+        gain[model] = float(((energy[:, 1:] - energy[:, :-1]) / energy[:, :1]).max())
+    assert gain["CM"] < 1e-12
+    assert gain["LCP"] > 0.01
