@@ -66,7 +66,7 @@ def test_recorded_data_without_declared_truth(tmp_path, recorded_dataset, monkey
     # the training plot draws no true value
     log = read_training_log(next((run / "logs").rglob("metrics.csv")))
     panels = _training_series(log, None, 2)
-    assert panels and all(ref is None for series in panels.values() for _, _, ref in series)
+    assert panels and all(ref is None for series in panels.values() for _, _, ref, _ in series)
     # more steps than recorded: refused, nothing simulated
     with pytest.raises(EvaluationInputError, match=r"hold 20 states, so at most 19 steps"):
         evaluate(run, model=model, steps=30, n_gif=0)

@@ -597,7 +597,10 @@ def evaluate(
     log_path = None if run_path is None else find_training_log(run_path)
     if log_path is not None:
         log = read_training_log(log_path)
-        if log and plot_training(log, truth, system.n_bodies, out / "training.png", title):
+        # after a refit the model's parameters are not the log's last epoch: marked
+        refit = learned if (run_path / "refit.json").is_file() else None
+        path = out / "training.png"
+        if log and plot_training(log, truth, system.n_bodies, path, title, refit=refit):
             files.append("training.png")
     if n_gif > 0:
         from diffcontact.viz import animate, scene_from_system

@@ -72,16 +72,22 @@ def plot_rel_error(err: np.ndarray, dt: float, path: Path, title: str, n_left_ou
         floor = min(floor, 1e-6)
     for e in err[:30]:
         ax.plot(t, np.maximum(e[sl], floor), color="#9aa6b2", lw=0.5, alpha=0.6)
+    # the symmetric interval reaches far below every trajectory on the log axis where the
+    # errors are skewed; the mean is never below the smallest of them: cut there
+    lowest = np.min(err, axis=0)[sl]
     ax.fill_between(
         t,
-        np.maximum(mean - half, floor),
+        np.maximum(np.maximum(mean - half, lowest), floor),
         np.maximum(mean + half, floor),
         color="#1f77b4",
         alpha=0.25,
         lw=0,
-        label="95% CI of the mean",
+        label="95% CI of the mean (cut at the smallest trajectory)",
     )
-    runs = f"mean ({len(err)} runs" + (f"; {n_left_out} diverged, left out)" if n_left_out else ")")
+    n = len(err)
+    runs = f"mean of {n} test trajector{'y' if n == 1 else 'ies'}" + (
+        f" ({n_left_out} diverged, left out)" if n_left_out else ""
+    )
     ax.plot(t, np.maximum(mean, floor), color="#1f77b4", lw=2.0, label=runs)
     ax.plot([], [], color="#9aa6b2", lw=0.8, label="single trajectories")
     if zeros:
@@ -110,7 +116,7 @@ def plot_energy(
         ["ground truth", "model"],
         fontsize=8,
     )
-    ax1.set_ylabel("true energy E")
+    ax1.set_ylabel("true energy E (J)")
     ax1.set_title("true energy along trajectories", fontsize=10)
     E0 = E_true[:, 0]
     for E, label, color, ls in (
@@ -123,10 +129,14 @@ def plot_energy(
             continue
         mean, half = mean_ci95(d, axis=0)
         mean, half = np.atleast_1d(mean), np.nan_to_num(np.atleast_1d(half))
-        ax2.fill_between(t, np.maximum(mean - half, 0.0), mean + half, color=color, alpha=0.2, lw=0)
+        # edged: the truth's and the model's bands stay apart where they overlap
+        ax2.fill_between(
+            t, np.maximum(mean - half, 0.0), mean + half, color=color, alpha=0.15,
+            lw=0.8, ls=ls, edgecolor=color,
+        )  # fmt: skip
         ax2.plot(t, mean, color=color, lw=1.8, ls=ls, label=label)
     ax2.set_ylabel(r"$|E(t) - E_{true}(0)| \,/\, \overline{T_{true}}$")
-    ax2.set_title("relative energy drift (mean, 95% CI)", fontsize=10)
+    ax2.set_title("energy change from E(0): contacts and drift (mean, 95% CI)", fontsize=10)
     ax2.legend(fontsize=8)
     for ax in (ax1, ax2):
         ax.set_xlabel("time (s)")
@@ -145,17 +155,36 @@ _PANEL_TITLES = {
 }
 
 
+_SHOWN = {"mu": "mu", "cor": "e_P"}
+"""The learned-parameter columns' names as the docs write them (``cor`` is e_P)."""
+
+
 def _training_series(
-    log: Mapping[str, np.ndarray], true: Mapping[str, list[float]] | None, n_bodies: int
-) -> dict[str, list[tuple[str, np.ndarray, Any]]]:
-    """Per panel: ``(label, values per epoch, true value, list of them, or None)``.
+    log: Mapping[str, np.ndarray],
+    true: Mapping[str, list[float]] | None,
+    n_bodies: int,
+    final: Mapping[str, Any] | None = None,
+) -> dict[str, list[tuple[str, np.ndarray, Any, float | None]]]:
+    """Per panel: ``(label, values per epoch, true value, list of them, or None, final
+    value or None)``.
 
     ``true=None``: the true values are unknown (recorded data); none is given.
+    ``final``: the model's learned parameters (``learned_parameters()``) where they
+    differ from the log's last epoch (a refit), else ``None``.
     """
+
+    def last(cat: str, k: int | None) -> float | None:
+        values = None if final is None else final.get(cat)
+        if values is None:
+            return None
+        values = list(values) if isinstance(values, (list, tuple)) else [values]
+        k = 0 if k is None else k
+        return float(values[k]) if k < len(values) else None
+
     groups = classify_columns(log)
     panels: dict[str, list[tuple[str, np.ndarray, Any]]] = {}
     if "loss" in groups:
-        panels["loss"] = [(c, log[c], None) for c in sorted(groups["loss"])]
+        panels["loss"] = [(c, log[c], None, None) for c in sorted(groups["loss"])]
     series: list[tuple[str, np.ndarray]] = []
     ratios = groups.get("mass_ratios")
     masses = groups.get("mass")
@@ -163,7 +192,7 @@ def _training_series(
         cols = [ratios[k] for k in sorted(ratios, key=lambda k: -1 if k is None else k)]
         if len(cols) == n_bodies:
             cols = cols[1:]  # the first body's ratio (1)
-        series = [(f"m{k + 2}/m1", log[c]) for k, c in enumerate(cols)]
+        series = [(f"m{k + 2}/m1", log[c]) for k, c in enumerate(cols)]  # body k + 1
     elif masses is not None and None not in masses and len(masses) > 1:
         # raw masses per body: ratios to the first
         cols = [masses[k] for k in sorted(masses)]
@@ -171,7 +200,7 @@ def _training_series(
     if series:
         tr = [] if true is None else true["mass_ratios"]
         panels["mass_ratios"] = [
-            (label, v, tr[k] if len(series) == len(tr) else None)
+            (label, v, tr[k] if len(series) == len(tr) else None, last("mass_ratios", k + 1))
             for k, (label, v) in enumerate(series)
         ]
     for cat in ("mu", "cor"):
@@ -179,18 +208,22 @@ def _training_series(
             continue
         tv = None if true is None else true[cat]
         items = []
+        name = _SHOWN[cat]
         for idx in sorted(groups[cat], key=lambda k: -1 if k is None else k):
             col = groups[cat][idx]
+            label = name if idx is None else f"{name}[{idx}]"
             if tv is None:
-                items.append((cat if idx is None else f"{cat}[{idx}]", log[col], None))
+                items.append((label, log[col], None, last(cat, idx)))
             elif idx is None or len(groups[cat]) == 1:
                 # one shared learned value: every distinct true value is a reference
-                items.append((cat, log[col], sorted(set(tv))))
+                items.append((name, log[col], sorted(set(tv)), last(cat, idx)))
             else:
-                items.append((f"{cat}[{idx}]", log[col], tv[idx] if idx < len(tv) else None))
+                ref = tv[idx] if idx < len(tv) else None
+                items.append((label, log[col], ref, last(cat, idx)))
         panels[cat] = items
     if "eps" in groups:
-        panels["eps"] = [("eps", log[c], None) for c in groups["eps"].values()]
+        eps = None if final is None or final.get("eps") is None else float(final["eps"])
+        panels["eps"] = [("eps", log[c], None, eps) for c in groups["eps"].values()]
     return panels
 
 
@@ -200,13 +233,16 @@ def plot_training(
     n_bodies: int,
     path: Path,
     title: str,
+    refit: Mapping[str, Any] | None = None,
 ) -> Path | None:
     """Losses and learned parameters per epoch; true values dashed in the same colour.
 
     ``true=None`` (recorded data without declared parameters): no true values
-    are drawn and the title says that they are unknown.
+    are drawn and the title says that they are unknown. ``refit``: the model's learned
+    parameters after ``diffcontact refit`` (``learned_parameters()``), drawn as a marker
+    each after the last epoch (the log ends where Adam left them).
     """
-    panels = _training_series(log, true, n_bodies)
+    panels = _training_series(log, true, n_bodies, refit)
     if not panels:
         return None
     epochs = log["epoch"]
@@ -216,10 +252,12 @@ def plot_training(
         many = len(series) > 10
         cmap = matplotlib.colormaps["viridis" if many else "tab10"]
         drawn_true: set[float] = set()
-        for k, (label, values, ref) in enumerate(series):
+        for k, (label, values, ref, after) in enumerate(series):
             color = cmap(k / max(len(series) - 1, 1)) if many else cmap(k % 10)
             ok = np.isfinite(values)
             ax.plot(epochs[ok], values[ok], color=color, lw=1.0 if many else 1.5, label=label)
+            if after is not None and len(epochs):
+                ax.plot([epochs[-1] + 0.5], [after], marker="D", ms=4, color=color, ls="none")
             refs = [] if ref is None else ref if isinstance(ref, list) else [ref]
             for r in refs:
                 if r in drawn_true and (many or len(refs) > 1):
@@ -228,9 +266,11 @@ def plot_training(
                 ax.axhline(r, color="#555555" if grey else color, lw=1.0, ls="--")
                 drawn_true.add(r)
         if cat == "loss":
-            vals = np.concatenate([v[np.isfinite(v)] for _, v, _ in series])
-            if vals.size and (vals > 0).all():
+            vals = np.concatenate([v[np.isfinite(v)] for _, v, _, _ in series])
+            # log where the loss spans a decade or more (else its ticks crowd, 1.125e-1 ...)
+            if vals.size and (vals > 0).all() and vals.max() >= 10 * vals.min():
                 ax.set_yscale("log")
+            ax.set_ylabel("mean absolute error")
         if len(series) <= 6:
             ax.legend(fontsize=7)
         else:
@@ -244,5 +284,7 @@ def plot_training(
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(True, lw=0.3, alpha=0.6)
     note = "dashed: true values" if true is not None else "true values unknown: recorded data"
+    if refit is not None:
+        note += "; diamonds: after the refit"
     fig.suptitle(f"{title} ({note})" if title else note, fontsize=10)
     return _save(fig, path)

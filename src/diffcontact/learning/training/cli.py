@@ -220,7 +220,10 @@ def _run_refit_cli(args: argparse.Namespace) -> int:
             print(f"no step lowered the validation MSE: {args.run_dir} is unchanged")
         else:
             run = Path(args.run_dir)
-            print(f"wrote {run / 'model.pt'} and {run / 'refit.json'}")
+            print(
+                f"wrote {run / 'model.pt'}, learned.json and refit.json in {run} (model_adam.pt "
+                "keeps the model before the refit)"
+            )
         return 0
 
     return report_errors("diffcontact refit", work, bad_input=ValueError)
