@@ -125,8 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--contact-model",
         choices=contact_models(),
         default="CM",
-        help="contact model from the registry: CM (default), CMr (regularised) or one "
-        "registered with diffcontact.contact.register_contact_model",
+        help="contact model from the registry: CM (default), CMr (regularised), LCP, Coulomb, "
+        "or one an installed package registers (entry point group diffcontact.contact_models)",
     )
     sim.add_argument(
         "--device", choices=("cpu", "cuda"), default="cpu", help="where to simulate (default cpu)"

@@ -36,6 +36,11 @@ def solver_demo() -> bool:
     print(f"  compression impulse  f_c = (n {f_c[0]:.4f}, t {f_c[1]:+.4f}) N s")
     print(f"  restitution impulse  f_r = (n {f_r[0]:.4f}, t {f_r[1]:+.4f}) N s")
     print(f"  velocity after       v+  = ({v_plus[0]:+.4f}, {v_plus[1]:+.4f}) m/s")
+    print(
+        f"  (it leaves at {v_plus[0].item():.4f} m/s, not e_P x 2 = {2 * cor[0].item():.1f}: with "
+        "friction while sliding, Poisson's restitution lifts a ball off the wall; the "
+        "energy still falls; docs/training.md, 'What the learned e_P and mu mean')"
+    )
     checks = {
         "impulses inside the friction cone": bool(
             (f_c[1].abs() <= mu * f_c[0] + 1e-12) and (f_r[1].abs() <= mu * f_r[0] + 1e-12)
@@ -48,7 +53,9 @@ def solver_demo() -> bool:
     }
     # gradients of the outgoing velocity w.r.t. the physical parameters
     grads = torch.autograd.grad(v_plus[0] + v_plus[1], (mass, mu, cor))
-    print("  d(v+_x + v+_y)/d(mass, mu, e_P) = " + ", ".join(f"{g.item():+.4f}" for g in grads))
+    # (rounded, + 0.0: a derivative of rounding size prints as +0.0000, not -0.0000)
+    shown = ", ".join(f"{round(g.item(), 4) + 0.0:+.4f}" for g in grads)
+    print(f"  d(v+_x + v+_y)/d(mass, mu, e_P) = {shown}")
     # the same solve batched: 1024 random incoming angles in one call
     angle = torch.linspace(0.05, torch.pi - 0.05, 1024, dtype=dt)
     b = torch.stack([-2 * torch.sin(angle), 2 * torch.cos(angle)], -1)
@@ -130,21 +137,22 @@ def learning_demo(out: Path, epochs: int | None = None) -> bool:
     t0 = time.perf_counter()
     model = train(
         data, run, model="CM-CD-CLNN", epochs=epochs, batch_size=cfg["batch_size"], seed=0,
-        progress=True,
+        progress=True, keep_checkpoints=2,  # (all 40: 130 MB)
     )  # fmt: skip
     train_s = time.perf_counter() - t0
     learned, truth = model.learned_parameters(), true_parameters(task)
     ratios = learned["mass_ratios"][1:]
     print(f"\ntrained in {train_s:.0f} s; run directory {run}")
-    print("  parameter      learned    true")
-    for i, (a, b) in enumerate(zip(ratios, truth["mass_ratios"], strict=True), start=2):
-        print(f"  m{i}/m1       {a:9.4f} {b:7.4f}")
-    print(f"  mu           {learned['mu'][0]:9.4f} {truth['mu'][0]:7.4f}")
-    print(f"  e_P          {learned['cor'][0]:9.4f} {truth['cor'][0]:7.4f}")
+    rows = [(f"m{i}/m1", a, b) for i, (a, b) in
+            enumerate(zip(ratios, truth["mass_ratios"], strict=True), start=2)]  # fmt: skip
+    rows += [("mu", learned["mu"][0], truth["mu"][0]), ("e_P", learned["cor"][0], truth["cor"][0])]
+    print(f"  {'parameter':<10} {'learned':>9} {'true':>7}")
+    for name, a, b in rows:
+        print(f"  {name:<10} {a:9.4f} {b:7.4f}")
     metrics = evaluate(run, n_gif=2)
     print(
         f"  test rollouts ({metrics['n_test']} x {metrics['steps']} steps): relative error "
-        f"{metrics['rel_err_mean']:.2e} +- {metrics['rel_err_ci95']:.1e}"
+        f"{metrics['rel_err_mean']:.2e} ± {metrics['rel_err_ci95']:.1e} (95% CI)"
     )
     print(f"  evaluation: {run / 'evaluation'} (" + ", ".join(sorted(metrics["files"])) + ")")
     checks = {

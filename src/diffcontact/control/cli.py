@@ -77,7 +77,9 @@ def register_cli(subparsers: Any) -> None:
     )
     b.add_argument("--cue", type=int_at_least(0), default=0, help="cue ball (default 0)")
     b.add_argument("--ball", type=int_at_least(0), default=2, help="target ball (default 2)")
-    b.add_argument("--seed", type=int_at_least(0), default=0, help="layout of the balls")
+    b.add_argument(
+        "--seed", type=int_at_least(0), default=0, help="layout of the balls (default 0)"
+    )
     _common(b, "billiards", 16, 0.05)
     b.set_defaults(func=_cmd_billiards)
 

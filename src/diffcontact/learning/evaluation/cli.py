@@ -30,7 +30,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         description=(
             "Roll the trained model of RUN_DIR out from every test initial state for "
             "max(horizon, 100 dt), compare with the ground truth and write metrics.json, "
-            "rollout.npz, rel_error.png, energy.png, training.png and rollout.gif. On "
+            "rollout.npz, rel_error.png, energy.png, impacts.png, training.png and rollout.gif. On "
             "recorded data the rollout follows the recording and the true parameters and "
             "energy are unknown unless the dataset declares them (generate --true-params)."
         ),

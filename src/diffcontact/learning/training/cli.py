@@ -65,7 +65,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         "train",
         help="train a CM/CMr-CD-CLNN/CHNN model or a baseline on a dataset",
         description=(
-            "Train a learned model (contact model CM or CMr, true collision detection, "
+            "Train a learned model (contact model CM, CMr, LCP or Coulomb, true collision "
+            "detection, "
             "constrained Lagrangian or Hamiltonian dynamics; or a baseline: MLP-CD-CLNN, "
             "IN-CP-CLNN, IN-SP-CP, docs/training.md) on the chunks of a dataset "
             "folder with the rollout loss (MAE) and AdamW. Writes run.json, checkpoints/ "
