@@ -81,7 +81,7 @@ def simulation_demo(out: Path, task: str = "BP5", n: int = 4) -> bool:
     wall = time.perf_counter() - t0
     energy = system.energy(traj)
     gif = animate(traj, scene_from_system(system), out / f"{task}.gif", dt=system.dt)
-    png = plot_energy(energy, system.dt, out / f"{task}_energy.png")
+    png = plot_energy(energy, system.dt, out / f"{task}_energy.png", title=task)
     print(
         f"\nsimulated {n} {task} trajectories of {traj.shape[1]} states in {wall:.1f} s "
         f"(dt = {system.dt}); animation: {gif}, energy plot: {png}"

@@ -329,3 +329,29 @@ def test_non_finite_states_are_warned_about(tmp_path):
     scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
     with pytest.warns(RuntimeWarning, match="NaN or infinite positions"):
         animate(traj, scene, tmp_path / "nan.gif")
+
+
+def test_a_plan_s_target_is_drawn_and_kept_in_view(tmp_path):
+    """billiards.gif and throw.gif never showed the target: a cross (a point) and a dotted
+    line (an x), inside the axis limits even where the bodies never get there."""
+    from diffcontact.viz.animation import _limits_2d
+
+    traj = bouncing_points(1, 10)[0]
+    base = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)))
+    x = traj[:, 0]
+    far = Scene(dim=2, targets=((5.0, -3.0),), circles=base.circles)
+    (_, x_hi), (y_lo, _) = _limits_2d([x], far)
+    assert x_hi >= 5.0 and y_lo <= -3.0
+    (x_lo, _), _ = _limits_2d([x], Scene(dim=2, target_x=(-4.0,), circles=base.circles))
+    assert x_lo <= -4.0
+    plain = render_frame(traj, base, tmp_path / "plain.png")
+    marked = render_frame(
+        traj, Scene(dim=2, circles=base.circles, targets=((0.5, 0.5),)), tmp_path / "cross.png"
+    )
+    a = np.asarray(Image.open(plain).convert("L"), dtype=float)
+    b = np.asarray(Image.open(marked).convert("L"), dtype=float)
+    assert a.shape == b.shape and (np.abs(a - b) > 100).sum() > 20  # a black cross
+    with pytest.raises(ValueError, match="two finite numbers"):
+        Scene(dim=2, targets=((0.5,),))
+    with pytest.raises(ValueError, match="2D elements"):
+        Scene(dim=3, target_x=(1.0,))

@@ -7,6 +7,7 @@ Building the parser imports no torch; the handlers import
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 import warnings
@@ -173,8 +174,16 @@ def _report(args: argparse.Namespace, planner: Any, plan: Any, seconds: float) -
         print(f"  wrote {args.json}")
     if not args.no_gif:
         from diffcontact.viz import animate, scene_from_system
+        from diffcontact.viz.animation import body_color_name
 
-        scene = scene_from_system(planner.truth, title=f"{plan.task}: {planner.name}")
+        title = f"{plan.task}: {planner.name}"
+        scene = scene_from_system(planner.truth, title=title)
+        if args.command == "billiards":  # the target: a cross (billiards), a line (throw)
+            cue, ball = body_color_name(args.cue), body_color_name(args.ball)
+            title += f"\ncue ball {args.cue} ({cue}) sends ball {args.ball} ({ball}) to the cross"
+            scene = dataclasses.replace(scene, targets=(tuple(args.target),), title=title)
+        else:
+            scene = dataclasses.replace(scene, target_x=(float(args.target),))
         if planner.truth_known:
             animate(
                 plan.traj_true[:1], scene, args.gif, overlay=plan.traj_model[:1],

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
@@ -21,6 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle as CirclePatch
 from matplotlib.patches import Polygon
+from matplotlib.ticker import MaxNLocator
 
 from diffcontact.io import atomic_path
 
@@ -52,9 +54,19 @@ MIN_WIDTH = 5.2
 _OVERLAY = "#222222"
 
 
+_COLOR_NAMES = ("blue", "orange", "green", "indigo", "purple", "brown", "pink", "grey",
+                "olive", "cyan")  # fmt: skip
+"""The names of :data:`_PALETTE`'s colours, in order (for titles that point at a body)."""
+
+
 def _body_color(i: int) -> str:
     """Body ``i``'s colour: its true state filled, its prediction a dashed outline."""
     return _PALETTE[i % len(_PALETTE)]
+
+
+def body_color_name(i: int) -> str:
+    """The name of body ``i``'s colour in the animations (``"blue"`` for body 0)."""
+    return _COLOR_NAMES[i % len(_COLOR_NAMES)]
 
 
 # ---------------------------------------------------------------------------
@@ -218,7 +230,7 @@ def _limits_2d(xs: list[np.ndarray], scene: Scene, margin: float = 0.06):
     for x in xs:
         centres = x[:, keep]  # (F, k, 2)
         pts += [(centres - r).reshape(-1, 2), (centres + r).reshape(-1, 2)]
-    for q in scene.pivots:
+    for q in (*scene.pivots, *scene.targets):
         pts.append(np.asarray(q, dtype=np.float64).reshape(1, 2))
     for ch in scene.chains:
         if ch.anchor is not None:
@@ -228,6 +240,8 @@ def _limits_2d(xs: list[np.ndarray], scene: Scene, margin: float = 0.06):
     if len(allp) == 0:
         allp = np.zeros((1, 2))
     lo, hi = allp.min(0), allp.max(0)
+    if scene.target_x:  # a throw's target line, in view even where the plan falls short
+        lo[0], hi[0] = min(lo[0], *scene.target_x), max(hi[0], *scene.target_x)
     if scene.walls:
         w = _normalized_walls(scene.walls)
         centre = 0.5 * (lo + hi)
@@ -275,7 +289,10 @@ class _Panel2D:
         ax.set_xlim(*xlim)
         ax.set_ylim(*ylim)
         ax.set_aspect("equal")
-        ax.tick_params(labelsize=6, length=2)
+        # 8 pt at the GIFs' 60 dpi is 7 pixels: fewer, larger tick labels
+        ax.tick_params(labelsize=8, length=2)
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.yaxis.set_major_locator(MaxNLocator(4))
         # walls: forbidden side shaded, boundary line
         rect = _rect(xlim, ylim)
         for a, b, c in scene.walls:
@@ -315,6 +332,12 @@ class _Panel2D:
         pivots = [
             ax.plot([q[0]], [q[1]], marker="s", color="k", ms=4, zorder=5)[0] for q in scene.pivots
         ]
+        for q in scene.targets:  # a plan's target: a cross over everything
+            pivots.append(
+                ax.plot([q[0]], [q[1]], marker="x", color="k", ms=9, mew=2.0, zorder=6)[0]
+            )
+        for xv in scene.target_x:
+            pivots.append(ax.axvline(xv, color="k", ls=":", lw=1.2, zorder=6))
         # overlay (e.g. a prediction), dashed outlines
         self.over_bodies, self.over_chains = [], []
         if xo is not None:  # each body's prediction: a dashed outline in the body's colour
@@ -624,7 +647,11 @@ def _build_figure(
             import mpl_toolkits.mplot3d  # noqa: F401  (registers the projection)
         ax = fig.add_subplot(nrows, ncols, i + 1, **kw)
         if n > 1:
-            ax.set_title(f"#{i}", fontsize=7, pad=2)
+            ax.set_title(f"#{i}", fontsize=9, pad=2)
+        if dim == 2 and i + ncols >= n:  # no panel below
+            ax.set_xlabel("x (m)", fontsize=8, labelpad=1)
+        if dim == 2 and i % ncols == 0:
+            ax.set_ylabel("y (m)", fontsize=8, labelpad=1)
         xi = x[i, idx]
         xoi = None if xo is None else xo[i, idx]
         cls = _Panel3D if dim == 3 else _Panel2D
@@ -634,8 +661,8 @@ def _build_figure(
         if scene.circles:  # bodies: filled, their prediction a dashed outline of their colour
             names = (f"{names[0]} (filled)", f"{names[1]} (dashed; colour per body)")
             handles = [
-                Line2D([], [], color=_PALETTE[0], lw=0, marker="o", ms=7, alpha=0.75),
-                Line2D([], [], color=_PALETTE[0], lw=1.4, ls="--"),
+                Line2D([], [], color="#888888", lw=0, marker="o", ms=7, alpha=0.75),
+                Line2D([], [], color="#888888", lw=1.4, ls="--"),
             ]
         else:  # chains and ropes only: lines, the prediction a dark dashed line
             rope = any(ch.style == "rope" for ch in scene.chains)
@@ -645,7 +672,7 @@ def _build_figure(
                        marker="o" if rope else None, ms=3),
                 Line2D([], [], color=_OVERLAY, lw=1.2, ls="--"),
             ]  # fmt: skip
-        fig.legend(handles, names, loc="outside lower center", ncol=2, fontsize=7, frameon=False)
+        fig.legend(handles, names, loc="outside lower center", ncol=2, fontsize=8, frameon=False)
     return fig, panels, idx
 
 
@@ -864,13 +891,17 @@ def plot_energy(
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(1, 2)
     alpha = 1.0 if len(e) <= 4 else 0.6
+    # trajectories, not bodies: tab10 (the GIFs' palette has two blues, bodies 0 and 3)
+    colors = matplotlib.colormaps["tab10"].colors
     for i, ei in enumerate(e):
-        color = _PALETTE[i % len(_PALETTE)]
-        ax1.plot(t, ei, color=color, lw=1.0, alpha=alpha)
-        ax2.plot(t, ei - ei[0], color=color, lw=1.0, alpha=alpha)
-    ax1.set_ylabel("energy E")
-    ax2.set_ylabel("E(t) - E(0)")
+        color = colors[i % len(colors)]
+        ax1.plot(t, ei, color=color, lw=1.2, alpha=alpha, label=f"#{i}")
+        ax2.plot(t, ei - ei[0], color=color, lw=1.2, alpha=alpha)
+    ax1.set_ylabel("energy E (J)")
+    ax2.set_ylabel("E(t) - E(0) (J)")
     ax2.add_collection(LineCollection([[(t[0], 0.0), (t[-1], 0.0)]], colors="k", lw=0.6))
+    if len(e) <= 10:  # named as the GIF's panels
+        ax1.legend(title="trajectory", fontsize=7, title_fontsize=7, ncol=2 if len(e) > 5 else 1)
     for ax in (ax1, ax2):
         ax.set_xlabel("time (s)")
         ax.grid(True, lw=0.3)

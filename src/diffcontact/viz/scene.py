@@ -80,6 +80,9 @@ class Scene:
         disks3d: 3D rigid disks (gyroscope).
         planes: 3D planes ``(a, b, c, e)``: ``a x + b y + c z + e = 0``.
         pivots: fixed points drawn as small black markers.
+        targets: 2D points marked with a cross (a plan's target, e.g. ``diffcontact
+            billiards``).
+        target_x: 2D vertical lines ``x = value``, dotted (``diffcontact throw``'s target).
         dots: state points drawn as plain dots (fallback for unknown systems).
         title: shown above the animation.
         limits: optional fixed axis limits ``((xmin, xmax), (ymin, ymax)[, (zmin, zmax)])``;
@@ -96,6 +99,8 @@ class Scene:
     disks3d: tuple[Disk3D, ...] = ()
     planes: tuple[tuple[float, float, float, float], ...] = ()
     pivots: tuple[tuple[float, ...], ...] = ()
+    targets: tuple[tuple[float, float], ...] = ()
+    target_x: tuple[float, ...] = ()
     dots: tuple[int, ...] = ()
     title: str = ""
     limits: tuple[tuple[float, float], ...] | None = None
@@ -108,6 +113,13 @@ class Scene:
             raise ValueError("Scene: circles, chains and walls are 2D elements (dim=2)")
         if self.dim == 2 and (self.disks3d or self.planes):
             raise ValueError("Scene: disks3d and planes are 3D elements (dim=3)")
+        if self.dim == 3 and (self.targets or self.target_x):
+            raise ValueError("Scene: targets and target_x are 2D elements (dim=2)")
+        for q in self.targets:
+            if len(q) != 2 or not all(math.isfinite(v) for v in q):
+                raise ValueError(f"Scene: target {q} must be two finite numbers (x, y)")
+        if not all(math.isfinite(v) for v in self.target_x):
+            raise ValueError(f"Scene: target_x {self.target_x} must be finite numbers")
         for w in self.walls:
             if len(w) != 3 or math.hypot(w[0], w[1]) == 0.0:
                 raise ValueError(f"Scene: wall {w} must be (a, b, c) with (a, b) != 0")
