@@ -279,7 +279,12 @@ def test_an_unknown_option_is_named_without_the_class_internals():
 
 
 def test_eps_is_refused_and_hidden_given_twice_is_refused(cp3_data, tmp_path, capsys):
-    for extra, needle in [(["--eps", "0.1"], "eps"), (["--model-option", "hidden=[4]"], "twice")]:
+    for extra, needle in [
+        (["--eps", "0.1"], "eps"),
+        (["--model-option", "hidden=[4]"], "twice"),
+        # (it said "model 'IN-SP-CP' has no option 'potential_dtype'", an internal name)
+        (["--potential-dtype", "float32"], "--potential-dtype applies to the physical models"),
+    ]:
         code, _, err = run_cli(
             capsys, "train", str(cp3_data), "--out", str(tmp_path / "r"), "--model", "IN-SP-CP",
             "--hidden", "8", *extra, "--quiet",

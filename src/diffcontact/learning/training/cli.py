@@ -243,8 +243,14 @@ def run_train_cli(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from diffcontact.learning.models.registry import is_physical_model
     from diffcontact.learning.training.run import train
 
+    if args.potential_dtype is not None and not is_physical_model(args.model):
+        raise TrainingInputError(
+            f"--potential-dtype applies to the physical models (CM/CMr/LCP/Coulomb-CD-CLNN/"
+            f"CHNN), whose potential is a separate network; {args.model} has no such setting"
+        )
     devices: Any = args.devices
     if isinstance(devices, str) and devices.isdigit():
         devices = int(devices)
