@@ -265,5 +265,9 @@ def test_the_default_cap_finishes_generated_billiards():
     z0 = system.sample_initial_conditions(64, seed=0)
     traj = system.simulate(z0, contact_model="Coulomb")
     assert bool(torch.isfinite(traj).all())
-    with pytest.raises(ConeQPError, match="failed at step 59 for 1 of 64 trajectories: state 3"):
+    with pytest.raises(
+        ConeQPError, match="failed at step 59 for 1 of 64 trajectories: state 3"
+    ) as err:
         system.simulate(z0, contact_model=create_contact_model("Coulomb", max_iter=30))
+    # the cause named is Coulomb's (it was CM's cone QP's "ill-conditioned")
+    assert "the exact Coulomb iteration did not converge" in str(err.value)

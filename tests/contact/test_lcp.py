@@ -392,8 +392,8 @@ def test_registry_options_and_errors():
     both = torch.ones(1, 2, dtype=torch.bool)
     args = (J2, torch.eye(2, dtype=F64)[None], torch.zeros(1, 2, dtype=F64),
             torch.zeros(1, 2, dtype=F64), torch.zeros(1, 2, dtype=F64), both, 1)  # fmt: skip
-    with pytest.raises(LCPError, match="ray terminations: 1"):
-        lcp_impulse(*args, v_C_star=star)
+    with pytest.raises(LCPError, match=r"1 have no solution \(Lemke's method ended on a ray\)$"):
+        lcp_impulse(*args, v_C_star=star)  # (not "raise max_pivots": more pivots cannot help)
     _, status = lcp_impulse(*args, v_C_star=star, return_status=True)
     assert bool(status.unbounded[0]) and not bool(status.converged[0])
     with pytest.raises(dc.contact.ConeQPError):  # System.simulate names the states
@@ -530,3 +530,18 @@ def test_newton_s_law_can_add_energy_in_simultaneous_impacts_and_poisson_s_canno
         gain[model] = float(((energy[:, 1:] - energy[:, :-1]) / energy[:, :1]).max())
     assert gain["CM"] < 1e-12
     assert gain["LCP"] > 0.01
+
+
+def test_a_simulation_the_lcp_cannot_resolve_says_why():
+    """A disk wedged in a corner and against another disk (BD5, mu 2, fast): the Newton
+    LCP has no solution; simulate blamed an ill-conditioned cone QP, and LCP's own message
+    said to raise max_pivots."""
+    system = dc.load_system("BD5", mu=2.0)
+    z0 = system.sample_initial_conditions(8, seed=5)
+    z0[:, 1] *= 3
+    with pytest.raises(dc.contact.ConeQPError) as err:
+        system.simulate(z0, 100, contact_model="LCP", on_tunnelling="ignore")
+    text = str(err.value)
+    assert "state 4" in text and "Newton LCP has no solution" in text
+    assert "solve_cone_qp" not in text and "max_pivots" not in text
+    system.simulate(z0[4:5], 100, contact_model="CM", on_tunnelling="ignore")  # CM resolves it

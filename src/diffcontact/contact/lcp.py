@@ -673,10 +673,15 @@ def lcp_impulse(
         return result, status
     if not status.all_converged:
         n_bad = int((~status.converged).sum())
+        n_ray = int(status.unbounded.sum())
+        parts = []
+        if n_ray:  # Lemke's method is complete for these LCPs: a ray means no solution
+            parts.append(f"{n_ray} have no solution (Lemke's method ended on a ray)")
+        if n_bad > n_ray:
+            parts.append(f"{n_bad - n_ray} did not finish within max_pivots (raise it)")
         raise LCPError(
             f"LCP contact model: {n_bad} of {status.converged.numel()} contact problems "
-            f"have no solution or did not finish (ray terminations: "
-            f"{int(status.unbounded.sum())}); raise max_pivots or check the contacts",
+            f"failed: {'; '.join(parts)}",
             status,
         )
     return result

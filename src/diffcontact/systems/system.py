@@ -1699,10 +1699,27 @@ class System:
             for r, s0, s, p in zip(rows[:5], speed0, speed, depth, strict=False)
         ]
         more = "" if len(rows) <= 5 else f" and {len(rows) - 5} more"
+        from diffcontact.contact.lcp import LCPError
+
+        status = getattr(err, "status", None)
+        ray = isinstance(err, LCPError) and status is not None and bool(status.unbounded.any())
         if bool((speed > 1e3 * speed0.clamp_min(1e-12)).any()) or bool((depth > 1).any()):
             cause = (
                 f"the motion blew up or bodies tunnelled: dt = {self.dt} is too large for these "
                 "speeds or forces; use a smaller dt"
+            )
+        elif ray:
+            cause = (
+                "the contacts' Newton LCP has no solution (Lemke's method ended on a ray): "
+                "Newton's restitution with a singular contact matrix, e.g. a body wedged "
+                "between walls and another body, can ask for more than any impulse gives; "
+                "more pivots do not help; the CM and Coulomb models resolve such states"
+            )
+        elif "fixed-point iterations" in str(err):  # the exact Coulomb model's
+            cause = (
+                "the exact Coulomb iteration did not converge: more iterations may "
+                "(create_contact_model('Coulomb', max_iter=...)); with a singular contact "
+                "matrix Coulomb's problem can also have no solution"
             )
         else:
             cause = (
