@@ -545,3 +545,12 @@ def test_a_simulation_the_lcp_cannot_resolve_says_why():
     assert "state 4" in text and "Newton LCP has no solution" in text
     assert "solve_cone_qp" not in text and "max_pivots" not in text
     system.simulate(z0[4:5], 100, contact_model="CM", on_tunnelling="ignore")  # CM resolves it
+
+
+def test_stick_is_checked():
+    M, q = torch.eye(3, dtype=F64), -torch.ones(3, dtype=F64)
+    good = (torch.tensor([False, True, False]), torch.tensor([0, 2, 2]))
+    torch.testing.assert_close(solve_lcp(M, q, stick=good), torch.ones(3, dtype=F64))
+    for bad in ((good[0],), (good[0].long(), good[1]), (good[0], torch.tensor([0, 3, 2]))):
+        with pytest.raises(ValueError, match="stick"):
+            solve_lcp(M, q, stick=bad)

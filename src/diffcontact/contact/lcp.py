@@ -435,6 +435,18 @@ def solve_lcp(
         raise ValueError(f"solve_lcp: active must be a bool tensor of shape (..., {n})")
     if active.device != M.device:
         raise ValueError(f"solve_lcp: active is on {active.device}, M is on {M.device}")
+    if stick is not None:
+        ok = (
+            isinstance(stick, tuple)
+            and len(stick) == 2
+            and all(isinstance(t, Tensor) and t.shape == (n,) for t in stick)
+        )
+        if not ok or stick[0].dtype != torch.bool or stick[1].dtype != torch.long:
+            raise ValueError(
+                f"solve_lcp: stick must be (variables, guards): ({n},) bool and ({n},) long"
+            )
+        if bool(((stick[1] < 0) | (stick[1] >= n)).any()):
+            raise ValueError(f"solve_lcp: stick's guards must be indices in [0, {n})")
     if max_pivots is not None and (
         isinstance(max_pivots, bool) or not isinstance(max_pivots, int) or max_pivots < 1
     ):
