@@ -277,8 +277,8 @@ class EqualityConstraints:
 
         A dot-product equation ``u . w = c`` (a length squared, a unit axis, two
         orthogonal axes) over ``max(|u| |w|, |c|)``; a linear one (a point held at a
-        pivot) over the state's extent, the largest coordinate range of its points
-        (at least ``1e-12``).
+        pivot) over the state's extent: the largest coordinate range of its points, or
+        its largest coordinate if that is larger (a lone point), at least ``1e-12``.
 
         Args:
             x: ``(..., P, dim)`` positions.
@@ -294,7 +294,9 @@ class EqualityConstraints:
         scale = torch.maximum(u.norm(dim=-1) * w.norm(dim=-1), target.abs())
         rel_dot = ((u * w).sum(-1) - target).abs() / scale.clamp_min(1e-300)
         anchor = self.lin_anchor.to(dtype=x.dtype, device=x.device)
-        extent = (x.amax(-2) - x.amin(-2)).amax(-1).clamp_min(1e-12)  # (...,)
+        # the points' spread, or for a lone point its distance from the origin
+        spread = (x.amax(-2) - x.amin(-2)).amax(-1)
+        extent = torch.maximum(spread, x.abs().amax((-2, -1))).clamp_min(1e-12)  # (...,)
         rel_lin = (self._lin_weight(x) @ x - anchor).abs() / extent[..., None, None]
         rel_dot, rel_lin = _common_batch(rel_dot, rel_lin.flatten(-2))
         return torch.cat([rel_dot, rel_lin], dim=-1)
