@@ -121,9 +121,11 @@ to rounding (``python experiments/projection_energy.py``). A closed limit with
 restitution that does not approach is left to the next step's impulse: held by the
 compression, it took its share of a neighbour's correction inelastically, which in the
 billiards lost energy again. A bounce can make such a neighbour approach (a ball in a
-corner, hit by another); the next step's impulse resolves it. A rope given restitution
-keeps its limits but can gain energy where the projection lifted it and a bounce kept
-the speed (docs/config.md, "rope").
+corner, hit by another); the next step's impulse resolves it. Where a projection with
+restitution lifts a system (raises its potential energy), ``System`` slows the motion
+along the lift so that the kinetic energy pays for it (``system._lift_within_energy``):
+without that, a bounce kept its speed and an elastic ball on the ground, or a rope given
+restitution, gained energy (docs/config.md, "rope", "Restitution").
 
 With point masses (the ropes) each iteration needs only ``J_s = J M^-1/2``: ``A = J_s
 J_s^T`` and the step ``M^-1/2 J_s^T lambda``. On the CPU with Warp, where the dense

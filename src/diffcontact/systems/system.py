@@ -51,6 +51,7 @@ from diffcontact.contact.cone_qp import (
 from diffcontact.contact.impulse import penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
+from diffcontact.fastops import spd_solve
 from diffcontact.geometry import RimPlane, circles_2d, jacobian_matvec, rope_limits
 from diffcontact.geometry.base import SparseJacobian
 from diffcontact.geometry.sparse_contact import SparseContact
@@ -87,6 +88,7 @@ from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.projection import (
     ReadFree,
+    _minv_rows,
     _project,
     closed_below,
     keep_constraint_rates,
@@ -100,10 +102,9 @@ _F = torch.float64
 _TASK_DIR = Path(__file__).parent / "tasks"
 DYNAMICS = ("lagrangian", "hamiltonian")
 ROPE_RESTITUTION_WARNING = (
-    "rope limits with cor > 0 and the position projection: the rope's energy can rise where "
-    "the projection lifts it and a bounce keeps the speed, and with an end much heavier "
-    "than the other points without bound, breaking the limits (docs/config.md, rope, "
-    "'Restitution'); cor 0, the rope's default, keeps the energy"
+    "rope limits with cor > 0 and the position projection: with an end much heavier than "
+    "the other points and cor near 1 the limits break and the energy rises (docs/config.md, "
+    "rope, 'Restitution'); cor 0, the rope's default, keeps both"
 )
 """Warned when a rope is loaded with restitution on its limits and the position
 projection on."""
@@ -1261,8 +1262,12 @@ class System:
             # with Poisson's restitution on the closed limits that have it
             kwargs["dt"] = self.dt if self.foresee_crossings else None
             kwargs["foresee"] = ctx.cor == 0
-            kwargs["restitution"] = ctx.cor if ctx.has_restitution() else None
-            x, v = _project(x, v, *args, **kwargs)
+            bounce = ctx.has_restitution()
+            kwargs["restitution"] = ctx.cor if bounce else None
+            x_p, v = _project(x, v, *args, **kwargs)
+            if bounce:  # a lift out of a contact paid by the motion along it
+                v = _lift_within_energy(self, ctx, x, x_p, v)
+            x = x_p
         else:
             x_p = _project(x, None, *args, **kwargs)[0]
             if ctx.constraints is not None and ctx.constraints.num_equations > 0:
@@ -1273,6 +1278,8 @@ class System:
                 v = keep_constraint_rates(
                     x, x_p, v, ctx.constraints, M_inv, diagonal=self._point_masses
                 )
+            if ctx.has_restitution():
+                v = _lift_within_energy(self, ctx, x, x_p, v)
             x = x_p
         return torch.stack([x, v], dim=-3)
 
@@ -1781,3 +1788,37 @@ def _blown_up(traj: Tensor, z0: Tensor, per_state: bool = False) -> Tensor:
     largest = t.flatten(2).amax(-1) if per_state else t.flatten(1).amax(-1)
     limit = BLOW_UP * (scale[:, None] if per_state else scale)
     return torch.isfinite(largest) & (largest > limit)
+
+
+def _lift_within_energy(system: System, ctx: Any, x: Tensor, x_p: Tensor, v_p: Tensor) -> Tensor:
+    """The projected velocities ``v_p: (N, P, dim)`` with their motion along the
+    projection's displacement ``u = x_p - x`` (with equality constraints, its part tangent
+    to them at ``x_p`` in the mass metric, which keeps their rates) slowed so that the
+    kinetic energy pays for the potential energy the displacement added, ``dU = U(x_p) -
+    U(x) > 0``: the
+    component ``(u^T M v / u^T M u) u`` scaled by ``sqrt(max(0, 1 - dU / T_u))``, ``T_u``
+    its kinetic energy (a ball lifted by ``delta`` out of the ground keeps ``v^2 - 2 g
+    delta``, the speed it would have reached the surface with). Where the potential did
+    not rise, or the motion along ``u`` cannot pay (``T_u <= dU``: it stops), ``v_p`` as
+    given for the rest. Used where contacts bounce (``cor`` > 0): an elastic ball dropped
+    on the ground with the projection on gained energy at every bounce (0.7 % in 5 s, 9 %
+    with the positions projected alone; ``tests/systems/test_velocity_projection.py``)."""
+    M = ctx.per_state(ctx.M, v_p, 2, 0)
+    u = x_p - x
+    if ctx.constraints is not None and ctx.constraints.num_equations > 0:
+        # the lift's direction tangent to the constraints at x_p (in the mass metric), so
+        # that slowing the motion along it keeps the constraints' rates J_E v
+        N, P, dim = u.shape
+        J = ctx.constraints.jacobian(x_p)  # (N, E, D)
+        B = _minv_rows(J, ctx.M_inv, P, dim, False).transpose(-1, -2)  # (N, D, E)
+        flat = u.reshape(N, P * dim, 1)
+        u = (flat - B @ spd_solve(J @ B, J @ flat)).reshape(N, P, dim)
+    Mu = M @ u
+    uMu, uMv = (u * Mu).sum((-2, -1)), (v_p * Mu).sum((-2, -1))
+    dU = system._potential(x_p, ctx) - system._potential(x, ctx)
+    uMu_safe = torch.where(uMu > 0, uMu, torch.ones_like(uMu))
+    T_u = 0.5 * uMv * uMv / uMu_safe
+    lifted = (dU > 0) & (uMu > 0) & (T_u > 0)
+    T_safe = torch.where(lifted, T_u, torch.ones_like(T_u))
+    keep = torch.where(lifted, (1 - dU / T_safe).clamp(0, 1).sqrt(), torch.ones_like(T_u))
+    return v_p - ((1 - keep) * uMv / uMu_safe)[:, None, None] * u
