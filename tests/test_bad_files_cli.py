@@ -164,6 +164,26 @@ def test_duplicate_keys_are_refused_and_exponent_numbers_read(tmp_path, capsys):
     assert (config.dt, config.horizon, config.radii, config.mu) == (0.01, 0.5, [0.1], 0.2)
 
 
+def test_yaml_integers_and_booleans_are_read_by_yaml_1_2(tmp_path):
+    """PyYAML's YAML 1.1 read ``010`` as eight (octal) and ``yes`` / ``off`` as booleans,
+    so a typo passed as a setting; YAML 1.2 (and JSON) read ten and strings."""
+    from diffcontact.systems.config_file import read_config_file
+
+    path = tmp_path / "scalars.yaml"
+    path.write_text("a: 010\nb: 0o10\nc: 0x1F\nd: -5\ne: yes\nf: off\ng: true\nh: False\n")
+    assert read_config_file(path) == {
+        "a": 10, "b": 8, "c": 31, "d": -5, "e": "yes", "f": "off", "g": True, "h": False,
+    }  # fmt: skip
+    rope = tmp_path / "rope.yaml"
+    base = ("type: rope\nmass: 0.1\nrest_length: 0.05\nstiffness: 50.0\nmax_angle: 0.2\n"
+            "min_ratio: 0.8\nmax_ratio: 1.2\ndt: 0.005\nhorizon: 0.1\nn_points: 010\n")  # fmt: skip
+    rope.write_text(base + "velocity_projection: yes\n")
+    with pytest.raises(ValueError, match="velocity_projection"):
+        dc.load_config(rope)
+    rope.write_text(base)
+    assert dc.load_config(rope).n_points == 10
+
+
 def test_a_step_or_horizon_that_overflows_their_ratio_is_a_clear_error():
     for overrides in ({"dt": 1e-320}, {"horizon": 1e300, "dt": 1e-10}):
         with pytest.raises(ValueError, match=r"horizon / dt .*ratio inf"):

@@ -5,9 +5,11 @@ what its author wrote:
 
 - a key given twice in one mapping is an error (both parsers keep the last one
   silently: ``radii`` written twice took the second list);
-- YAML numbers in the exponent forms ``1e-3``, ``5e2`` or ``1.0e9`` are numbers
-  (YAML 1.2, JSON), not the strings YAML 1.1 makes of them, which the config's
-  validation then refused as "not a number".
+- YAML scalars are read by YAML 1.2's core schema, as JSON reads them, not by the
+  YAML 1.1 rules of PyYAML: ``1e-3``, ``5e2`` and ``1.0e9`` are numbers (YAML 1.1 made
+  them strings, which the config's validation then refused as "not a number"), ``010``
+  is ten (YAML 1.1: eight, octal), and only ``true`` / ``false`` are booleans (YAML 1.1
+  also read ``yes``, ``no``, ``on`` and ``off``, so a typo passed as a setting).
 """
 
 from __future__ import annotations
@@ -28,13 +30,16 @@ _FLOAT = re.compile(
     |\.(?:nan|NaN|NAN))$""",
     re.X,
 )
+# YAML 1.2's core-schema integers and booleans
+_INT = re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$")
+_BOOL = re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$")
 
 
 def _loader():
     import yaml
 
     class StrictLoader(yaml.SafeLoader):
-        """``SafeLoader`` refusing duplicate keys, with YAML 1.2's floats."""
+        """``SafeLoader`` refusing duplicate keys, with YAML 1.2's numbers and booleans."""
 
     def mapping(loader: StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
         seen: dict[Any, Any] = {}
@@ -49,14 +54,24 @@ def _loader():
             seen[key] = key_node.start_mark.line
         return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
 
+    def integer(loader: StrictLoader, node: yaml.ScalarNode) -> int:
+        text = loader.construct_scalar(node)
+        if text.startswith(("0o", "0x")):
+            return int(text[2:], 8 if text[1] == "o" else 16)
+        return int(text, 10)  # (leading zeros are decimal)
+
     StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
-    # the float resolver: replace YAML 1.1's (first characters as there)
+    StrictLoader.add_constructor("tag:yaml.org,2002:int", integer)
+    # the float, int and bool resolvers: replace YAML 1.1's (first characters as there)
+    ours = {"tag:yaml.org,2002:float", "tag:yaml.org,2002:int", "tag:yaml.org,2002:bool"}
     resolvers = {
-        k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:float"]
+        k: [(tag, rx) for tag, rx in v if tag not in ours]
         for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
     }
     StrictLoader.yaml_implicit_resolvers = resolvers
     StrictLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT, list("-+0123456789."))
+    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:int", _INT, list("-+0123456789"))
+    StrictLoader.add_implicit_resolver("tag:yaml.org,2002:bool", _BOOL, list("tTfF"))
     return StrictLoader
 
 
