@@ -209,3 +209,29 @@ def test_physical_parameters_get_their_own_learning_rate_and_no_weight_decay():
     assert not any(p is model.log_mass_rel for g in opt.param_groups for p in g["params"])
     with pytest.raises(ValueError, match="schedule"):
         RolloutModule(model=model, schedule="linear")
+
+
+def test_a_rollout_that_blew_up_is_a_skipped_step(tmp_path, monkeypatch):
+    """System.simulate's NonFiniteRolloutError (its message now also names blown-up finite
+    values) is a skipped step, not a crash of the run: it was recognised by the words
+    "NaN or infinite" in its message."""
+    from diffcontact.systems import NonFiniteRolloutError
+
+    gyro = dc.load_system("Gyro", dt=0.5, horizon=5.0)
+    with pytest.raises(NonFiniteRolloutError) as blown:
+        gyro.simulate(gyro.sample_initial_conditions(2, seed=0), 3)
+    assert "NaN or infinite" not in str(blown.value)  # the wording the check relied on
+    data = write_dataset(tmp_path / "data", "BP5", n=(4, 2, 2), steps=10)
+    calls = {"n": 0}
+    real_loss = module_mod.rollout_loss
+
+    def blowing_up(model, chunk):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise blown.value
+        return real_loss(model, chunk)
+
+    monkeypatch.setattr(module_mod, "rollout_loss", blowing_up)
+    train(data, tmp_path / "run", epochs=1, batch_size=1, **SMALL)
+    learned = json.loads((tmp_path / "run" / "learned.json").read_text())
+    assert learned["skipped_steps"]["nonfinite_loss"] == 1

@@ -123,8 +123,11 @@ def rollout_loss(model: DynamicsModel, chunk: Tensor) -> Tensor:
 
 
 def _is_nonfinite_error(err: ValueError) -> bool:
-    # System/solve_cone_qp input checks on a rollout that blew up
-    return "NaN or infinite" in str(err)
+    """A rollout that blew up: ``System.simulate``'s :class:`NonFiniteRolloutError` (NaN,
+    infinite or beyond ``BLOW_UP``), or an input check of the solver that met one."""
+    from diffcontact.systems import NonFiniteRolloutError
+
+    return isinstance(err, NonFiniteRolloutError) or "NaN or infinite" in str(err)
 
 
 # ---------------------------------------------------------------------------- module
