@@ -119,6 +119,21 @@ def choose_contact_rows(mode: str) -> None:
         system.MIN_DENSE_SIZE = 0
 
 
+WARP_BLOCK_DIM_HELP = (
+    "threads per block of the fused solver's CUDA launches (default: "
+    "diffcontact.contact.fused.CUDA_BLOCK_DIM; each value is a module Warp compiles, or "
+    "loads from its kernel cache: benchmarks/warp_aot.py)"
+)
+
+
+def choose_warp_block_dim(value: int | None) -> None:
+    """For the rest of the process: the fused solver's threads per block on CUDA."""
+    if value is not None:
+        from diffcontact.contact import fused
+
+        fused.CUDA_BLOCK_DIM = value
+
+
 def choose_sparse_gram_cuda(on: bool) -> None:
     """With ``on``, the position projection uses ``sparse_gram`` on CUDA as well, for the
     rest of the process (``diffcontact.geometry.sparse_gram.DEVICES``)."""

@@ -33,9 +33,11 @@ import diffcontact as dc
 from common import (
     CONTACT_ROWS_HELP,
     SPARSE_GRAM_CUDA_HELP,
+    WARP_BLOCK_DIM_HELP,
     check_device,
     choose_contact_rows,
     choose_sparse_gram_cuda,
+    choose_warp_block_dim,
     machine_header,
     sync,
 )
@@ -304,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
+        "--warp-block-dim", type=positive_int, default=None, metavar="N", help=WARP_BLOCK_DIM_HELP
+    )
+    ap.add_argument(
         "--contact-rows",
         choices=("auto", "dense", "sparse"),
         default="auto",
@@ -336,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
+    choose_warp_block_dim(args.warp_block_dim)
     choose_contact_rows(args.contact_rows)
     if args.compare == "mujoco":
         return main_compare(args, dtype)

@@ -51,11 +51,13 @@ from common import (
     CONTACT_ROWS_HELP,
     READ_FREE_HELP,
     SPARSE_GRAM_CUDA_HELP,
+    WARP_BLOCK_DIM_HELP,
     check_device,
     check_tasks,
     choose_contact_rows,
     choose_read_free_projection,
     choose_sparse_gram_cuda,
+    choose_warp_block_dim,
     machine_header,
     sync,
 )
@@ -257,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--read-free-projection", action="store_true", help=READ_FREE_HELP)
     ap.add_argument("--sparse-gram-cuda", action="store_true", help=SPARSE_GRAM_CUDA_HELP)
     ap.add_argument(
+        "--warp-block-dim", type=positive_int, default=None, metavar="N", help=WARP_BLOCK_DIM_HELP
+    )
+    ap.add_argument(
         "--contact-rows", choices=("auto", "dense", "sparse"), default="auto",
         help=CONTACT_ROWS_HELP + " (this version)",
     )  # fmt: skip
@@ -295,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     args.threads = torch.get_num_threads()
     choose_read_free_projection(args.read_free_projection)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
+    choose_warp_block_dim(args.warp_block_dim)
     choose_contact_rows(args.contact_rows)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)

@@ -59,6 +59,7 @@ WORK = {
     "launches": ["simulate_row", "train_row"],
     "kernels": ["_kernels"],
     "profile_step": ["profile_task"],
+    "warp_aot": ["compile_set"],
 }
 # scripts that write under --out: a folder of the test's unless the case gives one
 WRITES = ("compare", "reproduce", "control", "uncertainty", "coulomb")
@@ -180,6 +181,11 @@ BAD = [
     ("train", ["--tasks", "Nope", "--against", "none"], "--tasks"),
     ("train", ["--position-projection", "-1"], "--position-projection"),
     ("train", ["--compare-dtypes", "--mixed"], "--mixed"),
+    ("train", ["--warp-block-dim", "0", "--against", "none"], "--warp-block-dim"),
+    ("simulate", ["--warp-block-dim", "-32"], "--warp-block-dim"),
+    ("warp_aot", ["--arch", "0"], "--arch"),
+    ("warp_aot", ["--block-dims", "32", "0"], "--block-dims"),
+    ("warp_aot", ["--sets", "16"], "--sets"),
     ("bench_control", ["--iterations", "0"], "--iterations"),
     ("bench_control", ["--iterations", "-1"], "--iterations"),
     ("backends", ["--batches", "0"], "--batches"),

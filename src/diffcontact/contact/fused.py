@@ -315,6 +315,19 @@ class _Polished:
         )
 
 
+# Threads per block of a CUDA launch. A thread solves one problem, and a rollout's batch
+# holds a few thousand: Warp's default of 256 would put 4096 problems in 16 blocks, on 16
+# of an H100's or H200's 132 multiprocessors, the rest idle (benchmarks/README.md,
+# 2026-11-28, eleventh sitting). Each value is a variant of the compiled module (Warp
+# compiles it on the first launch with that value).
+CUDA_BLOCK_DIM = 32
+
+
+def block_dim(device: torch.device) -> int | None:
+    """Threads per block of a launch on ``device`` (``None``: Warp's default, the CPU's)."""
+    return CUDA_BLOCK_DIM if device.type == "cuda" else None
+
+
 def _launch(name: str, n: int, arrays_in, scalars, arrays_out, device: torch.device) -> None:
     """Launch kernel ``name`` on n threads, on torch's current stream."""
     wp, _ = _load()
@@ -325,7 +338,14 @@ def _launch(name: str, n: int, arrays_in, scalars, arrays_out, device: torch.dev
     stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
     dtype = arrays_out[0].dtype
     kernel = _kernel(name, dtype)
-    wp.launch(kernel, dim=n, inputs=args, device=wp.device_from_torch(device), stream=stream)
+    wp.launch(
+        kernel,
+        dim=n,
+        inputs=args,
+        device=wp.device_from_torch(device),
+        stream=stream,
+        block_dim=block_dim(device),
+    )
 
 
 def _scalar(dtype: torch.dtype):
@@ -494,7 +514,12 @@ def _run(name: str, n: int, args: list, dtype: torch.dtype, device: torch.device
     if device.type == "cuda":
         stream = wp.stream_from_torch(torch.cuda.current_stream(device))
     wp.launch(
-        _kernel(name, dtype), dim=n, inputs=args, device=wp.device_from_torch(device), stream=stream
+        _kernel(name, dtype),
+        dim=n,
+        inputs=args,
+        device=wp.device_from_torch(device),
+        stream=stream,
+        block_dim=block_dim(device),
     )
 
 
@@ -542,6 +567,7 @@ class _Recorded:
             inputs=args,
             device=wp.device_from_torch(device),
             record_cmd=True,
+            block_dim=block_dim(device),
         )
         # params[0] is the launch bounds; the array descriptors are patched in place (on
         # CUDA the launch reads them through addresses taken at recording)
