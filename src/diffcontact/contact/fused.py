@@ -334,18 +334,7 @@ def _launch(name: str, n: int, arrays_in, scalars, arrays_out, device: torch.dev
     args = [wp.from_torch(x.contiguous(), return_ctype=True) for x in arrays_in]
     args += scalars
     args += [wp.from_torch(x, return_ctype=True) for x in arrays_out]
-    cuda = device.type == "cuda"
-    stream = wp.stream_from_torch(torch.cuda.current_stream(device)) if cuda else None
-    dtype = arrays_out[0].dtype
-    kernel = _kernel(name, dtype)
-    wp.launch(
-        kernel,
-        dim=n,
-        inputs=args,
-        device=wp.device_from_torch(device),
-        stream=stream,
-        block_dim=block_dim(device),
-    )
+    _run(name, n, args, arrays_out[0].dtype, device)
 
 
 def _scalar(dtype: torch.dtype):
@@ -509,6 +498,8 @@ def _saved_layout(n: int, C: int, d: int, dtype: torch.dtype, device: torch.devi
 
 
 def _run(name: str, n: int, args: list, dtype: torch.dtype, device: torch.device) -> None:
+    """Launch kernel ``name`` (its ``dtype`` overload) on n threads with Warp's arguments
+    ``args``, on torch's current stream."""
     wp, _ = _load()
     stream = None
     if device.type == "cuda":
