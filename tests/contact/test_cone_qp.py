@@ -266,6 +266,54 @@ def test_bad_calls_name_the_problem(kwargs, message):
         solve_cone_qp(**args)
 
 
+def _backends() -> list[str]:
+    return ["torch", "warp"] if fused.warp_installed() else ["torch"]
+
+
+@pytest.mark.parametrize("backend", _backends())
+def test_an_indefinite_A_is_refused_on_its_active_contacts(backend):
+    # positive diagonal, symmetric, eigenvalue -0.5 from the coupling of contacts 0 and 1:
+    # a nonconvex problem, on which the two backends returned different impulses silently
+    A = torch.tensor([[1.0, 0, 1.5, 0], [0, 1, 0, 0], [1.5, 0, 1, 0], [0, 0, 0, 1]], dtype=F64)
+    A = torch.stack([torch.eye(4, dtype=F64), A])  # the second problem of two
+    b = torch.tensor([-1.0, 0.1, -1.0, 0.1], dtype=F64).expand(2, 4)
+    mu = torch.full((2, 2), 0.5, dtype=F64)
+    settings = SolverSettings(backend=backend)
+    with pytest.raises(ValueError, match=r"A must be positive semi-definite \(a negative eigen"):
+        solve_cone_qp(A, b, mu, 2, settings=settings)
+    # with contact 1 inactive the active block is [[1, 0], [0, 1]]: solved
+    active = torch.tensor([[True, True], [True, False]])
+    f = solve_cone_qp(A, b, mu, 2, active=active, settings=settings)
+    assert f[1, 2:].abs().max() == 0 and f[1, 0] > 0
+    # without the checks (the simulator's inner calls) nothing is refused
+    solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend=backend, check_inputs=False),
+                  return_status=True)  # fmt: skip
+
+
+@pytest.mark.parametrize("backend", _backends())
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_a_singular_A_rounded_in_its_dtype_is_accepted(backend, dtype):
+    # Delassus matrices J M^-1 J^T of 6 contacts on 2 bodies in 2D (rank 6 of 12), built
+    # in the dtype: their rounding-level negative eigenvalues are not refused
+    gen = torch.Generator().manual_seed(3)
+    J = torch.randn(64, 12, 6, generator=gen, dtype=F64).to(dtype)
+    M_inv = torch.diag_embed(torch.rand(64, 6, generator=gen, dtype=F64) * 1e3 + 1e-3).to(dtype)
+    A = J @ M_inv @ J.transpose(-1, -2)
+    A = 0.5 * (A + A.transpose(-1, -2))
+    assert torch.linalg.eigvalsh(A.double()).min() < 0  # rounding made it indefinite
+    b = torch.randn(64, 12, generator=gen, dtype=F64).to(dtype)
+    mu = torch.full((64, 6), 0.3, dtype=dtype)
+    solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend=backend), return_status=True)
+
+
+def test_the_semidefinite_tolerance_is_the_kernels():
+    if not fused.warp_installed():
+        pytest.skip("needs warp-lang")
+    _, kernels = fused._load()
+    assert float(kernels.SEMIDEFINITE.value if hasattr(kernels.SEMIDEFINITE, "value")
+                 else kernels.SEMIDEFINITE) == fused.SEMIDEFINITE_TOL  # fmt: skip
+
+
 def test_problems_the_polish_cannot_finish_are_solved_again():
     # a loose interior-point gap leaves active sets unidentified; the retries recover
     A, b, mu, lower = random_problems(64, 20, 3, seed=21, lower_frac=0.3)

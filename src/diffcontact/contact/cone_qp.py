@@ -130,7 +130,9 @@ class SolverSettings:
             problems the polish could not finish.
         kkt_reg: relative regularisation ``delta`` of ``A`` in the polish and
             backward Jacobian (float64: 1e-12, float32: 1e-7).
-        check_inputs: validate shapes, signs, finiteness and symmetry.
+        check_inputs: validate shapes, signs, finiteness, symmetry and that ``A`` is
+            positive semi-definite on the active contacts (to
+            :data:`fused.SEMIDEFINITE_TOL`; a Cholesky factorisation per problem).
         compute_dtype: precision of the internal solve (float64 by default; the
             result and gradients come back in the input dtype). ``None`` solves in
             the input dtype: faster, but a float32 interior point cannot reach the gap
@@ -764,6 +766,20 @@ def deferred_error(flags: Tensor) -> str | None:
     return error
 
 
+def _semidefinite(A: Tensor, active: Tensor, d: int) -> bool:
+    """Whether every A (..., C, C) is positive semi-definite on its active contacts (...,
+    K), to :data:`fused.SEMIDEFINITE_TOL`: the Cholesky factorisation of that block plus
+    ``SEMIDEFINITE_TOL max |A_ij| I`` succeeds (the lower triangles; the Warp kernel's
+    ``_semidefinite``, per problem)."""
+    keep = active.repeat_interleave(d, dim=-1)  # (..., C)
+    block = torch.where(keep.unsqueeze(-1) & keep.unsqueeze(-2), A, 0.0)
+    scale = block.abs().amax((-2, -1)).unsqueeze(-1)  # (..., 1)
+    shift = torch.where(keep, fused.SEMIDEFINITE_TOL * scale, scale)
+    shift = torch.where(scale > 0, shift, 1.0)  # (a zero block is semi-definite)
+    info = torch.linalg.cholesky_ex(block + torch.diag_embed(shift)).info
+    return not bool((info > 0).any())
+
+
 def _check(name: str, x: Tensor, finite: bool = True) -> None:
     """Type check, and unless ``finite`` is False (the Warp backend checks finiteness in its
     kernel, without a host synchronisation per tensor), a finiteness check."""
@@ -815,7 +831,9 @@ def solve_cone_qp(
         f: (..., C), same dtype and device as ``A`` (and the status if asked).
 
     Raises:
-        ValueError: bad shapes, ``d``, dtypes, signs or non-finite inputs.
+        ValueError: bad shapes, ``d``, dtypes, signs or non-finite inputs, or (with
+            ``settings.check_inputs``) an ``A`` that is not symmetric or not positive
+            semi-definite on the active contacts.
         ConeQPError: unbounded or unconverged problems (unless ``return_status``).
     """
     settings = settings or SolverSettings()
@@ -881,6 +899,8 @@ def solve_cone_qp(
             raise ValueError("solve_cone_qp: A must be symmetric")
         if bool((A.diagonal(dim1=-2, dim2=-1) < -1e-9 * scale.squeeze(-1)).any()):
             raise ValueError("solve_cone_qp: A must be positive semi-definite (negative diagonal)")
+        if not _semidefinite(A, active, d):
+            raise ValueError("solve_cone_qp: " + fused.FLAGS[10])
 
     if warm_start is not None:
         _check("warm_start", warm_start, finite)

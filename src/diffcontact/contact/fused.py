@@ -514,6 +514,11 @@ def _run(name: str, n: int, args: list, dtype: torch.dtype, device: torch.device
     )
 
 
+# ``check_inputs``: A counts as positive semi-definite where, on its active contacts, A plus
+# this times max |A_ij| times I has a Cholesky factorisation (both backends; generous
+# enough for the rounding of a singular A built in float32)
+SEMIDEFINITE_TOL = 3e-4
+
 # what the forward kernel's flags say (entry 5: some problem did not converge; the others
 # are ``solve_cone_qp``'s input errors, in the order the reference raises them)
 FLAGS = (
@@ -527,6 +532,8 @@ FLAGS = (
     "lower must be >= 0",
     "A must be symmetric",
     "A must be positive semi-definite (negative diagonal)",
+    "A must be positive semi-definite (a negative eigenvalue: A + "
+    f"{SEMIDEFINITE_TOL:g} max|A_ij| I on the active contacts has no Cholesky factorisation)",
 )
 
 
@@ -845,7 +852,7 @@ class FusedConeQP(torch.autograd.Function):
     Inputs: ``A`` (n, C, C), ``b`` (n, C), ``mu``, ``lower`` (n, K), ``active`` (n, K) bool,
     ``warm_start`` (n, C) or None, ``d``, resolved settings. Outputs: ``f`` (n, C) in the
     input dtype, and the status ``converged``, ``unbounded`` (n,) bool, ``iterations`` (n,)
-    int64, ``residual`` (n,) in the compute dtype, and ``flags`` (10,) int32, 1 where a
+    int64, ``residual`` (n,) in the compute dtype, and ``flags`` (len(FLAGS),) int32, 1 where a
     problem shows the condition of :data:`FLAGS` (not differentiable)."""
 
     @staticmethod

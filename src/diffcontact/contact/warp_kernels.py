@@ -98,6 +98,9 @@ N_SLOTS = 34
 STEP_BACK = wp.constant(wp.float64(0.99))  # fraction of the largest step taken
 JITTER = wp.constant(wp.float64(1e-12))  # relative diagonal jitter of a failed Cholesky
 FLAT = wp.constant(wp.float64(1e-6))  # |U_jj| below which dF/df counts as singular
+# the shift, relative to max |A_ij|, that A's active block must be positive definite with
+# to count as positive semi-definite (fused.SEMIDEFINITE_TOL, which must equal it)
+SEMIDEFINITE = wp.constant(wp.float64(3e-4))
 
 
 # --- small helpers ---------------------------------------------------------------------
@@ -2491,6 +2494,38 @@ def _flag_finite(
     return asym_tol
 
 
+@wp.func
+def _semidefinite(
+    A_in: wp.array3d(dtype=Any),
+    active_in: wp.array2d(dtype=wp.bool),
+    t: int,
+    d: int,
+    K: int,
+    M: wp.array3d(dtype=Any),
+):
+    """Whether problem t's A, on its active contacts among the first K, is positive
+    semi-definite to the tolerance of ``fused.SEMIDEFINITE_TOL``: the Cholesky
+    factorisation of that block plus ``SEMIDEFINITE max |A_ij| I`` succeeds (rounding-level
+    negative eigenvalues of a singular A pass, an indefinite A fails). Uses ``M[t]`` as
+    scratch; reads the lower triangle (symmetry is checked apart)."""
+    n = K * d
+    scale = type(A_in[t, 0, 0])(0.0)
+    for i in range(n):
+        if active_in[t, i // d]:
+            for j in range(i + 1):
+                if active_in[t, j // d]:
+                    scale = wp.max(scale, wp.abs(A_in[t, i, j]))
+    if scale == type(scale)(0.0):
+        return True  # (a zero block is semi-definite)
+    shift = type(scale)(SEMIDEFINITE) * scale
+    for i in range(n):
+        on = active_in[t, i // d]
+        for j in range(i + 1):
+            M[t, i, j] = _pick(on and active_in[t, j // d], A_in[t, i, j], type(scale)(0.0))
+        M[t, i, i] = _pick(on, M[t, i, i] + shift, scale)
+    return _cholesky(M, t, n)
+
+
 @wp.kernel
 def fused_forward(
     A_in: wp.array3d(dtype=Any),
@@ -2563,7 +2598,8 @@ def fused_forward(
     2 n rows (see above). Sets
     ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
     ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
-    bad input (see ``_flag_finite``; zeros on entry). Thread i solves problem t = first + i
+    bad input (see ``_flag_finite``; zeros on entry) and ``flags[10]`` where it finds A
+    not positive semi-definite (:func:`_semidefinite`). Thread i solves problem t = first + i
     (a launch may cover a range of the problems)."""
     t = wp.tid() + first
     zero = type(tol)(0.0)
@@ -2575,6 +2611,9 @@ def fused_forward(
     asym_tol = _flag_finite(
         A_in, b_in, mu_in, lower_in, warm_in, t, K_all * d, K_all, n, has_warm, check, flags
     )
+    if check != 0:
+        if not _semidefinite(A_in, active_in, t, d, K, M):
+            flags[10] = 1
     row1 = n_total + t
     _equilibrate(
         A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, diag0, b0, mu0, lower0, act,
