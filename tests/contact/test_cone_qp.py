@@ -306,6 +306,80 @@ def test_a_singular_A_rounded_in_its_dtype_is_accepted(backend, dtype):
     solve_cone_qp(A, b, mu, 2, settings=SolverSettings(backend=backend), return_status=True)
 
 
+@pytest.mark.parametrize("backend", _backends())
+@pytest.mark.parametrize(
+    ("A", "d", "active"),
+    [
+        # rounding-level negative diagonals of singular matrices (a negative-diagonal test
+        # refused these before; the second: a 1 kg point tied to a 1e8 kg one)
+        ([[1.0, 0.0], [0.0, -1e-8]], 1, None),
+        ([[-1.2e-16, -3e-17], [-3e-17, 1.07e-8]], 1, None),
+        # an inactive contact's block is not the problem's
+        ([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]], 2, [True, False]),
+    ],
+)
+def test_singular_or_masked_matrices_are_accepted(backend, A, d, active):
+    A = torch.tensor(A, dtype=F64)
+    C = A.shape[-1]
+    active = None if active is None else torch.tensor(active)
+    settings = SolverSettings(backend=backend)
+    b, mu = -torch.ones(C, dtype=F64), torch.ones(C // d, dtype=F64)
+    solve_cone_qp(A, b, mu, d, active=active, settings=settings, return_status=True)
+
+
+def test_the_backends_agree_on_semidefiniteness_at_the_tolerance():
+    if not fused.warp_installed():
+        pytest.skip("needs warp-lang")
+    # float32 inputs, the check in the compute dtype (float64) on both backends
+    edge = fused.SEMIDEFINITE_TOL / (1 - fused.SEMIDEFINITE_TOL)  # -e + tol (1 + e) = 0
+    for e in (2.9e-4, 0.999 * edge, 1.001 * edge, 3.1e-4):
+        A = torch.tensor([[1.0, 1.0 + e], [1.0 + e, 1.0]], dtype=torch.float32)
+        b, mu = -torch.ones(2, dtype=torch.float32), torch.ones(2, dtype=torch.float32)
+        refused = []
+        for backend in ("torch", "warp"):
+            try:
+                solve_cone_qp(A, b, mu, 1, settings=SolverSettings(backend=backend),
+                              return_status=True)  # fmt: skip
+                refused.append(False)
+            except ValueError as err:
+                assert "semi-definite" in str(err)
+                refused.append(True)
+        assert refused[0] == refused[1], (e, refused)
+        assert refused[0] == (e > edge), (e, refused)
+
+
+@pytest.mark.parametrize("backend", _backends())
+def test_an_impulse_on_a_contact_constrained_away_is_not_refused(backend):
+    # a point mass on a rod, the contact normal along the rod: A = J Mhat^-1 J^T is zero
+    # up to rounding (about -1e-16 at some angles), semi-definite by construction
+    from diffcontact.contact import two_phase_impulse
+    from diffcontact.mechanics.dynamics import Mhat_inv
+
+    angles = torch.linspace(0.1, 6.2, 40, dtype=F64)
+    u = torch.stack([angles.cos(), angles.sin()], -1)  # (40, 2)
+    M_hat = Mhat_inv(torch.eye(2, dtype=F64).expand(40, 2, 2) * 0.5, u.unsqueeze(-2))
+    A = (u.unsqueeze(-2) @ M_hat @ u.unsqueeze(-1)).squeeze()
+    assert (A < 0).any()  # rounding made some of them negative
+    v = torch.stack([-u[:, 1], u[:, 0]], -1)  # swinging about the anchor (J_E v = 0)
+    out = two_phase_impulse(
+        u.unsqueeze(-2), M_hat, v, torch.full((40, 1), 0.3, dtype=F64),
+        torch.full((40, 1), 0.5, dtype=F64), torch.ones(40, 1, dtype=torch.bool), 1,
+        settings=SolverSettings(backend=backend),
+    )  # fmt: skip
+    torch.testing.assert_close(out.v_plus, v)  # the contact does not approach: no impulse
+
+
+def test_half_precision_and_warm_start_dtype():
+    f = solve_cone_qp(torch.eye(4, dtype=torch.float16), -torch.ones(4, dtype=torch.float16),
+                      torch.ones(2, dtype=torch.float16), 2,
+                      settings=SolverSettings(backend="torch"))  # fmt: skip
+    assert f.dtype == torch.float16 and torch.allclose(f.float()[0::2], torch.ones(2))
+    A = torch.eye(4, dtype=F64)
+    with pytest.raises(ValueError, match=r"warm_start has dtype torch\.float32, A has"):
+        solve_cone_qp(A, -torch.ones(4, dtype=F64), torch.ones(2, dtype=F64), 2,
+                      warm_start=torch.zeros(4))  # fmt: skip
+
+
 def test_the_semidefinite_tolerance_is_the_kernels():
     if not fused.warp_installed():
         pytest.skip("needs warp-lang")

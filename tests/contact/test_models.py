@@ -102,3 +102,46 @@ def test_poisson_two_phase_is_the_two_phase_impulse():
         res = model.resolve(J, Mh, v, ContactParams(mu, cor), active, d)
         ref = two_phase_impulse(J, Mh, v, mu, cor, active, d, eps=eps)
         assert torch.equal(res.v_plus, ref.v_plus) and torch.equal(res.f_r, ref.f_r)
+
+
+def _impulse_args(**change):
+    """Two states, two contacts in 2D on three coordinates (K = 2, d = 2, D = 3)."""
+    f64 = torch.float64
+    args = {
+        "J_C": torch.randn(2, 4, 3, dtype=f64, generator=torch.Generator().manual_seed(0)),
+        "Mhat_inv": torch.eye(3, dtype=f64).expand(2, 3, 3),
+        "v": torch.ones(2, 3, dtype=f64),
+        "mu": torch.full((2, 2), 0.3, dtype=f64),
+        "cor": torch.full((2, 2), 0.5, dtype=f64),
+        "active": torch.ones(2, 2, dtype=torch.bool),
+        "d": 2,
+    }
+    args.update(change)
+    return args
+
+
+F64 = torch.float64
+SHAPE = r"must have shape \(\.\.\., "
+
+
+@pytest.mark.parametrize("name", ["two_phase_impulse", "lcp_impulse", "coulomb_two_phase_impulse"])
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"Mhat_inv": torch.eye(4, dtype=F64)}, "Mhat_inv " + SHAPE + "3, 3"),
+        ({"v": torch.ones(2, 4, dtype=F64)}, "v " + SHAPE + "3"),
+        ({"cor": torch.full((2, 3), 0.5, dtype=F64)}, "cor " + SHAPE + "2"),
+        ({"mu": torch.full((2, 1), 0.3, dtype=F64)}, "mu " + SHAPE + "2"),
+        ({"v_C_star": torch.zeros(2, 2, dtype=F64)}, "v_C_star " + SHAPE + "4"),
+        ({"active": torch.ones(2, 3, dtype=torch.bool)}, "active " + SHAPE + "2"),
+        ({"Mhat_inv": torch.eye(3).expand(2, 3, 3)}, "Mhat_inv has dtype torch.float32, J_C"),
+        ({"J_C": torch.ones(2, 5, 3, dtype=F64)}, "J_C must be a floating tensor of shape"),
+        ({"mu": torch.full((2, 2), -0.1, dtype=F64)}, "mu must be >= 0"),
+        ({"v": torch.ones(2, 3, dtype=torch.int64)}, "v must be a floating-point .*torch.int64"),
+    ],
+)
+def test_impulse_functions_name_bad_inputs(name, change, message):
+    import diffcontact.contact as contact
+
+    with pytest.raises(ValueError, match=f"{name}: {message}"):
+        getattr(contact, name)(**_impulse_args(**change))

@@ -770,7 +770,12 @@ def _semidefinite(A: Tensor, active: Tensor, d: int) -> bool:
     """Whether every A (..., C, C) is positive semi-definite on its active contacts (...,
     K), to :data:`fused.SEMIDEFINITE_TOL`: the Cholesky factorisation of that block plus
     ``SEMIDEFINITE_TOL max |A_ij| I`` succeeds (the lower triangles; the Warp kernel's
-    ``_semidefinite``, per problem)."""
+    ``_semidefinite``, per problem, in the same compute dtype). The tolerance is relative
+    to the block's largest entry: a negative eigenvalue above ``-SEMIDEFINITE_TOL max
+    |A_ij|`` passes, that of a singular A rounded in float32 included (and an indefinite
+    coupling among entries that much smaller than the largest)."""
+    if A.dtype not in (torch.float32, torch.float64):  # (no Cholesky in half precision)
+        A = A.float()
     keep = active.repeat_interleave(d, dim=-1)  # (..., C)
     block = torch.where(keep.unsqueeze(-1) & keep.unsqueeze(-2), A, 0.0)
     scale = block.abs().amax((-2, -1)).unsqueeze(-1)  # (..., 1)
@@ -897,13 +902,15 @@ def solve_cone_qp(
         asym = (A - A.transpose(-1, -2)).abs()
         if bool((asym > 1e-6 * scale + 1e-12).any()):
             raise ValueError("solve_cone_qp: A must be symmetric")
-        if bool((A.diagonal(dim1=-2, dim2=-1) < -1e-9 * scale.squeeze(-1)).any()):
-            raise ValueError("solve_cone_qp: A must be positive semi-definite (negative diagonal)")
-        if not _semidefinite(A, active, d):
-            raise ValueError("solve_cone_qp: " + fused.FLAGS[10])
+        if not _semidefinite(A.to(resolved.compute_dtype), active, d):
+            raise ValueError("solve_cone_qp: " + fused.FLAGS[9])
 
     if warm_start is not None:
         _check("warm_start", warm_start, finite)
+        if warm_start.dtype != A.dtype:
+            raise ValueError(
+                f"solve_cone_qp: warm_start has dtype {warm_start.dtype}, A has {A.dtype}"
+            )
         if warm_start.device != A.device:
             raise ValueError(
                 f"solve_cone_qp: warm_start is on {warm_start.device}, A is on {A.device}"

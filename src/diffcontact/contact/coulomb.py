@@ -534,7 +534,10 @@ def coulomb_two_phase_impulse(
     coulomb = coulomb or CoulombSettings()
     d = contact_dimension(d, "coulomb_two_phase_impulse")
     if (settings or SolverSettings()).check_inputs:
-        check_impulse_inputs(cor, v, "coulomb_two_phase_impulse")
+        check_impulse_inputs(
+            cor, v, "coulomb_two_phase_impulse", J_C=J_C, Mhat_inv=Mhat_inv, mu=mu,
+            active=active, d=d, v_C_star=v_C_star,
+        )  # fmt: skip
     if v.numel() == 0:  # batch 0
         return empty_impulse(v, active, d)
     work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)

@@ -531,7 +531,6 @@ FLAGS = (
     "mu must be >= 0 (friction coefficients)",
     "lower must be >= 0",
     "A must be symmetric",
-    "A must be positive semi-definite (negative diagonal)",
     "A must be positive semi-definite (a negative eigenvalue: A + "
     f"{SEMIDEFINITE_TOL:g} max|A_ij| I on the active contacts has no Cholesky factorisation)",
 )

@@ -18,7 +18,7 @@ of :mod:`diffcontact.contact.models` wrap this function.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -177,12 +177,27 @@ def _range_projection(op: ContactOperator, v: Tensor, G: Tensor | None = None) -
     return torch.where(dependent.unsqueeze(-1), (G @ y).squeeze(-1), independent)
 
 
-def check_impulse_inputs(cor: Tensor, v: Tensor, caller: str) -> None:
+def check_impulse_inputs(
+    cor: Tensor,
+    v: Tensor,
+    caller: str,
+    *,
+    J_C: Tensor | ContactOperator | None = None,
+    Mhat_inv: Tensor | None = None,
+    mu: Tensor | None = None,
+    active: Tensor | None = None,
+    d: int | None = None,
+    v_C_star: Tensor | None = None,
+) -> None:
     """The public impulse functions' checks (with ``SolverSettings.check_inputs``, off
     inside a simulation step, whose boundary checks once): ``cor`` a tensor in [0, 1] (a
-    ``cor`` of 1.5 had sent a body away faster than it came), ``v`` a floating tensor."""
+    ``cor`` of 1.5 had sent a body away faster than it came), ``v`` a floating tensor,
+    ``mu >= 0``, and where ``J_C`` is a tensor the shapes and dtypes of the problem
+    (``J_C`` (..., K*d, D), ``Mhat_inv`` (..., D, D), ``v`` (..., D), ``mu``, ``cor``,
+    ``active`` (..., K), ``v_C_star`` (..., K*d)), each named where it does not fit."""
     if not isinstance(v, Tensor) or not v.is_floating_point():
-        raise ValueError(f"{caller}: v must be a floating-point torch.Tensor, got {type(v)}")
+        what = v.dtype if isinstance(v, Tensor) else type(v).__name__
+        raise ValueError(f"{caller}: v must be a floating-point torch.Tensor, got {what}")
     if not isinstance(cor, Tensor):
         raise ValueError(f"{caller}: cor must be a torch.Tensor, got {type(cor).__name__}")
     c = cor.detach()
@@ -191,6 +206,33 @@ def check_impulse_inputs(cor: Tensor, v: Tensor, caller: str) -> None:
             f"{caller}: cor (e_P) must lie in [0, 1], got values in "
             f"[{float(c.min()):g}, {float(c.max()):g}]"
         )
+    if mu is not None:
+        if not isinstance(mu, Tensor):
+            raise ValueError(f"{caller}: mu must be a torch.Tensor, got {type(mu).__name__}")
+        if mu.numel() and bool((mu.detach() < 0).any()):
+            raise ValueError(f"{caller}: mu must be >= 0 (friction coefficients)")
+    if not isinstance(J_C, Tensor) or d is None:
+        return  # (an operator's maps are the library's own)
+    if J_C.dim() < 2 or not J_C.is_floating_point() or J_C.shape[-2] % d:
+        raise ValueError(
+            f"{caller}: J_C must be a floating tensor of shape (..., K*d, D) with d = {d}, got "
+            f"{J_C.dtype} {tuple(J_C.shape)}"
+        )
+    m, D = J_C.shape[-2:]
+    K = m // d
+    if not isinstance(Mhat_inv, Tensor) or Mhat_inv.shape[-2:] != (D, D):
+        got = tuple(Mhat_inv.shape) if isinstance(Mhat_inv, Tensor) else type(Mhat_inv).__name__
+        raise ValueError(f"{caller}: Mhat_inv must have shape (..., {D}, {D}), got {got}")
+    expected = {"Mhat_inv": (Mhat_inv, D), "v": (v, D), "mu": (mu, K), "cor": (cor, K)}
+    expected |= {"active": (active, K), "v_C_star": (v_C_star, m)}
+    for name, (x, size) in expected.items():
+        if isinstance(x, Tensor) and (x.dim() < 1 or x.shape[-1] != size):
+            raise ValueError(
+                f"{caller}: {name} must have shape (..., {size}) for J_C of shape "
+                f"{tuple(J_C.shape)} (K = {K} contacts, D = {D}), got {tuple(x.shape)}"
+            )
+        if isinstance(x, Tensor) and name != "active" and x.dtype != J_C.dtype:
+            raise ValueError(f"{caller}: {name} has dtype {x.dtype}, J_C has {J_C.dtype}")
 
 
 def empty_impulse(v: Tensor, active: Tensor, d: int) -> ImpulseResult:
@@ -270,11 +312,19 @@ def two_phase_impulse(
     why; the canonical minimiser: :mod:`~diffcontact.contact.cone_qp`).
     """
     d = contact_dimension(d, "two_phase_impulse")
-    if (settings or SolverSettings()).check_inputs:
-        check_impulse_inputs(cor, v, "two_phase_impulse")
+    settings = settings or SolverSettings()
+    if settings.check_inputs:
+        check_impulse_inputs(
+            cor, v, "two_phase_impulse", J_C=J_C, Mhat_inv=Mhat_inv, mu=mu, active=active,
+            d=d, v_C_star=v_C_star,
+        )  # fmt: skip
+        # the QPs' A = J_C Mhat^-1 J_C^T is semi-definite by construction, up to rounding
+        # that the QP's own check cannot tell from an indefinite A where a contact's row
+        # is constrained away (A_kk ~ -1e-16): its checks stay off
+        settings = replace(settings, check_inputs=False)
     if v.numel() == 0:  # batch 0 (it failed in a reshape)
         return empty_impulse(v, active, d)
-    work = wider_dtype(v.dtype, (settings or SolverSettings()).compute_dtype)
+    work = wider_dtype(v.dtype, settings.compute_dtype)
     if work is not None:
         op, v_w, mu_w, cor_w, star_w, eps_w = widened(
             work, J_C, Mhat_inv, v, mu, cor, v_C_star, eps

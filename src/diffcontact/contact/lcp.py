@@ -613,7 +613,10 @@ def lcp_impulse(
     """
     d = contact_dimension(d, "lcp_impulse")
     if check_inputs:
-        check_impulse_inputs(cor, v, "lcp_impulse")
+        check_impulse_inputs(
+            cor, v, "lcp_impulse", J_C=J_C, Mhat_inv=Mhat_inv, mu=mu, active=active, d=d,
+            v_C_star=v_C_star,
+        )  # fmt: skip
     if not isinstance(active, Tensor) or active.dtype != torch.bool:
         raise ValueError("lcp_impulse: active must be a bool tensor")
     work = wider_dtype(v.dtype, compute_dtype)

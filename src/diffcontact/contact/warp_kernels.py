@@ -2454,18 +2454,15 @@ def _flag_finite(
     flags: wp.array(dtype=wp.int32),
 ):
     """flags[0..4] = 1 where problem t's A, b, mu, lower or warm start is not finite, and
-    where ``check``, flags[6..9] = 1 where mu < 0, lower < 0, A is not symmetric (to
-    ``1e-6 max_i |A_ii| + 1e-12``) or has a negative diagonal entry (below ``-1e-9 max_i
-    |A_ii|``), the tests of ``solve_cone_qp``'s ``check_inputs`` (every thread that finds
-    one writes the same value). The leading n_skip x n_skip block of A is left to
+    where ``check``, flags[6..8] = 1 where mu < 0, lower < 0 or A is not symmetric (to
+    ``1e-6 max_i |A_ii| + 1e-12``), tests of ``solve_cone_qp``'s ``check_inputs`` (every
+    thread that finds one writes the same value; flags[9], semi-definiteness, is
+    :func:`_semidefinite`'s). The leading n_skip x n_skip block of A is left to
     :func:`_masked_matrix`, which reads it anyway; returns the symmetry tolerance."""
     scale = wp.abs(A_in[t, 0, 0])
     if check != 0:
         for i in range(n):
             scale = wp.max(scale, wp.abs(A_in[t, i, i]))
-        for i in range(n):
-            if A_in[t, i, i] < -(type(scale)(1e-9) * scale):
-                flags[9] = 1
         for k in range(K):
             if mu_in[t, k] < type(scale)(0.0):
                 flags[6] = 1
@@ -2597,10 +2594,10 @@ def fused_forward(
     dF/df (:func:`_reduced_factor`) into ``LU_out``, ``piv_out``. Workspace arrays have
     2 n rows (see above). Sets
     ``flags[0..4]`` to 1 where A, b, mu, lower, warm_in hold non-finite values and
-    ``flags[5]`` where the problem did not converge, ``flags[6..9]`` where ``check`` finds
-    bad input (see ``_flag_finite``; zeros on entry) and ``flags[10]`` where it finds A
-    not positive semi-definite (:func:`_semidefinite`). Thread i solves problem t = first + i
-    (a launch may cover a range of the problems)."""
+    ``flags[5]`` where the problem did not converge, ``flags[6..8]`` where ``check`` finds
+    bad input (see ``_flag_finite``; zeros on entry) and ``flags[9]`` where it finds A
+    not positive semi-definite on the active contacts (:func:`_semidefinite`). Thread i
+    solves problem t = first + i (a launch may cover a range of the problems)."""
     t = wp.tid() + first
     zero = type(tol)(0.0)
     # the trailing inactive contacts are decoupled (identity rows, zero impulse): the solve
@@ -2613,7 +2610,7 @@ def fused_forward(
     )
     if check != 0:
         if not _semidefinite(A_in, active_in, t, d, K, M):
-            flags[10] = 1
+            flags[9] = 1
     row1 = n_total + t
     _equilibrate(
         A_in, b_in, lower_in, mu_in, active_in, t, d, K_all, spread, diag0, b0, mu0, lower0, act,
