@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import os
 
 import lightning.pytorch as pl
 import numpy as np
@@ -115,6 +116,91 @@ def test_resume_with_fewer_epochs_than_trained_is_refused_and_changes_nothing(bp
     ):
         train(bp5_data, run, epochs=1, resume=True, **opts)
     assert (run / "run.json").read_bytes() == before
+
+
+def test_resume_of_a_finished_run_keeps_its_model_and_refit(bp5_data, tmp_path, caplog):
+    """Re-running the same ``--resume`` command on a finished run trained nothing but
+    rewrote model.pt with the Adam model and deleted refit.json and model_adam.pt."""
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=2, **opts)
+    (run / "refit.json").write_text("{}")  # as a refit leaves them
+    (run / "model_adam.pt").write_bytes((run / "model.pt").read_bytes())
+    refitted = torch.load(run / "model.pt", weights_only=True)  # another model.pt
+    name = next(k for k, v in refitted["state_dict"].items() if v.is_floating_point())
+    refitted["state_dict"][name] += 1.0
+    torch.save(refitted, run / "model.pt")
+    files = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    with caplog.at_level(logging.WARNING, logger="diffcontact.learning.training.run"):
+        model = train(bp5_data, run, epochs=2, resume=True, **opts)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == files
+    assert torch.equal(model.state_dict()[name], refitted["state_dict"][name])
+    assert any("nothing to train" in r.getMessage() for r in caplog.records)
+
+
+def test_a_resume_that_trains_removes_the_model_of_the_earlier_stop(bp5_data, tmp_path):
+    """After ``--max-time`` wrote model.pt at epoch 1, a resume killed later left that
+    model.pt, and evaluate scored it as the run's model."""
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=3, max_time=1e-9, **opts)  # stops after epoch 1
+    assert (run / "model.pt").is_file()
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(bp5_data, run, epochs=3, resume=True, callbacks=[_CrashAt(2, 1)], **opts)
+    assert not (run / "model.pt").exists()
+    train(bp5_data, run, epochs=3, resume=True, **opts)
+    assert json.loads((run / "learned.json").read_text())["epochs_done"] == 3
+
+
+def test_a_checkpoint_of_another_model_is_refused_before_anything_is_written(bp5_data, tmp_path):
+    """It failed inside Lightning (exit 1, a long state_dict message) after run.json had
+    been rewritten and the log cut back to the foreign checkpoint's epoch."""
+    opts = dict(batch_size=4, **SMALL)
+    run, other = tmp_path / "run", tmp_path / "other"
+    train(bp5_data, run, epochs=2, **opts)
+    train(bp5_data, other, epochs=1, **(opts | {"hidden": (8,)}))
+    (run / "checkpoints" / "last.ckpt").write_bytes(
+        (other / "checkpoints" / "last.ckpt").read_bytes()
+    )
+    before = {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with pytest.raises(TrainingInputError, match=r"last\.ckpt: it holds another model's weights"):
+        train(bp5_data, run, epochs=3, resume=True, **opts)
+    assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+
+
+@pytest.mark.skipif(os.name == "nt", reason="no fcntl lock on Windows")
+def test_a_second_trainer_in_a_live_run_folder_is_refused(bp5_data, tmp_path):
+    """Two trainers in one folder both ran, interleaving their log rows."""
+    from diffcontact.learning.training.rundir import RunLock
+
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=1, **opts)
+    other = RunLock(run)  # another process's lock (a second descriptor: flock conflicts)
+    other.acquire()
+    before = {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    try:
+        with pytest.raises(TrainingInputError, match="another process is training in"):
+            train(bp5_data, run, epochs=2, resume=True, **opts)
+    finally:
+        other.release()
+    assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    train(bp5_data, run, epochs=2, resume=True, **opts)  # the lock ended with its holder
+
+
+def test_a_checkpoint_with_nan_weights_is_refused(bp5_data, tmp_path):
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(bp5_data, run, epochs=2, callbacks=[_CrashAt(1, 1)], **opts)
+    last = run / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(last, weights_only=True)
+    name = next(k for k, v in ckpt["state_dict"].items() if v.is_floating_point())
+    ckpt["state_dict"][name].view(-1)[0] = float("nan")
+    torch.save(ckpt, last)
+    message = f"last.ckpt holds NaN or infinite weights .{name}"
+    with pytest.raises(TrainingInputError, match=message):
+        train(bp5_data, run, epochs=2, resume=True, **opts)
 
 
 def test_resume_follows_moved_data_and_refuses_replaced_data(tmp_path):

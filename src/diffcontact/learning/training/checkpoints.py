@@ -66,6 +66,7 @@ class ResumePoint:
             checkpoint (0 for one written at the end of an epoch).
         mid_epoch: the checkpoint was written during an epoch (an interruption).
         notes: what was skipped and why (unreadable checkpoints), one line each.
+        shapes: the shape of each tensor of its ``state_dict`` (the model it holds).
     """
 
     path: Path | None
@@ -74,6 +75,7 @@ class ResumePoint:
     batches_in_epoch: int = 0
     mid_epoch: bool = False
     notes: list[str] = field(default_factory=list)
+    shapes: dict[str, tuple[int, ...]] = field(default_factory=dict)
 
 
 def _candidates(folder: Path) -> list[Path]:
@@ -99,9 +101,22 @@ def _describe(ckpt: Any, path: Path, notes: list[str]) -> ResumePoint:
             f"cannot resume: {path} is not a diffcontact training checkpoint (move it away "
             "to start the run again from its other checkpoints or from the beginning)"
         ) from None
+    state = ckpt["state_dict"]
+    bad = [
+        name
+        for name, x in (state.items() if isinstance(state, dict) else ())
+        if isinstance(x, torch.Tensor) and x.is_floating_point() and not bool(x.isfinite().all())
+    ]
+    if bad:
+        raise TrainingInputError(
+            f"cannot resume: {path} holds NaN or infinite weights ({', '.join(bad[:3])}"
+            f"{', ...' if len(bad) > 3 else ''}); move it away to resume from the run's "
+            "earlier checkpoints"
+        )
     # written at the start of a batch (an interruption): that batch was fetched, not run
     mid = ready != done
-    return ResumePoint(path, int(ckpt["epoch"]), stepped, done if mid else 0, mid, notes)
+    shapes = {k: tuple(x.shape) for k, x in state.items() if isinstance(x, torch.Tensor)}
+    return ResumePoint(path, int(ckpt["epoch"]), stepped, done if mid else 0, mid, notes, shapes)
 
 
 def resume_point(checkpoints: Path) -> ResumePoint:

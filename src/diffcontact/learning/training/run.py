@@ -26,13 +26,14 @@ code); SIGINT/SIGTERM and ``max_time`` stop a run through
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import math
 import os
 import signal
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,7 @@ from diffcontact.learning.training.options import (
     check_options,
 )
 from diffcontact.learning.training.rundir import (
+    RunLock,
     check_run_dir,
     clear_for_restart,
     loggers,
@@ -363,10 +365,27 @@ def _launcher_rank() -> int:
 # -------------------------------------------------------------------------- train
 
 
+def _holding_run_lock(fit: Callable[..., Any]) -> Callable[..., Any]:
+    """``train`` holding the run directory's :class:`RunLock` (rank 0 takes it, in
+    ``train``) until the call ends, however it ends."""
+
+    @functools.wraps(fit)
+    def locked(data_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], **kwargs):
+        lock = RunLock(Path(out_dir))
+        try:
+            return fit(data_dir, out_dir, _lock=lock, **kwargs)
+        finally:
+            lock.release()
+
+    return locked
+
+
+@_holding_run_lock
 def train(
     data_dir: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
+    _lock: RunLock | None = None,
     model: str = DEFAULT_MODEL,
     epochs: int = DEFAULT_EPOCHS,
     batch_size: int = DEFAULT_BATCH_SIZE,
@@ -567,6 +586,8 @@ def train(
     checkpoints = out / "checkpoints"
     # processes started by a DDP launcher (Lightning's, torchrun, SLURM) leave the files to rank 0
     launcher = _launcher_rank() == 0
+    if launcher and _lock is not None:
+        _lock.acquire()  # an existing folder: before any check reads it
     info = check_run_dir(out, run_info, resume) if launcher else None
     point = resume_point(checkpoints) if resume else None
     if point is not None and point.path is not None and epochs < point.epoch + 1:
@@ -581,6 +602,25 @@ def train(
             f"cannot resume: {out} holds a finished model.pt but no checkpoint to continue "
             "from; choose another --out to train again"
         )
+    if (
+        launcher
+        and point is not None
+        and point.path is not None
+        and not point.mid_epoch
+        and epochs == point.epoch + 1
+        and (out / "model.pt").is_file()
+    ):  # (a resume that trains removes model.pt first: this one is the last checkpoint's)
+        log.warning(
+            "nothing to train: %s has trained its %d epochs; model.pt (and a refit of it) "
+            "kept as it is (pass a larger --epochs to train on)", out, epochs,
+        )  # fmt: skip
+        from diffcontact.learning.models.storage import load_model
+
+        if refit:
+            from diffcontact.learning.training.refit import refit_run
+
+            refit_run(out, refit, data_dir=data_path)
+        return load_model(out)
 
     module = RolloutModule(
         model=learned,
@@ -591,6 +631,8 @@ def train(
         schedule=schedule,
     )
     module.run_dir = out
+    if point is not None and point.path is not None:
+        _check_checkpoint_model(module, point)
     module.report_epochs = not progress
     resume_at = (point.epoch, point.batches_in_epoch) if point and point.mid_epoch else (-1, 0)
     datamodule = ChunkDataModule(
@@ -646,6 +688,8 @@ def train(
             raise TrainingInputError(f"bad strategy/devices/num_nodes: {err}") from None
         if launcher:  # nothing is written before all checks have passed
             _prepare(out, info or run_info, point)
+            if _lock is not None:
+                _lock.acquire()  # a new folder, now made (no-op where held)
         ckpt_path = None if point is None or point.path is None else str(point.path)
         stop.install()
         try:
@@ -659,6 +703,23 @@ def train(
         refit_run(out, refit, data_dir=data_path)  # prints a line per iteration
         trained = load_model(out)
     return trained
+
+
+def _check_checkpoint_model(module: RolloutModule, point: Any) -> None:
+    """Refuse, before anything is written, a checkpoint whose weights are not this run's
+    model's (one copied from another run): Lightning would fail on it only after
+    ``run.json`` and the log had been rewritten."""
+    mine = {k: tuple(x.shape) for k, x in module.state_dict().items()}
+    if point.shapes == mine:
+        return
+    differ = sorted(set(mine) ^ set(point.shapes))
+    differ += [k for k in mine if k in point.shapes and mine[k] != point.shapes[k]]
+    names = ", ".join(differ[:3]) + (", ..." if len(differ) > 3 else "")
+    raise TrainingInputError(
+        f"cannot resume from {point.path}: it holds another model's weights ({names} "
+        "differ from this run's model): a checkpoint "
+        "copied from another run? Move it away to resume from the run's own checkpoints"
+    )
 
 
 def _prepare(out: Path, info: dict[str, Any], point: Any) -> None:
@@ -681,6 +742,15 @@ def _prepare(out: Path, info: dict[str, Any], point: Any) -> None:
         return
     if point.notes:
         log.warning("resuming %s from %s", out, point.path)
+    # the run goes on: a model.pt of an earlier stop (--max-time, a finished run trained
+    # further) is older than the checkpoint; until the run ends, evaluate uses the checkpoint
+    if (out / "model.pt").is_file():
+        log.warning(
+            "%s: removed model.pt of the run's earlier stop (it goes on from %s; evaluate "
+            "uses the last checkpoint until the run ends)", out, point.path.name,
+        )  # fmt: skip
+    for stale in ("model.pt", "refit.json", "model_adam.pt"):
+        (out / stale).unlink(missing_ok=True)
     # the log keeps the rows written before the checkpoint (an interrupted epoch's are redone)
     if point.mid_epoch:
         truncate_log(out, point.epoch, point.batches_stepped)

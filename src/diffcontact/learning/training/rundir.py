@@ -159,6 +159,47 @@ def write_run_file(out: Path, info: dict[str, Any]) -> None:
         raise TrainingInputError(f"cannot write to {out}: {err}") from None
 
 
+class RunLock:
+    """An exclusive lock on a run directory, held by the process that trains in it: a
+    second ``train`` there (a resume started while the run goes on) is refused instead of
+    interleaving its log rows with the first's or clearing the files of a live run.
+
+    It locks the folder itself (``flock`` on its descriptor: no file is written, and the
+    lock ends with the process, however it ends); without ``fcntl`` (Windows) it does
+    nothing."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+        self.fd: int | None = None
+
+    def acquire(self) -> None:
+        """Take the lock if the folder exists (again: no-op).
+
+        Raises:
+            TrainingInputError: another process holds it."""
+        if self.fd is not None or not self.out.is_dir():
+            return
+        try:
+            import fcntl
+        except ImportError:  # (Windows)
+            return
+        fd = os.open(self.out, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise TrainingInputError(
+                f"another process is training in {self.out} (it holds the folder's lock): "
+                "wait for it to end, or stop it (Ctrl-C writes a checkpoint), then --resume"
+            ) from None
+        self.fd = fd
+
+    def release(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)  # (closing the descriptor releases the lock)
+            self.fd = None
+
+
 def remove_temporaries(out: Path) -> None:
     """Remove the temporary files a killed writer left in the run directory's folders."""
     for folder in (out, out / "checkpoints", out / LOG_DIR):
