@@ -168,6 +168,17 @@ def test_a_checkpoint_of_another_model_is_refused_before_anything_is_written(bp5
     assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
 
 
+def test_keep_checkpoints_given_on_resume_prunes_the_earlier_ones(bp5_data, tmp_path):
+    """A run started without --keep-checkpoints and resumed with it kept all of them."""
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=3, **opts)
+    assert len(list((run / "checkpoints").glob("epoch*.ckpt"))) == 3
+    train(bp5_data, run, epochs=4, resume=True, keep_checkpoints=2, **opts)
+    kept = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert kept == ["epoch0002.ckpt", "epoch0003.ckpt", "last.ckpt"]
+
+
 @pytest.mark.skipif(os.name == "nt", reason="no fcntl lock on Windows")
 def test_a_second_trainer_in_a_live_run_folder_is_refused(bp5_data, tmp_path):
     """Two trainers in one folder both ran, interleaving their log rows."""

@@ -119,6 +119,15 @@ def _describe(ckpt: Any, path: Path, notes: list[str]) -> ResumePoint:
     return ResumePoint(path, int(ckpt["epoch"]), stepped, done if mid else 0, mid, notes, shapes)
 
 
+def prune_checkpoints(checkpoints: Path, keep: int) -> None:
+    """Remove all but the newest ``keep`` epoch checkpoints (``last.ckpt`` stays): what
+    ``--keep-checkpoints`` keeps, also of a run started without it or in another folder,
+    whose older checkpoints Lightning's callback does not know."""
+    numbered = _candidates(checkpoints)[1:]  # newest first
+    for path in numbered[keep:]:
+        path.unlink(missing_ok=True)
+
+
 def resume_point(checkpoints: Path) -> ResumePoint:
     """The checkpoint a resumed run continues from (see the module docstring).
 

@@ -54,7 +54,12 @@ from diffcontact.learning.models.registry import (
     is_physical_model,
 )
 from diffcontact.learning.models.storage import save_model
-from diffcontact.learning.training.checkpoints import LAST, SafeCheckpointIO, resume_point
+from diffcontact.learning.training.checkpoints import (
+    LAST,
+    SafeCheckpointIO,
+    prune_checkpoints,
+    resume_point,
+)
 from diffcontact.learning.training.governor import thread_callback
 from diffcontact.learning.training.module import DTYPES, RolloutModule, write_learned
 from diffcontact.learning.training.options import (
@@ -693,7 +698,9 @@ def train(
         ckpt_path = None if point is None or point.path is None else str(point.path)
         stop.install()
         try:
-            trained = _fit(trainer, module, datamodule, out, ckpt_path, stop, stop_after)
+            trained = _fit(
+                trainer, module, datamodule, out, ckpt_path, stop, stop_after, keep_checkpoints
+            )
         finally:
             stop.restore()
     if refit and trainer.is_global_zero:
@@ -766,8 +773,13 @@ def _fit(
     ckpt_path: str | None,
     stop: GracefulStop,
     stop_after: StopAfter | None,
+    keep_checkpoints: int | None = None,
 ) -> Any:
     with warnings.catch_warnings():
+        # a resume with another --keep-checkpoints, or of a moved run folder: Lightning's
+        # checkpoint callback starts afresh (prune_checkpoints keeps the newest at the end)
+        warnings.filterwarnings("ignore", message="Be aware that when using `ckpt_path`")
+        warnings.filterwarnings("ignore", message="The dirpath has changed from")
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*smaller than the logging interval.*")
         warnings.filterwarnings("ignore", message=".*is not a valid metric.*")
@@ -788,6 +800,8 @@ def _fit(
             raise _interrupted_at_once(trainer, stop) from None
 
     trained = module.model.cpu()
+    if trainer.is_global_zero and keep_checkpoints is not None:
+        prune_checkpoints(out / "checkpoints", keep_checkpoints)
     if trainer.is_global_zero:
         summary = dict(module.last_epoch_summary)
         if not summary and (out / "learned.json").is_file():  # resumed a finished run
