@@ -282,6 +282,20 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["data.npz"]
 
 
+def test_a_failed_atomic_write_names_its_file(tmp_path):
+    """A full disk's error (errno 28, no file name) reached the user without the file."""
+    import errno
+
+    path = tmp_path / "run" / "model.pt"
+    path.parent.mkdir()
+    with pytest.raises(OSError, match=r"No space left on device: '.*model\.pt'") as caught:
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(path)
+    assert list(path.parent.iterdir()) == []
+
+
 def test_check_writable(tmp_path):
     assert check_writable(tmp_path / "x.npz") == tmp_path / "x.npz"
     with pytest.raises(IsADirectoryError):

@@ -148,6 +148,14 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, target)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if err.filename not in (None, str(tmp), tmp):
+            raise
+        # a full disk said "No space left on device" without a name, or named the
+        # temporary file: name the file that was being written
+        raise type(err)(err.errno, err.strerror or str(err), str(target)) from err
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()

@@ -155,6 +155,14 @@ def test_evaluate_a_trained_run(tmp_path):
     assert len(metrics["mass_ratios"]["learned"]) == 1
     assert metrics["mass_ratios"]["true"] == pytest.approx([3.0])
     assert "training.png" in metrics["files"]  # from RUN/logs/metrics.csv
+    assert metrics["log_note"] is None
+    # random bytes in the log made the whole evaluation fail (a UnicodeDecodeError naming
+    # no file): now only its plot is left out, and said so
+    log = next((run / "logs").rglob("metrics.csv"))
+    log.write_bytes(bytes(range(128, 256)) * 4)
+    again = evaluate(run, tmp_path / "again", steps=10, n_gif=0)
+    assert "training.png not drawn" in again["log_note"] and str(log) in again["log_note"]
+    assert "training.png" not in again["files"] and "rollout.npz" in again["files"]
 
 
 def _other_dataset(tmp_path: Path, dataset: Path) -> Path:
@@ -256,6 +264,14 @@ def test_an_evaluation_stopped_midway_can_run_again_in_its_folder(tmp_path, data
     metrics = ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5)
     assert (out / "metrics.json").is_file() and not (out / ev.STARTED).exists()
     assert metrics["n_test"] == 3
+    # stopped again after rewriting rollout.npz: the earlier metrics.json, which described
+    # the files before, is gone (it stayed beside the new rollout.npz)
+    with monkeypatch.context() as m:
+        m.setattr(ev, "plot_rel_error", killed)
+        with pytest.raises(KeyboardInterrupt):
+            ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5)
+    assert (out / ev.STARTED).is_file() and not (out / "metrics.json").exists()
+    assert ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5) == metrics
     # another data set in that folder is still refused
     other = shutil.copytree(dataset, tmp_path / "other")
     with pytest.raises(ev.EvaluationInputError, match="of another evaluation"):

@@ -196,6 +196,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"  note: --n-test {args.n_test}, but the test split holds {n}: all of them used")
     if m.get("model_note"):
         print(f"  WARNING: {m['model_note']}")
+    if m.get("log_note"):
+        print(f"  WARNING: {m['log_note']}")
     if m.get("rollout_note"):
         print(f"  note: {m['rollout_note']}")
     if m["n_nonfinite"]:

@@ -26,6 +26,7 @@ evaluation (of another run or data set) without ``force``.
 
 from __future__ import annotations
 
+import csv
 import inspect
 import json
 import math
@@ -574,6 +575,9 @@ def evaluate(
     }
 
     # ---- files
+    # from here the folder is rewritten: an earlier evaluation's metrics.json (written
+    # last) would describe files it no longer holds if this one stopped half-way
+    (out / "metrics.json").unlink(missing_ok=True)
     files = ["metrics.json", "rollout.npz"]
     energies = {"energy_pred": E_pred, "energy_true": E_true} if known else {}
     atomic_save_npz(
@@ -595,10 +599,17 @@ def evaluate(
         plot_impacts(impacts, out / "impacts.png", f"{title}: normal velocity ratio of impacts")
         files.append("impacts.png")
     log_path = None if run_path is None else find_training_log(run_path)
+    metrics["log_note"] = None
     if log_path is not None:
-        log = read_training_log(log_path)
+        try:
+            log = read_training_log(log_path)
+        except (OSError, UnicodeDecodeError, csv.Error) as err:  # a side plot: not fatal
+            log = None
+            metrics["log_note"] = (
+                f"training.png not drawn: {log_path} cannot be read ({type(err).__name__}: {err})"
+            )
         # after a refit the model's parameters are not the log's last epoch: marked
-        refit = learned if (run_path / "refit.json").is_file() else None
+        refit = learned if run_path and (run_path / "refit.json").is_file() else None
         path = out / "training.png"
         if log and plot_training(log, truth, system.n_bodies, path, title, refit=refit):
             files.append("training.png")
