@@ -145,3 +145,12 @@ def test_impulse_functions_name_bad_inputs(name, change, message):
 
     with pytest.raises(ValueError, match=f"{name}: {message}"):
         getattr(contact, name)(**_impulse_args(**change))
+
+
+def test_two_phase_impulse_refuses_a_negative_eps():
+    # its QPs' matrix checks are off (A is semi-definite by construction): A + eps I with
+    # eps < 0 is not, and must be named here
+    from diffcontact.contact import two_phase_impulse
+
+    with pytest.raises(ValueError, match=r"eps \(CMr's regulariser\) must be >= 0"):
+        two_phase_impulse(**_impulse_args(), eps=-0.5)

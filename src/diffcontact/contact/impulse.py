@@ -318,6 +318,8 @@ def two_phase_impulse(
             cor, v, "two_phase_impulse", J_C=J_C, Mhat_inv=Mhat_inv, mu=mu, active=active,
             d=d, v_C_star=v_C_star,
         )  # fmt: skip
+        if eps is not None and bool((torch.as_tensor(eps).detach() < 0).any()):
+            raise ValueError(f"two_phase_impulse: eps (CMr's regulariser) must be >= 0, got {eps}")
         # the QPs' A = J_C Mhat^-1 J_C^T is semi-definite by construction, up to rounding
         # that the QP's own check cannot tell from an indefinite A where a contact's row
         # is constrained away (A_kk ~ -1e-16): its checks stay off

@@ -608,20 +608,21 @@ def train(
             "from; choose another --out to train again"
         )
     if (
-        launcher
-        and point is not None
+        point is not None
         and point.path is not None
         and not point.mid_epoch
         and epochs == point.epoch + 1
         and (out / "model.pt").is_file()
-    ):  # (a resume that trains removes model.pt first: this one is the last checkpoint's)
-        log.warning(
-            "nothing to train: %s has trained its %d epochs; model.pt (and a refit of it) "
-            "kept as it is (pass a larger --epochs to train on)", out, epochs,
-        )  # fmt: skip
+    ):  # (a resume that trains removes model.pt first: this one is the last checkpoint's;
+        # every rank returns here, so that none waits in a fit the others do not start)
+        if launcher:
+            log.warning(
+                "nothing to train: %s has trained its %d epochs; model.pt (and a refit of "
+                "it) kept as it is (pass a larger --epochs to train on)", out, epochs,
+            )  # fmt: skip
         from diffcontact.learning.models.storage import load_model
 
-        if refit:
+        if refit and launcher:
             from diffcontact.learning.training.refit import refit_run
 
             refit_run(out, refit, data_dir=data_path)
