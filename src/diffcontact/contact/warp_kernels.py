@@ -2506,20 +2506,19 @@ def _semidefinite(
     negative eigenvalues of a singular A pass, an indefinite A fails). Uses ``M[t]`` as
     scratch; reads the lower triangle (symmetry is checked apart)."""
     n = K * d
-    scale = type(A_in[t, 0, 0])(0.0)
-    for i in range(n):
-        if active_in[t, i // d]:
-            for j in range(i + 1):
-                if active_in[t, j // d]:
-                    scale = wp.max(scale, wp.abs(A_in[t, i, j]))
-    if scale == type(scale)(0.0):
+    zero = type(A_in[t, 0, 0])(0.0)
+    scale = zero
+    for i in range(n):  # one pass: the masked lower triangle and its largest entry
+        on = active_in[t, i // d]
+        for j in range(i + 1):
+            a = _pick(on and active_in[t, j // d], A_in[t, i, j], zero)
+            M[t, i, j] = a
+            scale = wp.max(scale, wp.abs(a))
+    if scale == zero:
         return True  # (a zero block is semi-definite)
     shift = type(scale)(SEMIDEFINITE) * scale
     for i in range(n):
-        on = active_in[t, i // d]
-        for j in range(i + 1):
-            M[t, i, j] = _pick(on and active_in[t, j // d], A_in[t, i, j], type(scale)(0.0))
-        M[t, i, i] = _pick(on, M[t, i, i] + shift, scale)
+        M[t, i, i] = _pick(active_in[t, i // d], M[t, i, i] + shift, scale)
     return _cholesky(M, t, n)
 
 

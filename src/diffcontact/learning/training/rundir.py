@@ -183,7 +183,10 @@ class RunLock:
             import fcntl
         except ImportError:  # (Windows)
             return
-        fd = os.open(self.out, os.O_RDONLY)
+        try:
+            fd = os.open(self.out, os.O_RDONLY)
+        except OSError:  # (an unreadable folder: the run directory's checks name it)
+            return
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
