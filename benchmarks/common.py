@@ -126,6 +126,21 @@ WARP_BLOCK_DIM_HELP = (
 )
 
 
+WARP_SCRATCH_HELP = (
+    "layout of the fused solver's scratch memory on CUDA (default: "
+    "diffcontact.contact.fused.CUDA_SCRATCH): the thread index fastest, each thread's "
+    "arrays in one block, or that for the C x C matrices only"
+)
+
+
+def choose_warp_scratch(value: str | None) -> None:
+    """For the rest of the process: the layout of the fused solver's scratch on CUDA."""
+    if value is not None:
+        from diffcontact.contact import fused
+
+        fused.CUDA_SCRATCH = value
+
+
 def choose_warp_block_dim(value: int | None) -> None:
     """For the rest of the process: the fused solver's threads per block on CUDA."""
     if value is not None:

@@ -11,6 +11,7 @@
     python benchmarks/run.py threads [...]   # 1 vs all threads vs auto, idle and loaded
     python benchmarks/run.py fastops [...]  # sums over a short last dim (fastops.py)
     python benchmarks/run.py launches [...]  # torch ops, CUDA launches and syncs per step
+    python benchmarks/run.py chain [...]     # what sets a fused launch's time (chain.py)
     python benchmarks/run.py profile_step [...]  # where the read-free step's time goes
     python benchmarks/run.py rollout_growth [...]  # time along a rollout, selected vs padded
 
@@ -36,6 +37,7 @@ SUITES = (
     "fastops",
     "launches",
     "kernels",
+    "chain",
     "profile_step",
     "rollout_growth",
 )

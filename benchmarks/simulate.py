@@ -34,10 +34,12 @@ from common import (
     CONTACT_ROWS_HELP,
     SPARSE_GRAM_CUDA_HELP,
     WARP_BLOCK_DIM_HELP,
+    WARP_SCRATCH_HELP,
     check_device,
     choose_contact_rows,
     choose_sparse_gram_cuda,
     choose_warp_block_dim,
+    choose_warp_scratch,
     machine_header,
     sync,
 )
@@ -309,6 +311,10 @@ def main(argv: list[str] | None = None) -> int:
         "--warp-block-dim", type=positive_int, default=None, metavar="N", help=WARP_BLOCK_DIM_HELP
     )
     ap.add_argument(
+        "--warp-scratch", choices=("strided", "contiguous", "matrices"), default=None,
+        help=WARP_SCRATCH_HELP,
+    )  # fmt: skip
+    ap.add_argument(
         "--contact-rows",
         choices=("auto", "dense", "sparse"),
         default="auto",
@@ -342,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     dtype = getattr(torch, args.dtype)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
     choose_warp_block_dim(args.warp_block_dim)
+    choose_warp_scratch(args.warp_scratch)
     choose_contact_rows(args.contact_rows)
     if args.compare == "mujoco":
         return main_compare(args, dtype)

@@ -52,12 +52,14 @@ from common import (
     READ_FREE_HELP,
     SPARSE_GRAM_CUDA_HELP,
     WARP_BLOCK_DIM_HELP,
+    WARP_SCRATCH_HELP,
     check_device,
     check_tasks,
     choose_contact_rows,
     choose_read_free_projection,
     choose_sparse_gram_cuda,
     choose_warp_block_dim,
+    choose_warp_scratch,
     machine_header,
     sync,
 )
@@ -262,6 +264,10 @@ def main(argv: list[str] | None = None) -> int:
         "--warp-block-dim", type=positive_int, default=None, metavar="N", help=WARP_BLOCK_DIM_HELP
     )
     ap.add_argument(
+        "--warp-scratch", choices=("strided", "contiguous", "matrices"), default=None,
+        help=WARP_SCRATCH_HELP,
+    )  # fmt: skip
+    ap.add_argument(
         "--contact-rows", choices=("auto", "dense", "sparse"), default="auto",
         help=CONTACT_ROWS_HELP + " (this version)",
     )  # fmt: skip
@@ -301,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     choose_read_free_projection(args.read_free_projection)
     choose_sparse_gram_cuda(args.sparse_gram_cuda)
     choose_warp_block_dim(args.warp_block_dim)
+    choose_warp_scratch(args.warp_scratch)
     choose_contact_rows(args.contact_rows)
     tasks = args.tasks or (("BP5", "CP3", "Gyro") if args.quick else TASKS)
     dtype = getattr(torch, args.dtype)

@@ -59,6 +59,7 @@ WORK = {
     "launches": ["simulate_row", "train_row"],
     "kernels": ["_kernels"],
     "profile_step": ["profile_task"],
+    "chain": ["record_calls"],
     "warp_aot": ["compile_set"],
 }
 # scripts that write under --out: a folder of the test's unless the case gives one
@@ -206,6 +207,11 @@ BAD = [
     ("kernels", ["--sizes", "-2"], "--sizes"),
     ("kernels", ["--batch", "0"], "--batch"),
     ("profile_step", ["--rows", "-1"], "--rows"),
+    ("chain", ["--scenes", "0"], "--scenes"),
+    ("chain", ["--task", "Nope"], "--task"),
+    ("chain", ["--scratch", "strided"], "--scratch"),
+    ("chain", ["--device", "cpu", "--scratch", "diagonal"], "--scratch"),
+    ("simulate", ["--warp-scratch", "diagonal"], "--warp-scratch"),
     ("rollout_growth", ["--rows", "-1"], "--rows"),
     ("rollout_growth", ["--quick", "--first", "9"], "--first"),
 ]
@@ -301,6 +307,16 @@ def test_profile_step_quick_keeps_explicit_tasks_scenes_steps(monkeypatch):
     _settings_of("profile_step", ["--quick", "--scenes", "8"], monkeypatch,
                  {"profile_task": stand_in})  # fmt: skip
     assert seen == {"task": "BP5", "scenes": 8, "steps": 3}
+
+
+def test_chain_quick_keeps_explicit_task_scenes_steps(monkeypatch):
+    seen: dict = {}
+    stand_in = _record(seen, "task", "scenes", "steps")
+    argv = ["--quick", "--task", "BD5", "--scenes", "8", "--steps", "2"]
+    _settings_of("chain", argv, monkeypatch, {"record_calls": stand_in})
+    assert seen == {"task": "BD5", "scenes": 8, "steps": 2}
+    _settings_of("chain", ["--quick"], monkeypatch, {"record_calls": stand_in})
+    assert seen == {"task": "BP5", "scenes": 256, "steps": 10}
 
 
 def test_rollout_growth_quick_keeps_explicit_task_and_scenes(monkeypatch):

@@ -556,35 +556,41 @@ def test_recorded_launches_replay_new_data():
     assert not errors, errors
 
 
+def _warp_outputs(problems: tuple, d: int, w: torch.Tensor) -> tuple:
+    """The fused solver's impulses, status and the gradients of ``sum(f * w)`` with respect
+    to A, b, mu and lower, for ``problems = (A, b, mu, lower, active)``."""
+    A, b, mu, lower, active = problems
+    xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
+    f, status = solve_cone_qp(*xs[:3], d, xs[3], active, settings=WARP, return_status=True)
+    grads = torch.autograd.grad((f * w).sum(), xs)
+    return (f.detach(), status.converged, status.iterations, status.residual, *grads)
+
+
 def test_batch_split_over_cores_is_bitwise_the_same(monkeypatch):
     """On the CPU a large batch is split into parts run on several cores at once; the
     impulses, status and gradients are bitwise those of one launch (each problem is one
     thread's arithmetic), and in a fresh process the first (recording) calls of the parts
     run at the same time safely."""
     d, n, K = 2, 40, 5
-    # always split here: split known to be faster, no probes of one core
     # always split here: the split known to be the faster mode for every kind of launch
     known = collections.defaultdict(lambda: {"calls": 2, "split": 0.0, "single": 1.0})
     monkeypatch.setattr(fused, "_split_state", known)
     monkeypatch.setattr(fused, "_PROBE_EVERY", 10**9)
-    A, b, mu, lower, active = mixed_family(n, K, d, seed=21)
+    problems = mixed_family(n, K, d, seed=21)
     w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(2), dtype=F64)
 
     def run():
-        xs = [x.clone().requires_grad_() for x in (A, b, mu, lower)]
-        f, status = solve_cone_qp(*xs[:3], d, xs[3], active, settings=WARP, return_status=True)
-        grads = torch.autograd.grad((f * w).sum(), xs)
-        return (f.detach(), status.converged, status.iterations, status.residual, *grads)
+        return _warp_outputs(problems, d, w)
 
     threads = torch.get_num_threads()
     monkeypatch.setattr(fused, "_SPLIT_WORK", 1)
     monkeypatch.setattr(fused, "_cores", lambda: 3)
     try:
         torch.set_num_threads(1)
-        assert len(fused._parts(n, K * d, A.device)) == 1
+        assert len(fused._parts(n, K * d, torch.device("cpu"))) == 1
         one = run()
         torch.set_num_threads(3)
-        assert len(fused._parts(n, K * d, A.device)) == 3
+        assert len(fused._parts(n, K * d, torch.device("cpu"))) == 3
         split = run()
     finally:
         torch.set_num_threads(threads)
@@ -611,6 +617,28 @@ def test_batch_split_over_cores_is_bitwise_the_same(monkeypatch):
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert float(out.stdout.split()[-1]) < 1e-8
+
+
+@pytest.mark.parametrize("layout", ["strided", "matrices"])
+def test_scratch_layouts_are_bitwise_the_same(monkeypatch, layout):
+    """The layouts of the forward kernel's scratch that CUDA can use (``fused.CUDA_SCRATCH``),
+    run here on the CPU: the same impulses, status and gradients bit for bit as the CPU's
+    contiguous layout (a layout changes where a thread's words lie, not its arithmetic)."""
+    d, n, K = 2, 40, 5
+    problems = mixed_family(n, K, d, seed=23)
+    w = torch.randn(n, K * d, generator=torch.Generator().manual_seed(3), dtype=F64)
+    plain = _warp_outputs(problems, d, w)
+    monkeypatch.setattr(fused, "_scratch_layout", lambda device: layout)
+    other = _warp_outputs(problems, d, w)
+    for x, y in zip(plain, other, strict=True):
+        assert torch.equal(x, y)
+
+
+def test_unknown_scratch_layout_is_refused(monkeypatch):
+    monkeypatch.setattr(fused, "CUDA_SCRATCH", "diagonal")
+    A, b, mu, lower, active = mixed_family(4, 2, 2, seed=1)
+    with pytest.raises(ValueError, match=r"fused\.CUDA_SCRATCH must be one of"):
+        solve_cone_qp(A, b, mu, 2, lower, active, settings=WARP)
 
 
 # --- the choice of backend ----------------------------------------------------------------

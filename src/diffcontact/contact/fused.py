@@ -323,6 +323,28 @@ class _Polished:
 CUDA_BLOCK_DIM = 32
 
 
+#: Layout of the forward kernel's scratch memory on CUDA: ``"strided"`` (the thread index
+#: varies fastest, so the threads of a warp read adjacent words while they run the same
+#: branch), ``"contiguous"`` (each thread's arrays in one block, as on the CPU: a thread
+#: left alone in a branch, such as the interior point, reads from few cache lines) or
+#: ``"matrices"`` (the C x C arrays contiguous, the vectors strided). All give bitwise the
+#: same results. ``python benchmarks/run.py chain --device cuda`` times them; until it has
+#: run on a GPU, the default stays the layout of the measurements in benchmarks/README.md.
+CUDA_SCRATCH = "strided"
+SCRATCH_LAYOUTS = ("strided", "contiguous", "matrices")
+_MATRICES = frozenset(("Am", "Aipm", "M", "V"))  # the workspace's C x C arrays
+
+
+def _scratch_layout(device: torch.device) -> str:
+    """The layout of the forward kernel's scratch on ``device`` (``"contiguous"`` on the
+    CPU)."""
+    if CUDA_SCRATCH not in SCRATCH_LAYOUTS:
+        raise ValueError(
+            f"fused.CUDA_SCRATCH must be one of {SCRATCH_LAYOUTS}, got {CUDA_SCRATCH!r}"
+        )
+    return CUDA_SCRATCH if device.type == "cuda" else "contiguous"
+
+
 def block_dim(device: torch.device) -> int | None:
     """Threads per block of a launch on ``device`` (``None``: Warp's default, the CPU's)."""
     return CUDA_BLOCK_DIM if device.type == "cuda" else None
@@ -434,12 +456,14 @@ def polish(f: Tensor, rows: Tensor, data: tuple[Tensor, ...], settings: SolverSe
 class _Layout:
     """Arrays carved out of one byte buffer (one torch allocation), as Warp descriptors.
 
-    Float arrays whose first dimension is the thread index are laid out with that index
-    fastest on CUDA (the threads of a warp read adjacent words), slowest on the CPU."""
+    In the ``"strided"`` layout, arrays of two or more dimensions (the first is the thread
+    index) have that index fastest (the threads of a CUDA warp read adjacent words), in
+    ``"matrices"`` all but the C x C matrices (:data:`_MATRICES`); else it is slowest
+    (:data:`CUDA_SCRATCH`)."""
 
-    def __init__(self, dtype: torch.dtype, device: torch.device, threaded: bool = True):
+    def __init__(self, dtype: torch.dtype, device: torch.device, layout: str = "contiguous"):
         self.item = torch.finfo(dtype).bits // 8
-        self.cuda = device.type == "cuda" and threaded
+        self.layout = layout
         self.device = device
         self.specs: list[tuple[str, tuple[int, ...], int, int]] = []
         self.nbytes = 0
@@ -462,7 +486,10 @@ class _Layout:
 
         out = {}
         for name, shape, item, offset in self.specs:
-            if self.cuda and len(shape) > 1:
+            strided = self.layout == "strided" or (
+                self.layout == "matrices" and name not in _MATRICES
+            )
+            if strided and len(shape) > 1:
                 rows, rest = shape[0], shape[1:]
                 strides = [rows * item] * len(rest)
                 for i in range(len(rest) - 2, -1, -1):
@@ -489,7 +516,7 @@ def _ctype(x: Tensor):
 def _saved_layout(n: int, C: int, d: int, dtype: torch.dtype, device: torch.device) -> _Layout:
     from diffcontact.contact.warp_kernels import SV_P
 
-    saved = _Layout(dtype, device, threaded=False)
+    saved = _Layout(dtype, device)
     saved.add("sv", (n, SV_P + d, C))
     saved.add("LU", (n, C, C))
     saved.add("piv", (n, C), 4)
@@ -666,12 +693,17 @@ def _as(x: Tensor, dtype: torch.dtype) -> Tensor:
     return x if x.dtype == dtype else x.to(dtype)
 
 
-@functools.lru_cache(maxsize=64)
 def _forward_workspace(n: int, C: int, K: int, dtype, device) -> _Layout:
-    """The forward kernel's scratch memory of n problems (two rows per problem)."""
+    """The forward kernel's scratch memory of n problems (two rows per problem), laid out
+    as :data:`CUDA_SCRATCH` says on CUDA."""
+    return _workspace_layout(n, C, K, dtype, device, _scratch_layout(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _workspace_layout(n: int, C: int, K: int, dtype, device, layout: str) -> _Layout:
     from diffcontact.contact.warp_kernels import N_SC, N_SLOTS
 
-    ws = _Layout(dtype, device)
+    ws = _Layout(dtype, device, layout)
     rows = 2 * n
     ws.add("diag0", (rows, C))
     for name in ("Am", "Aipm", "M", "V"):
@@ -870,7 +902,8 @@ class FusedConeQP(torch.autograd.Function):
         flags = torch.zeros(len(FLAGS), dtype=torch.int32, device=device)
         outputs = (f, res, iterations, converged, unbounded, flags)
         sig = _signature(n, device, *inputs)
-        key = ("forward", d, work, device, warm_start is None, settings, sig)
+        layout = _scratch_layout(device)
+        key = ("forward", d, work, device, warm_start is None, settings, sig, layout)
 
         def record() -> _Recorded:
             return _record_forward(inputs, outputs, n, d, warm_start is not None, settings)
@@ -881,7 +914,7 @@ class FusedConeQP(torch.autograd.Function):
         pointers = [x.data_ptr() for x in inputs] + [x.data_ptr() for x in outputs[:5]]
         pointers += [base + offset for *_, offset in saved.specs[:3]]
         pointers.append(flags.data_ptr())
-        ws = _forward_workspace(n, C, C // d, work, device)
+        ws = _workspace_layout(n, C, C // d, work, device, layout)
         parts = _parts(n, C, device)
         # one workspace, shared by the parts where the batch is split (each problem has
         # its own rows)
