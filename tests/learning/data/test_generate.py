@@ -1,10 +1,14 @@
-"""Simulated datasets: independent splits, reuse with the same arguments, refusals."""
+"""Simulated datasets: independent splits, reuse with the same arguments, refusals,
+interrupted runs finished without simulating their finished splits again."""
 
 from __future__ import annotations
 
-import pytest
+import json
 
-from diffcontact.learning.data.format import MARKER, load_dataset
+import pytest
+import torch
+
+from diffcontact.learning.data.format import MARKER, METADATA, load_dataset
 from diffcontact.learning.data.generate import generate_dataset
 from diffcontact.systems import System
 
@@ -92,3 +96,109 @@ def test_datasets_made_before_a_config_key_existed_are_reused():
     ]
     # only inside the config: a top-level argument of that name is not excused
     assert _differences({"seed": 0}, {"seed": 0, "position_projection": 0})
+
+
+# distinct counts, so a simulation's batch size names its split
+SPLIT_OF = {4: "train", 2: "val", 3: "test"}
+COUNTS = {"n_train": 4, "n_val": 2, "n_test": 3}
+
+
+def count_simulations(monkeypatch, fail: str | None = None) -> list[str]:
+    """Record the split of every ``System.simulate`` call; interrupt the one of ``fail``."""
+    calls: list[str] = []
+    simulate = System.simulate
+
+    def counted(self, z0, *args, **kwargs):
+        calls.append(SPLIT_OF[z0.shape[0]])
+        if calls[-1] == fail:
+            raise KeyboardInterrupt  # Ctrl-C while this split is simulated
+        return simulate(self, z0, *args, **kwargs)
+
+    monkeypatch.setattr(System, "simulate", counted)
+    return calls
+
+
+def interrupted_run(folder, monkeypatch) -> None:
+    """A run of COUNTS stopped while simulating the test split."""
+    calls = count_simulations(monkeypatch, fail="test")
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(BP5, folder, **COUNTS, progress=False)
+    assert calls == ["train", "val", "test"]
+    monkeypatch.undo()
+    names = sorted(p.name for p in folder.iterdir())
+    assert names == [MARKER, "train.npz", "val.npz"]  # finished splits kept, no metadata
+
+
+def assert_same_dataset(folder, reference) -> None:
+    """Bitwise the same split files and arrays; the same checksums in the metadata."""
+    for name in ("train", "val", "test"):
+        assert (folder / f"{name}.npz").read_bytes() == (reference / f"{name}.npz").read_bytes()
+    ours, theirs = load_dataset(folder), load_dataset(reference)
+    assert ours.metadata["files"] == theirs.metadata["files"]
+    assert ours.metadata["stats"] == theirs.metadata["stats"]
+    for name in ("train", "val", "test"):
+        a, b = ours.split(name), theirs.split(name)
+        for key in ("traj", "chunks", "chunk_start", "chunk_has_contact", "contact"):
+            assert torch.equal(getattr(a, key), getattr(b, key)), (name, key)
+    assert not (folder / MARKER).exists()
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    return generate_dataset(BP5, tmp_path_factory.mktemp("ref") / "ds", **COUNTS, progress=False)
+
+
+def test_an_interrupted_run_keeps_and_reuses_its_finished_splits(
+    uninterrupted, tmp_path, monkeypatch, capsys
+):
+    folder = tmp_path / "ds"
+    interrupted_run(folder, monkeypatch)
+    kept = {n: (folder / f"{n}.npz").stat().st_ino for n in ("train", "val")}
+    calls = count_simulations(monkeypatch)
+    assert generate_dataset(BP5, folder, **COUNTS, progress=True) == folder
+    assert calls == ["test"]  # train and val were not simulated again
+    out = capsys.readouterr().out
+    assert f"finishing the interrupted dataset in {folder}" in out
+    assert "reusing the train split of the interrupted run (4 trajectories)" in out
+    assert "reusing the val split of the interrupted run (2 trajectories)" in out
+    # the reused files are not written again (an atomic write would give a new inode)
+    assert kept == {n: (folder / f"{n}.npz").stat().st_ino for n in ("train", "val")}
+    assert_same_dataset(folder, uninterrupted)
+
+
+def test_a_leftover_split_that_is_not_complete_is_simulated_again(
+    uninterrupted, tmp_path, monkeypatch, capsys
+):
+    folder = tmp_path / "ds"
+    interrupted_run(folder, monkeypatch)
+    train = (folder / "train.npz").read_bytes()
+    (folder / "train.npz").write_bytes(train[: len(train) // 2])  # truncated
+    (folder / "val.npz").write_bytes(train)  # readable, but 4 trajectories, not 2
+    calls = count_simulations(monkeypatch)
+    assert generate_dataset(BP5, folder, **COUNTS, progress=True) == folder
+    assert calls == ["train", "val", "test"]
+    out = capsys.readouterr().out
+    assert "reusing the" not in out
+    assert "train.npz of the interrupted run is not a complete train split" in out
+    assert "val.npz of the interrupted run is not a complete val split (traj of shape" in out
+    assert "simulating the val split again" in out
+    assert_same_dataset(folder, uninterrupted)
+
+
+def test_a_run_interrupted_before_its_metadata_simulates_nothing_again(
+    uninterrupted, tmp_path, monkeypatch
+):
+    """Only an interrupted run's splits are reused: an interruption after the last split
+    (before metadata.json) simulates nothing on the re-run, and writes no split again."""
+    folder = tmp_path / "ds"
+    folder.mkdir()
+    for name in ("train", "val", "test"):
+        (folder / f"{name}.npz").write_bytes((uninterrupted / f"{name}.npz").read_bytes())
+    arguments = json.loads((uninterrupted / METADATA).read_text())["arguments"]
+    (folder / MARKER).write_text(json.dumps({"arguments": arguments}))
+    inodes = {p.name: p.stat().st_ino for p in folder.glob("*.npz")}
+    calls = count_simulations(monkeypatch)
+    assert generate_dataset(BP5, folder, **COUNTS, progress=False) == folder
+    assert calls == []
+    assert inodes == {p.name: p.stat().st_ino for p in folder.glob("*.npz")}
+    assert_same_dataset(folder, uninterrupted)

@@ -1,4 +1,12 @@
-"""Simulated datasets: :func:`generate_dataset` (``diffcontact generate TASK``)."""
+"""Simulated datasets: :func:`generate_dataset` (``diffcontact generate TASK``).
+
+The splits are simulated one after the other, and each split's file is written
+(atomically) as soon as it is ready, while the marker of the run in progress is in
+place; ``metadata.json`` comes last. Re-running an interrupted run with the same
+arguments reuses every split file it finished (the seeds make a split
+deterministic, so a reused split equals a simulated one) and simulates the others;
+a leftover file that does not load as that split is removed and simulated again.
+"""
 
 from __future__ import annotations
 
@@ -11,11 +19,11 @@ import numpy as np
 import torch
 
 from diffcontact.contact.registry import create_contact_model
-from diffcontact.io import jsonable, parse_device
+from diffcontact.io import jsonable, parse_device, read_npz
 from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
 from diffcontact.learning.data.chunks import chunk_split, contact_states
-from diffcontact.learning.data.format import SPLITS, split_seeds
-from diffcontact.learning.data.write import prepare_folder, write_dataset
+from diffcontact.learning.data.format import ARRAYS, SPLITS, WINDOW_ARRAYS, split_seeds
+from diffcontact.learning.data.write import prepare_folder, say, write_dataset, write_split
 from diffcontact.systems import load_system
 
 __all__ = ["generate_dataset"]
@@ -47,10 +55,18 @@ def generate_dataset(
     contain a contact), and Gaussian noise added to the chunks only (for a
     chain pendulum on the link angles and angular velocities).
 
+    Each split's file is written as soon as the split is ready, ``metadata.json``
+    last. A run interrupted before ``metadata.json`` is finished by re-running
+    it with the same arguments: the split files it wrote are reused (when they
+    load as complete splits of the requested sizes; others are removed and
+    simulated again), the missing splits simulated.
+
     Args:
         spec: built-in task name, ``.yaml``/``.json`` config path or dict.
         out_dir: dataset folder (created; must be empty, or hold a dataset
-            made with the same arguments, which is then reused).
+            made with the same arguments, which is then reused, or the
+            leftovers of an interrupted run with the same arguments, which is
+            then finished).
         n_train, n_val, n_test: trajectories per split (``n_train >= 1``).
         seed: base seed; the splits use ``seed * 1000 + 0/1/2``
             (``split_seeds``), so they hold different trajectories.
@@ -58,7 +74,8 @@ def generate_dataset(
             chain pendulum to the link angles and angular velocities).
         chunk_length: states per chunk (``>= 2``).
         contact_fraction: target share of chunks containing a contact.
-        progress: progress bars and messages (including "reusing ...").
+        progress: progress bars and messages (including "reusing ...", for a
+            finished dataset or a split of an interrupted run).
         device: where to simulate (the files are the same float64 arrays).
         contact_model: the registered contact model that simulates the ground
             truth (``diffcontact.contact.contact_models()``); recorded in
@@ -120,9 +137,23 @@ def generate_dataset(
 
     seeds = split_seeds(seed)
     P, d = system.n_points, system.dim
+    keys = ARRAYS + (WINDOW_ARRAYS if stride is not None else ())
     splits: dict[str, dict[str, np.ndarray]] = {}
     for name in SPLITS:
         n = counts[name]
+        path = folder / f"{name}.npz"
+        if path.exists():  # left by an interrupted run with the same arguments
+            arrays, problem = _leftover_split(path, keys, n, (T, 2, P, d), chunk_length, stride)
+            if arrays is not None:
+                say(progress, f"reusing the {name} split of the interrupted run ({n} trajectories)")
+                splits[name] = arrays
+                continue
+            path.unlink()
+            say(
+                progress,
+                f"{path.name} of the interrupted run is not a complete {name} split "
+                f"({problem}): removed, simulating the {name} split again",
+            )
         if n == 0:
             traj = np.zeros((0, T, 2, P, d))
         else:
@@ -139,5 +170,56 @@ def generate_dataset(
             system, traj, contact, seeds[name], chunk_length, contact_fraction, noise_std,
             stride, name,
         )  # fmt: skip
-    write_dataset(folder, system, splits, arguments, device=str(dev))
+        write_split(folder, name, splits[name])  # a later crash keeps this split
+    write_dataset(folder, system, splits, arguments, on_disk=SPLITS, device=str(dev))
     return folder
+
+
+def _leftover_split(
+    path: Path,
+    keys: tuple[str, ...],
+    n: int,
+    state: tuple[int, ...],
+    chunk_length: int,
+    stride: int | None,
+) -> tuple[dict[str, np.ndarray] | None, str]:
+    """A split file an interrupted run left, if it is a complete split: ``(arrays, "")``.
+
+    Complete: it reads, holds exactly the arrays ``keys`` with their dtypes, and
+    their shapes agree with ``n`` trajectories of ``state = (T, 2, P, d)``:
+    ``traj (n, T, 2, P, d)``, ``chunks (M, L, 2, P, d)``, ``chunk_start``,
+    ``chunk_has_contact`` (and with windows ``chunk_traj``) ``(M,)``, ``contact
+    (n, T)``, ``M = n`` for one chunk per trajectory. Otherwise ``(None, why)``.
+    """
+    try:
+        arrays, members = read_npz(path)
+    except (OSError, ValueError) as err:
+        return None, f"unreadable: {err}"
+    if sorted(members) != sorted(keys):
+        return None, f"arrays {sorted(members)}, expected {sorted(keys)}"
+    ints, bools = ("chunk_start", "chunk_traj"), ("chunk_has_contact", "contact")
+    for key, arr in arrays.items():
+        dtype = np.int64 if key in ints else np.bool_ if key in bools else np.float64
+        if arr.dtype != dtype:
+            return None, f"{key} of dtype {arr.dtype}"
+    M = arrays["chunk_start"].shape[0] if arrays["chunk_start"].ndim == 1 else -1
+    T = state[0]
+    expected = {
+        "traj": (n, *state),
+        "chunks": (M, chunk_length, *state[1:]),
+        "chunk_start": (M,),
+        "chunk_has_contact": (M,),
+        "contact": (n, T),
+        "chunk_traj": (M,),
+    }
+    for key, arr in arrays.items():
+        if arr.shape != expected[key]:
+            return None, f"{key} of shape {arr.shape}, expected {expected[key]}"
+    if stride is None and M != n:
+        return None, f"{M} chunks for {n} trajectories"
+    start, owner = arrays["chunk_start"], arrays.get("chunk_traj")
+    if M and not (start.min() >= 0 and start.max() <= T - chunk_length):
+        return None, "chunk starts out of range"
+    if M and owner is not None and not (owner.min() >= 0 and owner.max() < n):
+        return None, "chunk trajectories out of range"
+    return arrays, ""

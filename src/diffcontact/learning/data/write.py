@@ -4,14 +4,18 @@ Writes are atomic (temporary file + rename); ``metadata.json`` is written last
 (with its own checksum, ``metadata_sha256``), so a folder without it is
 unfinished. Re-running with the same arguments reuses the files (writing nothing,
 so a finished dataset on read-only storage is reused too); different
-arguments never overwrite them (``ValueError``).
+arguments never overwrite them (``ValueError``). A split file can be written
+on its own (:func:`write_split`) while the marker is in place, as soon as the
+split is ready: ``generate_dataset`` does so, and a re-run after an interruption
+reuses the split files already written (``write_dataset(..., on_disk=...)``
+then hashes them instead of writing them again).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -38,7 +42,7 @@ from diffcontact.learning.data.format import (
 )
 from diffcontact.systems import System
 
-__all__ = ["prepare_folder", "say", "write_dataset"]
+__all__ = ["prepare_folder", "say", "split_keys", "write_dataset", "write_split"]
 
 
 def say(progress: bool, message: str) -> None:
@@ -179,11 +183,32 @@ def prepare_folder(folder: Path, arguments: dict[str, Any], progress: bool) -> b
     return False
 
 
+def split_keys(arrays: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """The arrays a split file holds: ``ARRAYS``, then those of ``WINDOW_ARRAYS`` present."""
+    return ARRAYS + tuple(k for k in WINDOW_ARRAYS if k in arrays)
+
+
+def write_split(folder: Path, name: str, arrays: dict[str, np.ndarray]) -> Path:
+    """Write split ``name``'s file ``folder/<name>.npz`` atomically; return its path.
+
+    ``arrays``: those of :func:`~diffcontact.learning.data.chunks.chunk_split`
+    (``traj (N, T, 2, P, d)``, ``chunks (M, L, 2, P, d)``, ``chunk_start (M,)``,
+    ``chunk_has_contact (M,)``, ``contact (N, T)``, with windows ``chunk_traj
+    (M,)``); the file holds :func:`split_keys` of them, byte for byte the same
+    for the same arrays.
+    """
+    path = folder / f"{name}.npz"
+    atomic_save_npz(path, **{key: arrays[key] for key in split_keys(arrays)})
+    return path
+
+
 def write_dataset(
     folder: Path,
     system: System,
     splits: dict[str, dict[str, np.ndarray]],
     arguments: dict[str, Any],
+    *,
+    on_disk: Collection[str] = (),
     **extra: Any,
 ) -> None:
     """Write the split files, then ``metadata.json`` (with their checksums), atomically.
@@ -194,12 +219,17 @@ def write_dataset(
     added, ``stride`` when the chunks are windows, ``true_parameters`` when
     recorded data declares its config's parameters true); ``extra`` entries
     (e.g. the simulation's ``device``) follow ``parameters_known``.
+
+    ``on_disk``: splits whose files are already in ``folder`` and hold
+    ``splits[name]`` (written by :func:`write_split` as the run went, or reused
+    from an interrupted run): they are not written again, their checksums are
+    computed from the files. The other splits' files are written here.
     """
     files: dict[str, str] = {}
     for name in SPLITS:
         path = folder / f"{name}.npz"
-        keys = ARRAYS + tuple(k for k in WINDOW_ARRAYS if k in splits[name])
-        atomic_save_npz(path, **{key: splits[name][key] for key in keys})
+        if name not in on_disk:
+            write_split(folder, name, splits[name])
         files[path.name] = sha256_file(path)
     seed = arguments["seed"]
     simulated = arguments["source"] == "simulated"
