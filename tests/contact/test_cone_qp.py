@@ -271,6 +271,31 @@ def _backends() -> list[str]:
 
 
 @pytest.mark.parametrize("backend", _backends())
+@pytest.mark.parametrize(
+    ("name", "change", "message"),
+    [
+        ("A", lambda x: x.to_sparse(), "A must be a dense tensor, got layout torch.sparse_coo"),
+        ("b", lambda x: x.to_sparse(), "b must be a dense tensor, got layout torch.sparse_coo"),
+        ("A", lambda x: x.to("meta"), "A is on the meta device"),
+        ("mu", lambda x: x.to("meta"), "mu is on the meta device"),
+        ("active", lambda x: x.to_sparse(), "active must be a dense tensor"),
+    ],
+)
+def test_sparse_and_meta_tensors_are_named(backend, name, change, message):
+    # both ended in a raw error from deep inside (torch's 'aten::ne.Scalar' for the
+    # SparseCPU backend, Warp's missing data pointer, .item() on a meta tensor)
+    args = {
+        "A": torch.eye(4, dtype=F64).expand(3, 4, 4),
+        "b": torch.ones(3, 4, dtype=F64),
+        "mu": torch.ones(3, 2, dtype=F64),
+        "active": torch.ones(3, 2, dtype=torch.bool),
+    }
+    args[name] = change(args[name])
+    with pytest.raises(ValueError, match=f"solve_cone_qp: {message}"):
+        solve_cone_qp(**args, d=2, settings=SolverSettings(backend=backend))
+
+
+@pytest.mark.parametrize("backend", _backends())
 def test_an_indefinite_A_is_refused_on_its_active_contacts(backend):
     # positive diagonal, symmetric, eigenvalue -0.5 from the coupling of contacts 0 and 1:
     # a nonconvex problem, on which the two backends returned different impulses silently

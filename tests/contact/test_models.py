@@ -138,6 +138,8 @@ SHAPE = r"must have shape \(\.\.\., "
         ({"J_C": torch.ones(2, 5, 3, dtype=F64)}, "J_C must be a floating tensor of shape"),
         ({"mu": torch.full((2, 2), -0.1, dtype=F64)}, "mu must be >= 0"),
         ({"v": torch.ones(2, 3, dtype=torch.int64)}, "v must be a floating-point .*torch.int64"),
+        ({"J_C": torch.ones(2, 4, 3, dtype=F64).to_sparse()}, "J_C must be a dense tensor"),
+        ({"Mhat_inv": torch.eye(3, dtype=F64).expand(2, 3, 3).to("meta")}, "Mhat_inv is on the"),
     ],
 )
 def test_impulse_functions_name_bad_inputs(name, change, message):

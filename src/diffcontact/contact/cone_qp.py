@@ -785,11 +785,24 @@ def _semidefinite(A: Tensor, active: Tensor, d: int) -> bool:
     return not bool((info > 0).any())
 
 
+def check_dense(caller: str, name: str, x: Tensor) -> None:
+    """``ValueError`` naming ``caller`` and ``name`` unless ``x`` is a dense tensor with
+    values: a sparse one (which the solver's kernels cannot read) or one on the meta
+    device (shapes only) is refused before any arithmetic."""
+    if x.layout != torch.strided:
+        raise ValueError(
+            f"{caller}: {name} must be a dense tensor, got layout {x.layout} (call .to_dense())"
+        )
+    if x.device.type == "meta":
+        raise ValueError(f"{caller}: {name} is on the meta device, which holds no values")
+
+
 def _check(name: str, x: Tensor, finite: bool = True) -> None:
     """Type check, and unless ``finite`` is False (the Warp backend checks finiteness in its
     kernel, without a host synchronisation per tensor), a finiteness check."""
     if not isinstance(x, Tensor):
         raise ValueError(f"solve_cone_qp: {name} must be a torch.Tensor, got {type(x).__name__}")
+    check_dense("solve_cone_qp", name, x)
     if finite and not bool(torch.isfinite(x).all()):
         raise ValueError(f"solve_cone_qp: {name} contains NaN or infinite values")
 
@@ -877,6 +890,8 @@ def solve_cone_qp(
         active = _all_active(K, A.device)
     elif not isinstance(active, Tensor) or active.dtype != torch.bool:
         raise ValueError("solve_cone_qp: active must be a bool tensor of shape (..., K)")
+    elif active.layout != torch.strided or active.device.type == "meta":
+        check_dense("solve_cone_qp", "active", active)
     elif active.dim() < 1 or active.shape[-1] != K:
         raise ValueError(
             f"solve_cone_qp: active must have shape (..., {K}), got {tuple(active.shape)}"

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from diffcontact.contact.cone_qp import SolverSettings, solve_cone_qp
+from diffcontact.contact.cone_qp import SolverSettings, check_dense, solve_cone_qp
 from diffcontact.contact.operator import ContactOperator, DenseContact, as_operator
 from diffcontact.fastops import cholesky_solve, spd_solve
 from diffcontact.shapes import contact_dimension
@@ -198,6 +198,10 @@ def check_impulse_inputs(
     if not isinstance(v, Tensor) or not v.is_floating_point():
         what = v.dtype if isinstance(v, Tensor) else type(v).__name__
         raise ValueError(f"{caller}: v must be a floating-point torch.Tensor, got {what}")
+    named = {"v": v, "cor": cor, "mu": mu, "J_C": J_C, "Mhat_inv": Mhat_inv}
+    for name, x in (named | {"active": active, "v_C_star": v_C_star}).items():
+        if isinstance(x, Tensor):
+            check_dense(caller, name, x)
     if not isinstance(cor, Tensor):
         raise ValueError(f"{caller}: cor must be a torch.Tensor, got {type(cor).__name__}")
     c = cor.detach()
