@@ -373,6 +373,8 @@ def test_bad_initial_states_are_rejected():
             system.simulate(z0.to(dtype), steps=2)
     with pytest.raises(ValueError, match=r"z0 is on the meta device"):
         system.simulate(z0.to("meta"), steps=2)
+    with pytest.raises(ValueError, match=r"z0 must be a dense tensor, got layout torch\.sparse"):
+        system.simulate(z0.to_sparse(), steps=2)  # (a SparseCPU error from deep inside)
     bad = z0.clone()
     bad[2, 1, 0, 0] = float("nan")
     with pytest.raises(ValueError, match=r"NaN or infinite values \(states \[2\]\)"):

@@ -857,6 +857,10 @@ class System:
             )
         if t.device.type == "meta":
             raise ValueError(f"{name} is on the meta device, which holds no values")
+        if t.layout != torch.strided:
+            raise ValueError(
+                f"{name} must be a dense tensor, got layout {t.layout} (call .to_dense())"
+            )
 
     def _check_state(self, z: Tensor, name: str) -> None:
         self._check_state_shape(z, name)
