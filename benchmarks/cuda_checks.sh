@@ -4,7 +4,7 @@
 #
 #   bash benchmarks/cuda_checks.sh [OUT_DIR [PART ...]]   (needs a CUDA GPU)
 #
-# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-7) pick the parts to run and their
+# OUT_DIR defaults to runs/cuda-checks; PART numbers (0-8) pick the parts to run and their
 # order (default all, in order), e.g. "0 2 4" and then "3 1 5" in two calls where one call
 # may not take them all.
 #
@@ -22,7 +22,11 @@
 # 7. the ropes' rows of part 2 and the Rope training step of part 4 with the projection's
 #    J J^T (and, for Rope-D400, the contact impulse's products) from the rows' entries
 #    (--sparse-gram-cuda; the CPU's default since the fifth and sixth sittings of
-#    2026-11-27, not yet CUDA's), to compare with those parts.
+#    2026-11-27, not yet CUDA's), to compare with those parts;
+# 8. what sets a fused launch's time (benchmarks/run.py chain: the whole call, without the
+#    interior point's problems, those alone; per layout of the solver's scratch memory),
+#    then BP5 and BD5 simulated with each layout (--warp-scratch): the test of the lead of
+#    benchmarks/README.md's eleventh sitting of 2026-11-28, prepared without a GPU.
 #
 # Each part's output goes to OUT_DIR/<part>.txt; the elapsed time is printed per part.
 # The first Warp solve on a device compiles the kernels (minutes) unless the kernel cache
@@ -30,10 +34,10 @@
 set -u
 OUT=${1:-runs/cuda-checks}
 shift $(($# > 0 ? 1 : 0))
-PARTS=${*:-0 1 2 3 4 5 6 7}
+PARTS=${*:-0 1 2 3 4 5 6 7 8}
 for number in $PARTS; do
-    if [[ $number != [0-7] ]]; then
-        echo "cuda_checks.sh: unknown part $number (parts are 0-7)" >&2
+    if [[ $number != [0-8] ]]; then
+        echo "cuda_checks.sh: unknown part $number (parts are 0-8)" >&2
         exit 2
     fi
 done
@@ -95,6 +99,13 @@ part_7() {
         --against none --reps 3 --sparse-gram-cuda
     part 7_train_rope_sparse_read_free 200 $PY benchmarks/run.py train --device cuda \
         --tasks Rope --against none --reps 3 --sparse-gram-cuda --read-free-projection
+}
+part_8() {
+    part 8_chain 200 $PY benchmarks/run.py chain --device cuda
+    for layout in strided contiguous matrices; do
+        part "8_simulate_bp5_bd5_$layout" 120 $PY benchmarks/run.py simulate --device cuda \
+            --all-tasks --tasks BP5 BD5 --scenes 4096 --again --warp-scratch "$layout"
+    done
 }
 for number in $PARTS; do "part_$number"; done
 echo "cuda_checks.sh: done in $(($(date +%s) - start))s; outputs in $OUT"
