@@ -17,8 +17,10 @@ A kernel launch lasts as long as its slowest thread (on a GPU, each thread solve
 problem, and a few thousand threads run at once). If the few problems that need the
 interior point set a launch's time, ``no IPM`` is much shorter than ``all`` and ``IPM
 only`` about as long. Each column is the median over the calls that hold such problems of
-each call's median launch time, in milliseconds, device-synchronised; ``calls w/o IPM``
-is the median ``all`` of the other calls. ``--scratch`` repeats the table for each layout
+each call's median launch time, in milliseconds: on the CPU wall time, device-
+synchronised; on CUDA the kernel's own time (``torch.profiler``), so that the host's
+share of a call does not blur it. ``calls w/o IPM`` is the median ``all`` of the other
+calls. ``--scratch`` repeats the table for each layout
 of the kernel's scratch memory on CUDA (``diffcontact.contact.fused.CUDA_SCRATCH``; on
 the CPU there is one layout); ``same f`` says whether its impulses are bitwise those of
 the first layout's.
@@ -27,10 +29,13 @@ the first layout's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import time
 
 import torch
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity, profile
 
 import diffcontact as dc
 from common import check_device, check_tasks, machine_header, settings, sync
@@ -76,37 +81,89 @@ def _subset(call: tuple, rows: torch.Tensor) -> tuple:
     return (*picked, None if warm is None else warm.index_select(0, rows), d, solver_settings)
 
 
-def _launch_ms(call: tuple, device: str, reps: int) -> tuple[float, torch.Tensor, torch.Tensor]:
-    """Median milliseconds of ``reps`` launches on ``call`` (after one untimed launch), the
-    interior-point iterations of each problem and the impulses."""
-    with torch.no_grad():
-        f, _, _, iterations, *_ = fused.FusedConeQP.apply(*call)
-        times = []
-        for _ in range(reps):
-            sync(device)
+class _Launches:
+    """Launches of the fused forward, timed: wall milliseconds around each (the device
+    synchronised), and on CUDA, where the host's share of a call would blur the kernel's,
+    the kernel's own duration from ``torch.profiler`` (one session for all launches, the
+    kernels matched to the launches in order)."""
+
+    def __init__(self, device: str) -> None:
+        self.device = device
+        self.labels: list[tuple[int, str] | None] = []  # per launch, None: not timed
+        self.ms: dict[tuple[int, str], list[float]] = {}
+        self.note = ""
+
+    def __call__(self, call: tuple, label: tuple[int, str] | None) -> tuple:
+        with torch.no_grad():
+            sync(self.device)
             t0 = time.perf_counter()
-            fused.FusedConeQP.apply(*call)
-            sync(device)
-            times.append(1e3 * (time.perf_counter() - t0))
-    return statistics.median(times), iterations, f
+            out = fused.FusedConeQP.apply(*call)
+            sync(self.device)
+        self.labels.append(label)
+        if label is not None:
+            self.ms.setdefault(label, []).append(1e3 * (time.perf_counter() - t0))
+        return out
+
+    def profiled(self):
+        if self.device != "cuda":
+            return contextlib.nullcontext(None)
+        return profile(activities=[ProfilerActivity.CUDA])
+
+    def use_kernel_times(self, prof) -> None:
+        """Replace the wall times by the kernels' durations (CUDA)."""
+        if prof is None:
+            return
+        kernels = [
+            e for e in prof.events()
+            if e.device_type == DeviceType.CUDA and e.name.startswith("fused_forward")
+        ]  # fmt: skip
+        kernels.sort(key=lambda e: e.time_range.start)
+        if len(kernels) != len(self.labels):
+            self.note = (f"(wall times: {len(kernels)} kernels profiled for "
+                         f"{len(self.labels)} launches)")  # fmt: skip
+            return
+        self.ms = {}
+        for label, e in zip(self.labels, kernels, strict=True):
+            if label is not None:
+                self.ms.setdefault(label, []).append(e.time_range.elapsed_us() / 1e3)
+        self.note = "(kernel times from torch.profiler)"
+
+    def median(self, label: tuple[int, str]) -> float:
+        return statistics.median(self.ms[label])
 
 
 def time_calls(calls: list[tuple], device: str, reps: int) -> dict:
     """The table's row for the current scratch layout, and each call's impulses."""
-    with_ipm, without_ipm, impulses = [], [], []
+    launch = _Launches(device)
+    impulses, ipm_rows = [], []
+    with launch.profiled() as prof:
+        for i, call in enumerate(calls):
+            f, _, _, iterations, *_ = launch(call, None)  # (untimed: caches, recordings)
+            impulses.append(f)
+            ipm = torch.nonzero(iterations > 0).flatten()
+            rest = torch.nonzero(iterations == 0).flatten()
+            ipm_rows.append((ipm, rest, iterations))
+            batches = [("all", call)]
+            if ipm.numel():
+                batches.append(("ipm", _subset(call, ipm)))
+                if rest.numel():
+                    batches.append(("rest", _subset(call, rest)))
+            for kind, batch in batches:
+                if kind != "all":
+                    launch(batch, None)
+                for _ in range(reps):
+                    launch(batch, (i, kind))
+    launch.use_kernel_times(prof)
+    with_ipm, without_ipm = [], []
     worst = None
-    for call in calls:
-        all_ms, iterations, f = _launch_ms(call, device, reps)
-        impulses.append(f)
-        ipm = torch.nonzero(iterations > 0).flatten()
+    for i, (call, (ipm, rest, iterations)) in enumerate(zip(calls, ipm_rows, strict=True)):
+        all_ms = launch.median((i, "all"))
         if ipm.numel() == 0:
             without_ipm.append(all_ms)
             continue
-        rest = torch.nonzero(iterations == 0).flatten()
-        rest_ms = _launch_ms(_subset(call, rest), device, reps)[0] if rest.numel() else 0.0
-        ipm_ms = _launch_ms(_subset(call, ipm), device, reps)[0]
+        rest_ms = launch.median((i, "rest")) if rest.numel() else 0.0
         active = call[4].index_select(0, ipm).sum(-1)
-        entry = (all_ms, rest_ms, ipm_ms, ipm.numel(), int(active.max()))
+        entry = (all_ms, rest_ms, launch.median((i, "ipm")), ipm.numel(), int(active.max()))
         entry += (int(iterations.max()),)
         with_ipm.append(entry)
         if worst is None or all_ms > worst[0]:
@@ -126,6 +183,7 @@ def time_calls(calls: list[tuple], device: str, reps: int) -> dict:
         "calls_without": statistics.median(without_ipm) if without_ipm else float("nan"),
         "worst": worst,
         "impulses": impulses,
+        "note": launch.note,
     }
 
 
@@ -139,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=positive_int, default=None)
     ap.add_argument(
         "--scratch", nargs="+", choices=fused.SCRATCH_LAYOUTS, default=None,
-        help="layouts of the scratch memory to time on CUDA (default: both)",
+        help="layouts of the scratch memory to time on CUDA (default: all)",
     )  # fmt: skip
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args(argv)
@@ -176,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['ipm_per_call']:>8.1f} {r['all']:>8.3f} {r['no_ipm']:>8.3f} "
                   f"{r['ipm_only']:>8.3f} {r['calls_without']:>13.3f} "
                   f"{'yes' if same else 'NO':>6}")  # fmt: skip
+            if r["note"]:
+                print(f"{'':>10} {r['note']}")
             if r["worst"] is not None:
                 all_ms, rest_ms, ipm_ms, count, active, its = r["worst"]
                 print(f"{'':>10} slowest call: {all_ms:.3f} ms, without its {count} IPM "
