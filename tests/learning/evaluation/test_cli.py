@@ -138,3 +138,49 @@ def test_a_run_without_model_pt_is_scored_with_a_warning(tmp_path, dataset, caps
     assert "WARNING: " in out and "has no model.pt (its training did not finish)" in out
     metrics = json.loads((run / "evaluation" / "metrics.json").read_text())
     assert "last checkpoint after 1 of 1 epochs" in metrics["model_note"]
+
+
+def test_a_run_without_last_ckpt_is_scored_from_its_newest_epoch_checkpoint(
+    tmp_path, dataset, capsys
+):
+    """No model.pt and no last.ckpt (deleted, or lost) but epochNNNN.ckpt files: evaluate
+    failed ("holds neither model.pt nor checkpoints/last.ckpt")."""
+    from diffcontact.learning.models.storage import load_model
+    from diffcontact.learning.training.run import train
+
+    run = tmp_path / "run"
+    # (a constant rate: the cosine schedule's is 0 in the second and last step)
+    train(dataset, run, epochs=2, batch_size=1, hidden=(4,), progress=False, schedule="constant")
+    (run / "model.pt").unlink()
+    (run / "checkpoints" / "last.ckpt").unlink()
+    newest = run / "checkpoints" / "epoch0001.ckpt"
+    ratios = [
+        load_model(run / "checkpoints" / f"epoch000{e}.ckpt").learned_parameters()["mass_ratios"]
+        for e in (0, 1)
+    ]
+    assert ratios[0] != ratios[1]
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--no-uncertainty"]) == 0
+    out = capsys.readouterr().out
+    note = (
+        f"{run} has no model.pt (its training did not finish): this is its newest epoch "
+        "checkpoint, checkpoints/epoch0001.ckpt after 2 of 2 epochs (no checkpoints/last.ckpt), "
+        "not a final model"
+    )
+    assert f"WARNING: {note}" in out
+    metrics = json.loads((run / "evaluation" / "metrics.json").read_text())
+    assert metrics["model_note"] == note
+    assert metrics["mass_ratios"]["learned"] == pytest.approx(ratios[1][1:])  # epoch 2's model
+    # an unreadable last.ckpt (a kill while it was written, with earlier versions) is skipped
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--no-uncertainty", "--force"]) == 0
+    out = capsys.readouterr().out
+    assert "its newest epoch checkpoint, checkpoints/epoch0001.ckpt after 2 of 2 epochs " in out
+    assert "last.ckpt cannot be read (truncated or corrupted?): it is empty" in out
+    # no readable checkpoint at all: one line naming what was skipped, exit status 2
+    newest.write_bytes(b"")
+    (run / "checkpoints" / "epoch0000.ckpt").write_bytes(b"")
+    assert cli(["evaluate", str(run), "--n-gif", "0", "--no-uncertainty", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("diffcontact evaluate: error: no trained model in") and (
+        "epoch0000.ckpt cannot be read" in err
+    )

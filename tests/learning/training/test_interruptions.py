@@ -294,3 +294,96 @@ def test_unreadable_checkpoints_are_skipped_on_resume(bp5_data, tmp_path, caplog
         p.unlink()
     with pytest.raises(TrainingInputError, match=r"finished model\.pt but no checkpoint"):
         train(bp5_data, run, epochs=3, resume=True, **OPTS)
+
+
+def test_a_log_cut_mid_line_keeps_its_complete_rows_on_resume_and_says_so(
+    bp5_data, uninterrupted, tmp_path, caplog
+):
+    """A crash (or a full disk) while a row was appended cut logs/metrics.csv in the middle
+    of a line: the resume kept the cut row (a number cut short) or dropped it, silently."""
+    run = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        train(bp5_data, run, epochs=3, callbacks=[_CrashAt(2, 1)], **OPTS)
+    log = run / "logs" / "metrics.csv"
+    lines = log.read_text().splitlines(keepends=True)
+    # lines[7:13]: epoch 2's rows; the disk filled while its third step's row (line 10)
+    # was written: it ends 5 characters short (in its loss), the rest never was written
+    assert lines[9].split(",")[0] == "1" and lines[9].endswith(",,\n")
+    log.write_text("".join(lines[:9]) + lines[9][:-5])
+    with caplog.at_level(logging.WARNING, logger="diffcontact.learning.training.rundir"):
+        train(bp5_data, run, epochs=3, resume=True, **OPTS)
+    warned = [r.getMessage() for r in caplog.records if "metrics.csv" in r.getMessage()]
+    assert len(warned) == 1, warned
+    assert warned[0].startswith(f"{log}: line 10 is incomplete (cut mid-line")
+    assert "kept the 8 rows before it" in warned[0]
+    _assert_same_weights(run, uninterrupted)  # (the checkpoint of epoch 2 was resumed)
+
+    def key(row):  # (time/epoch_s differs between runs)
+        return {k: v for k, v in row.items() if k != "time/epoch_s"}
+
+    rows, ref = [key(r) for r in _log_rows(run)], [key(r) for r in _log_rows(uninterrupted)]
+    # every complete row before the cut, no row of the cut on, epoch 3 written again
+    assert rows == ref[:8] + [r for r in ref if r["epoch"] == "2"]
+
+
+def test_incomplete_lines_anywhere_in_the_log_are_dropped_and_named(tmp_path, caplog):
+    """Rows appended after a cut line continue it (one line with too many cells); NUL bytes
+    are what a crash can leave in a file's last block."""
+    from diffcontact.learning.training.rundir import truncate_log
+
+    log = tmp_path / "logs" / "metrics.csv"
+    log.parent.mkdir()
+    rows = [f"{e},{s},{0.5 + s}\n" for e, s in ((0, 0), (0, 1), (1, 2), (1, 3), (2, 4))]
+    log.write_text(
+        "epoch,step,loss\n" + rows[0] + rows[1][:-3] + "".join(rows[1:4]) + "\0\0\0\n" + rows[4]
+    )
+    with caplog.at_level(logging.WARNING, logger="diffcontact.learning.training.rundir"):
+        truncate_log(tmp_path, 2, 0)
+    assert log.read_text() == "epoch,step,loss\n" + rows[0] + "".join(rows[2:4])
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert message.startswith(f"{log}: lines 3, 6 are incomplete (cut mid-line")
+    assert "kept the 1 rows before the first and the 2 complete rows after it" in message
+    # a complete log: nothing said
+    caplog.clear()
+    truncate_log(tmp_path, 1, 3)
+    assert log.read_text() == "epoch,step,loss\n" + rows[0] + rows[2] and not caplog.records
+
+
+class _SignalInLastValidation(pl.Callback):
+    """SIGINT during the validation of the last epoch: no training step is left to stop."""
+
+    def __init__(self, epochs):
+        self.epoch, self.sent = epochs - 1, False
+
+    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, *args):
+        if trainer.current_epoch == self.epoch and not self.sent:
+            self.sent = True
+            signal.raise_signal(signal.SIGINT)
+
+
+def test_ctrl_c_after_the_last_step_says_that_the_run_finished(
+    bp5_data, tmp_path, monkeypatch, capsys
+):
+    """The announcement said "stopping after this step and writing a checkpoint", then the
+    run finished (model.pt, exit status 0) and nothing said so; a --refit ran on."""
+    from diffcontact.learning.training import run as run_module
+
+    real = run_module.train
+    monkeypatch.setattr(
+        run_module, "train", lambda *a, **k: real(*a, callbacks=[_SignalInLastValidation(2)], **k)
+    )
+    run = tmp_path / "run"
+    code, _, err = run_cli(
+        capsys, "train", str(bp5_data), "--out", str(run), "--epochs", "2", "--batch-size",
+        "2", "--hidden", "16,16", "--quiet", "--refit", "1",
+    )  # fmt: skip
+    assert code == 0, err
+    assert (run / "model.pt").is_file() and not (run / "refit.json").exists()
+    assert json.loads((run / "learned.json").read_text())["finished"] is True
+    lines = err.strip().splitlines()
+    assert lines[-2].startswith("diffcontact train: SIGINT received: stopping after this step")
+    assert lines[-1] == (
+        "diffcontact train: SIGINT was received after the last training step, so nothing was "
+        f"left to stop: the run ended normally and wrote {run / 'model.pt'} (nothing to "
+        f"resume); the refit was not run (diffcontact refit {run} --iterations 1 runs it)"
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -214,3 +215,67 @@ def test_a_run_that_took_no_step_fails_after_writing_its_directory(tmp_path, cap
     assert (run / "model.pt").is_file() and (run / "learned.json").is_file()
     skips = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert [m.split(":")[0] for m in skips] == ["epoch 1", "epoch 2"]  # counted from 1
+
+
+@pytest.mark.parametrize("name", ["checkpoints/last.ckpt", "checkpoints/epoch0003.ckpt"])
+def test_a_folder_where_the_run_writes_a_file_is_refused_before_training(
+    bp5_data, finished, tmp_path, capsys, name
+):
+    """A folder at last.ckpt failed the run only when the checkpoint was written, at the end
+    of the first epoch trained."""
+    run = _copy(finished, tmp_path)
+    (run / "model.pt").unlink()
+    (run / name).unlink(missing_ok=True)
+    (run / name).mkdir()
+    before = (run / "run.json").read_text()
+    code, _, err = run_cli(
+        capsys, "train", str(bp5_data), "--out", str(run), "--epochs", "4", "--batch-size", "4",
+        "--hidden", "16,16", "--resume", "--quiet",
+    )  # fmt: skip
+    assert_usage_error(code, err, f"{run / name} is a directory", "move it away")
+    assert not (run / "checkpoints" / "epoch0001.ckpt").exists()  # nothing trained
+    assert (run / "run.json").read_text() == before  # nothing written
+
+
+def _metrics_writer(folder):
+    from diffcontact.learning.training.rundir import _RunCSVWriter
+
+    writer = _RunCSVWriter(log_dir=str(folder))
+    writer.log_metrics({"loss": 1.0}, step=0)
+    writer.save()  # (the first save writes the file whole, atomically)
+    writer.log_metrics({"loss": 0.5}, step=1)
+    writer.log_metrics({"loss": 0.25}, step=2)
+    return writer, folder / "metrics.csv"
+
+
+def test_a_full_disk_names_the_log_and_leaves_no_cut_line(tmp_path, monkeypatch):
+    """An append that failed for a full disk said only "No space left on device"."""
+    writer, log = _metrics_writer(tmp_path)
+    written = log.read_bytes()
+    real_open = os.open
+    # the disk is full: every write to the log fails (/dev/full says ENOSPC)
+    monkeypatch.setattr(
+        os, "open", lambda p, *a, **k: real_open("/dev/full" if p == log else p, *a, **k)
+    )
+    with pytest.raises(OSError) as caught:
+        writer.save()
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(log)
+    assert str(log) in str(caught.value)
+    monkeypatch.undo()
+    # room for half of the rows: the half-written line is taken back
+    real_write = os.write
+
+    def half(fd, data):
+        if os.fstat(fd).st_ino == log.stat().st_ino:
+            real_write(fd, bytes(data[: len(data) // 2]))
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", half)
+    with pytest.raises(OSError, match="No space left on device") as caught:
+        writer.save()
+    assert caught.value.filename == str(log)
+    assert log.read_bytes() == written
+    monkeypatch.undo()
+    writer.save()  # space again: the rows are written once, whole
+    assert log.read_text() == "loss,step\n1.0,0\n0.5,1\n0.25,2\n"

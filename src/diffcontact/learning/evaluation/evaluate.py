@@ -143,21 +143,44 @@ def _has_checkpoint(run_dir: Path) -> bool:
     return ckpts.is_dir() and any(ckpts.glob("*.ckpt"))
 
 
-def _unfinished_note(run_path: Path, run: Mapping[str, Any]) -> str:
-    """What an evaluation of a run without ``model.pt`` scores: its last checkpoint."""
-    from diffcontact.learning.training.checkpoints import resume_point
+def _unfinished_checkpoint(run_path: Path, run: Mapping[str, Any]) -> tuple[Path, str]:
+    """The checkpoint an evaluation of a run without ``model.pt`` scores, and the note
+    that says so: ``checkpoints/last.ckpt``, else (missing or unreadable) the newest
+    readable ``epochNNNN.ckpt``.
 
+    Raises:
+        EvaluationInputError: no readable checkpoint; one that would run code to load.
+    """
+    from diffcontact.learning.training.checkpoints import (
+        LAST,
+        epochs_done,
+        newest_checkpoint,
+    )
+
+    folder = run_path / "checkpoints"
     try:
-        point = resume_point(run_path / "checkpoints")
-    except ValueError:
-        point = None
-    done = None if point is None or point.path is None else point.epoch + (not point.mid_epoch)
+        path, ckpt, notes = newest_checkpoint(folder)
+    except ValueError as err:  # (UnsafeFileError)
+        raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
+    if path is None:
+        skipped = f" ({'; '.join(notes)})" if notes else ""
+        raise EvaluationInputError(
+            f"no trained model in {run_path}: no model.pt and no readable checkpoint in "
+            f"{folder}{skipped}"
+        )
+    done = epochs_done(ckpt)
     of = f" of {run['epochs']}" if isinstance(run.get("epochs"), int) else ""
     when = "" if done is None else f" after {done}{of} epochs"
-    return (
-        f"{run_path} has no model.pt (its training did not finish): this is its last "
-        f"checkpoint{when}, not a final model"
+    if path.name == LAST:
+        what = f"its last checkpoint{when}"
+    else:
+        gone = "; ".join(notes) if notes else f"no {folder.name}/{LAST}"
+        what = f"its newest epoch checkpoint, {folder.name}/{path.name}{when} ({gone})"
+    note = (
+        f"{run_path} has no model.pt (its training did not finish): this is {what}, not a "
+        "final model"
     )
+    return path, note
 
 
 def _resolve_data_dir(run_dir: Path | None, run: Mapping[str, Any], data_dir: Any) -> Path:
@@ -358,7 +381,9 @@ def evaluate(
         model: an object with ``simulate(z0, steps)`` (``(N, 2, P, dim)`` ->
             ``(N, steps + 1, 2, P, dim)``) and ``learned_parameters()`` (dict
             with ``mass_ratios``, ``mu``, ``cor``, optionally ``eps``); default
-            ``load_model(run_dir)``.
+            the run's ``model.pt``, else (an unfinished run) its
+            ``checkpoints/last.ckpt``, else its newest readable ``epochNNNN.ckpt``
+            (``model_note`` says which).
         data_dir: the dataset (read with ``load_dataset``: checksums verified); default
             ``run.json``'s ``data_dir`` (as given, else relative to the run).
         n_gif: test trajectories in the GIF (0: no GIF; at most
@@ -411,7 +436,7 @@ def evaluate(
         if run_path.is_file():
             raise EvaluationInputError(
                 f"{run_path} is a file: give the run directory that holds it (evaluate reads "
-                "its run.json, and model.pt or else checkpoints/last.ckpt)"
+                "its run.json, and model.pt or else its newest checkpoint)"
             )
         if not run_path.is_dir():
             raise EvaluationInputError(f"run directory {run_path} does not exist")
@@ -456,12 +481,13 @@ def evaluate(
     if model is None:
         from diffcontact.learning.models.storage import load_model
 
+        model_file = run_path
+        if not (run_path / "model.pt").is_file():  # a run still training, or interrupted
+            model_file, model_note = _unfinished_checkpoint(run_path, run)
         try:
-            model = load_model(run_path)
+            model = load_model(model_file)
         except (FileNotFoundError, ValueError) as err:
             raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
-        if not (run_path / "model.pt").is_file():  # a run still training, or interrupted
-            model_note = _unfinished_note(run_path, run)
     if isinstance(model, torch.nn.Module):
         model = model.to(dev).eval()
     why = dataset.mismatch(model, torch.as_tensor(traj[:64, 0, 0]))  # the test states, read

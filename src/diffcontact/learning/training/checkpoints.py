@@ -27,7 +27,14 @@ from diffcontact.io import atomic_write_bytes
 from diffcontact.learning.models.storage import UnsafeFileError, load_torch_file
 from diffcontact.learning.training.options import TrainingInputError
 
-__all__ = ["LAST", "ResumePoint", "SafeCheckpointIO", "resume_point"]
+__all__ = [
+    "LAST",
+    "ResumePoint",
+    "SafeCheckpointIO",
+    "epochs_done",
+    "newest_checkpoint",
+    "resume_point",
+]
 
 LAST = "last.ckpt"
 _EPOCH_FILE = re.compile(r"^epoch(\d+)\.ckpt$")
@@ -88,14 +95,33 @@ def _candidates(folder: Path) -> list[Path]:
     return [folder / LAST] + [p for _, p in sorted(numbered, reverse=True)]
 
 
+def _progress(ckpt: Any) -> tuple[int, int, int, int]:
+    """``(epoch, batches stepped, batches completed, batches ready)`` of a training checkpoint.
+
+    Raises:
+        KeyError, TypeError, AttributeError, ValueError: not a diffcontact training checkpoint.
+    """
+    if not {"state_dict", "hyper_parameters", "loops", "epoch"} <= set(ckpt):
+        raise KeyError("keys")
+    fit = ckpt["loops"]["fit_loop"]
+    stepped = int(fit["epoch_loop.state_dict"].get("_batches_that_stepped", 0))
+    current = fit["epoch_loop.batch_progress"]["current"]
+    return int(ckpt["epoch"]), stepped, int(current["completed"]), int(current["ready"])
+
+
+def epochs_done(ckpt: Any) -> int | None:
+    """The epochs a training checkpoint's run had finished (its epoch, plus one when it
+    was written at the epoch's end); ``None`` for contents that are not such a checkpoint."""
+    try:
+        epoch, _, done, ready = _progress(ckpt)
+    except (KeyError, TypeError, AttributeError, ValueError):
+        return None
+    return epoch + (ready == done)
+
+
 def _describe(ckpt: Any, path: Path, notes: list[str]) -> ResumePoint:
     try:
-        if not {"state_dict", "hyper_parameters", "loops", "epoch"} <= set(ckpt):
-            raise KeyError("keys")
-        fit = ckpt["loops"]["fit_loop"]
-        stepped = int(fit["epoch_loop.state_dict"].get("_batches_that_stepped", 0))
-        current = fit["epoch_loop.batch_progress"]["current"]
-        done, ready = int(current["completed"]), int(current["ready"])
+        _, stepped, done, ready = _progress(ckpt)
     except (KeyError, TypeError, AttributeError, ValueError):
         raise TrainingInputError(
             f"cannot resume: {path} is not a diffcontact training checkpoint (move it away "
@@ -139,16 +165,32 @@ def resume_point(checkpoints: Path) -> ResumePoint:
             (loading it could run code: refused, not skipped), or is readable but
             not a diffcontact training checkpoint.
     """
+    try:
+        path, ckpt, notes = newest_checkpoint(checkpoints)
+    except UnsafeFileError as err:
+        raise TrainingInputError(f"cannot resume: {err}") from None
+    if path is None:
+        return ResumePoint(None, notes=notes)
+    return _describe(ckpt, path, notes)
+
+
+def newest_checkpoint(checkpoints: Path) -> tuple[Path | None, Any, list[str]]:
+    """``(path, contents, notes)`` of the newest readable checkpoint in ``checkpoints``:
+    ``last.ckpt``, else the newest readable ``epochNNNN.ckpt``; ``(None, None, notes)``
+    without one. ``notes``: the checkpoints skipped as unreadable, one line each.
+
+    Raises:
+        UnsafeFileError: a checkpoint holds more than tensors and plain data
+            (refused, not skipped).
+    """
     notes: list[str] = []
     for path in _candidates(checkpoints):
         if not path.is_file():
             continue
         try:
-            ckpt = load_torch_file(path, "checkpoint")
-        except UnsafeFileError as err:
-            raise TrainingInputError(f"cannot resume: {err}") from None
+            return path, load_torch_file(path, "checkpoint"), notes
+        except UnsafeFileError:  # (a ValueError, but refused rather than skipped)
+            raise
         except ValueError as err:
             notes.append(f"skipped {err}")
-            continue
-        return _describe(ckpt, path, notes)
-    return ResumePoint(None, notes=notes)
+    return None, None, notes

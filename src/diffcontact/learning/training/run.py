@@ -32,6 +32,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
@@ -489,13 +490,16 @@ def train(
             training set with no finite chunk included), unknown model, bad
             options, CUDA unavailable, an ``out_dir`` that is not empty and
             holds no run of ours, holds a symbolic link, holds a run (without
-            ``resume``) or a different run, or a checkpoint that would need
-            more than tensors and plain data to load.
+            ``resume``) or a different run, holds a folder where the run writes
+            a file (``checkpoints/last.ckpt``, ...), or a checkpoint that would
+            need more than tensors and plain data to load.
         TrainingInterrupted (a ``KeyboardInterrupt``): SIGINT or SIGTERM
             stopped the run after the running step; a checkpoint was written
             (``resume=True`` continues). A second SIGINT stops it at once, without
             a checkpoint (its ``checkpoint`` is ``None``; ``resume=True`` continues
-            from the last one written).
+            from the last one written). A signal after the last training step
+            stops nothing: the run ends (``model.pt`` written, a ``refit`` not
+            run) and a line on stderr says so.
     """
     check_options(
         model=model, epochs=epochs, batch_size=batch_size, lr=lr, physics_lr=physics_lr,
@@ -704,7 +708,12 @@ def train(
             )
         finally:
             stop.restore()
-    if refit and trainer.is_global_zero:
+    # a signal after the last training step (in the last validation): nothing was left to
+    # stop, and the run ended as it would have; its announcement said otherwise
+    late_stop = stop.received is not None and trainer.is_global_zero
+    if late_stop:
+        _ended_after_signal(stop, out, refit, stop_after is not None and stop_after.triggered)
+    if refit and trainer.is_global_zero and not late_stop:
         from diffcontact.learning.models.storage import load_model
         from diffcontact.learning.training.refit import refit_run
 
@@ -838,6 +847,28 @@ def _interrupted(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted
         f"{epoch + 1}; wrote {stop.checkpoint}; continue with --resume"
     )
     return TrainingInterrupted(message, stop.signal_name, stop.exit_status, stop.checkpoint)
+
+
+def _ended_after_signal(stop: GracefulStop, out: Path, refit: int, cut: bool) -> None:
+    """Say that a signal received after the last step stopped nothing: the run ended and
+    wrote ``model.pt`` (a refit, which takes a while, is left to ``diffcontact refit``).
+    ``cut``: ``max_time`` ended the run (its warning says how to finish it)."""
+    if not stop.announce:
+        return
+    ended = "ended at --max-time (see above)" if cut else "ended normally"
+    left = "" if cut else " (nothing to resume)"
+    later = (
+        f"; the refit was not run (diffcontact refit {out} --iterations {refit} runs it)"
+        if refit
+        else ""
+    )
+    print(
+        f"diffcontact train: {stop.signal_name} was received after the last training step, "
+        f"so nothing was left to stop: the run {ended} and wrote {out / 'model.pt'}"
+        f"{left}{later}",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def _interrupted_at_once(trainer: pl.Trainer, stop: GracefulStop) -> TrainingInterrupted:

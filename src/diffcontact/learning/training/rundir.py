@@ -8,15 +8,19 @@ with a one-line :class:`TrainingInputError`; every file is written by
 renaming a temporary file of the same folder over it (``diffcontact.io``), so
 a link planted later is replaced, never written through. The CSV log
 (``logs/metrics.csv``) is appended to without following links and rewritten
-atomically when a column is added.
+atomically when a column is added; an append that fails (a full disk) leaves
+no half-written line and names the file. A resume keeps the log's complete
+rows before the checkpoint and says which lines it dropped as incomplete.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +61,15 @@ _RUN_IDENTITY = (
 )  # fmt: skip
 # what a run that stopped before its first checkpoint may have left (removed on a restart)
 _PARTIAL = ("learned.json", f"{LOG_DIR}/{METRICS}", f"{LOG_DIR}/hparams.yaml")
+# the files and folders a run writes: a folder (or other non-file) at a file's name, or a
+# file at a folder's, made the write fail when it came (last.ckpt: at the end of the first
+# epoch, after its time was spent), so a resume refuses it up front
+_FILES = (
+    "learned.json", "model.pt", "refit.json", "model_adam.pt", "checkpoints/last.ckpt",
+    f"{LOG_DIR}/{METRICS}", f"{LOG_DIR}/hparams.yaml",
+)  # fmt: skip
+_FOLDERS = ("checkpoints", LOG_DIR)
+_EPOCH_CHECKPOINT = re.compile(r"^epoch\d+\.ckpt$")
 
 
 def is_run_file(data: Any) -> bool:
@@ -85,6 +98,23 @@ def _names(folder: Path) -> str:
     return ", ".join(entries[:5]) + (" ..." if len(entries) > 5 else "")
 
 
+def _wrong_kind(out: Path) -> str | None:
+    """What stands where the run writes a file or makes a folder, of the other kind."""
+    for name in _FOLDERS:
+        path = out / name
+        if path.exists() and not path.is_dir():
+            return f"{path} is a file where the run keeps a folder"
+    paths = [out / name for name in _FILES]
+    folder = out / "checkpoints"
+    if folder.is_dir():
+        paths += sorted(p for p in folder.iterdir() if _EPOCH_CHECKPOINT.match(p.name))
+    for path in paths:
+        if path.exists() and not path.is_file():
+            kind = "a directory" if path.is_dir() else "not a regular file"
+            return f"{path} is {kind}, and the run writes a file there"
+    return None
+
+
 def check_run_dir(out: Path, run_info: dict[str, Any], resume: bool) -> dict[str, Any] | None:
     """Check ``out`` against the new run; return the ``run.json`` to write.
 
@@ -94,7 +124,8 @@ def check_run_dir(out: Path, run_info: dict[str, Any], resume: bool) -> dict[str
         TrainingInputError: ``out`` is a file; it holds a symbolic link; it is
             not empty and holds no run of ours (no ``run.json``, or one not
             ours); it holds a run and ``resume`` is false; it holds a run with
-            other options.
+            other options; a folder stands at the name of a file the run writes
+            (``checkpoints/last.ckpt``, ...), or a file at a folder's.
     """
     if out.exists() and not out.is_dir():
         raise TrainingInputError(f"--out {out} exists and is not a directory")
@@ -129,6 +160,12 @@ def check_run_dir(out: Path, run_info: dict[str, Any], resume: bool) -> dict[str
             "--resume to start it again"
         )
         raise TrainingInputError(f"{out} already holds a run; {hint} or choose another --out")
+    wrong = _wrong_kind(out)
+    if wrong:
+        raise TrainingInputError(
+            f"cannot resume: {wrong} (the run would fail there only when it writes it, "
+            "after the time spent training); move it away, then --resume"
+        )
     diff = _differences(old, run_info)
     if diff:
         hint = "use another --out"
@@ -233,12 +270,47 @@ def _write_rows(path: Path, fields: list[str], rows: list[dict[str, Any]]) -> No
     atomic_write_bytes(path, buf.getvalue().encode())
 
 
+def _named(err: OSError, path: Path) -> OSError:
+    """``err`` naming ``path`` (a full disk says "No space left on device", naming nothing)."""
+    if err.filename is not None:
+        return err
+    return type(err)(err.errno, err.strerror or str(err), str(path))
+
+
+def _append_rows(path: Path, fields: list[str], rows: list[dict[str, Any]]) -> None:
+    """Append ``rows`` to the CSV file ``path`` (not following a link there).
+
+    A failed write (a full disk) is undone: the file is cut back to its size
+    before, so no half-written line stays; the error names the file.
+    """
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
+    writer.writerows(rows)
+    data = memoryview(buf.getvalue().encode())
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_NOFOLLOW", 0))
+    except OSError as err:
+        raise _named(err, path) from err
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            while data:
+                data = data[os.write(fd, data) :]
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise _named(err, path) from err
+    finally:
+        os.close(fd)
+
+
 class _RunCSVWriter(ExperimentWriter):
     """Lightning's CSV writer: an existing ``metrics.csv`` is continued, links are never followed.
 
-    Rows are appended (the file opened with ``O_NOFOLLOW``); a new column, or
-    a link at the file's name, makes it rewritten by an atomic rename.
-    ``hparams.yaml`` is written atomically too.
+    Rows are appended (the file opened with ``O_NOFOLLOW``; a failed append is
+    cut back and names the file); a new column, or a link at the file's name,
+    makes it rewritten by an atomic rename. ``hparams.yaml`` is written
+    atomically too.
     """
 
     def _check_log_dir_exists(self) -> None:
@@ -249,20 +321,22 @@ class _RunCSVWriter(ExperimentWriter):
     def save(self) -> None:
         if not self.metrics:
             return
+        keys = list(self.metrics_keys)
         new_keys = self._record_new_keys()
         path = Path(self.metrics_file_path)
-        if path.is_symlink():
-            path.unlink()  # replaced by a file of ours, never written through
-        if new_keys or not path.is_file():
-            rows = _read_rows(path)[1] if path.is_file() else []
-            _write_rows(path, self.metrics_keys, rows + self.metrics)
-        else:
-            fd = os.open(path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_NOFOLLOW", 0))
-            with os.fdopen(fd, "a", newline="") as fh:
-                writer = csv.DictWriter(
-                    fh, fieldnames=self.metrics_keys, lineterminator="\n", extrasaction="ignore"
-                )
-                writer.writerows(self.metrics)
+        try:
+            if path.is_symlink():
+                path.unlink()  # replaced by a file of ours, never written through
+            if new_keys or not path.is_file():
+                rows = _read_rows(path)[1] if path.is_file() else []
+                _write_rows(path, self.metrics_keys, rows + self.metrics)
+            else:
+                _append_rows(path, self.metrics_keys, self.metrics)
+        except BaseException:
+            # nothing was written: a later save (Lightning's at the end) writes these rows,
+            # and a new column, again
+            self.metrics_keys = keys
+            raise
         self.metrics = []
 
     def log_hparams(self, params: dict[str, Any]) -> None:
@@ -289,22 +363,69 @@ def _number(text: Any) -> float | None:
         return None
 
 
+def _read_log(path: Path) -> tuple[list[str], list[tuple[int, dict[str, str]]], list[int]]:
+    """A CSV log's header, its complete rows (each with its line number in the file) and
+    the numbers of its incomplete lines.
+
+    A line is incomplete when it does not hold as many cells as the header, holds NUL
+    or undecodable bytes, or is the file's last and does not end with a newline: a line
+    cut mid-way (a crash or a full disk while it was appended; rows appended after the
+    cut continue that line, which then holds too many cells). Blank lines are skipped.
+    """
+    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+        text = fh.read()
+    reader = csv.reader(io.StringIO(text))
+    header = next(reader, [])
+    rows: list[tuple[int, dict[str, str]]] = []
+    bad: list[int] = []
+    line = reader.line_num + 1  # the first line of the next record
+    for cells in reader:
+        first, line = line, reader.line_num + 1
+        if not cells:
+            continue
+        if len(cells) != len(header) or any("\x00" in c or "\ufffd" in c for c in cells):
+            bad.append(first)
+        else:
+            rows.append((first, dict(zip(header, cells, strict=True))))
+    if rows and not text.endswith(("\n", "\r")) and rows[-1][0] > max(bad, default=0):
+        bad.append(rows.pop()[0])  # the last line, cut where its cells were complete
+    return header, rows, bad
+
+
+def _dropped_lines(path: Path, bad: list[int], kept: list[int]) -> str:
+    """The warning on the incomplete lines ``bad`` of ``path`` (``kept``: the line numbers
+    of the rows kept)."""
+    first = bad[0]
+    before = sum(n < first for n in kept)
+    after = len(kept) - before
+    which = f"line {first} is" if len(bad) == 1 else f"lines {', '.join(map(str, bad))} are"
+    return (
+        f"{path}: {which} incomplete (cut mid-line, as a crash or a full disk while the log "
+        f"was written leaves it); dropped {'it' if len(bad) == 1 else 'them'}, kept the "
+        f"{before} rows before {'it' if len(bad) == 1 else 'the first'}"
+        + (f" and the {after} complete rows after it" if after else "")
+    )
+
+
 def truncate_log(out: Path, epoch: int, step: int) -> None:
     """Keep only the rows of ``metrics.csv`` logged before ``(epoch, step)`` (a resume point).
 
-    Rows are ordered by ``(epoch, step)``; rows that cannot be read (a line
-    cut by a kill) are dropped.
+    Rows are ordered by ``(epoch, step)``. Incomplete lines (cut by a crash or a
+    full disk, :func:`_read_log`) are dropped with a warning that names them and
+    the rows kept; complete rows before the resume point are all kept.
     """
     path = out / LOG_DIR / METRICS
     if not path.is_file():
         return
-    fields, rows = _read_rows(path)
+    fields, rows, bad = _read_log(path)
     kept = []
-    for row in rows:
+    for line, row in rows:
         e, s = _number(row.get("epoch")), _number(row.get("step"))
         if e is not None and s is not None and (e, s) < (epoch, step):
-            kept.append(row)
-    _write_rows(path, fields, kept)
+            kept.append((line, row))
+    _write_rows(path, fields, [row for _, row in kept])
+    if bad:
+        log.warning("%s", _dropped_lines(path, bad, [line for line, _ in kept]))
 
 
 def loggers(out: Path) -> list[Any]:
