@@ -1,7 +1,7 @@
 """Benchmark: what sets the time of one launch of the fused solver's forward kernel.
 
     python benchmarks/run.py chain [--device cpu|cuda] [--task BP5] [--scenes 4096]
-        [--steps 30] [--reps 5] [--scratch strided contiguous] [--quick]
+        [--steps 30] [--reps 5] [--scratch strided contiguous matrices] [--quick]
 
 Records every call of the fused forward pass (``FusedConeQP``: its flat inputs) in
 ``--steps`` steps of the static step that ``System.simulate`` captures in a CUDA graph
@@ -20,10 +20,10 @@ only`` about as long. Each column is the median over the calls that hold such pr
 each call's median launch time, in milliseconds: on the CPU wall time, device-
 synchronised; on CUDA the kernel's own time (``torch.profiler``), so that the host's
 share of a call does not blur it. ``calls w/o IPM`` is the median ``all`` of the other
-calls. ``--scratch`` repeats the table for each layout
-of the kernel's scratch memory on CUDA (``diffcontact.contact.fused.CUDA_SCRATCH``; on
-the CPU there is one layout); ``same f`` says whether its impulses are bitwise those of
-the first layout's.
+calls. ``--scratch`` repeats the table for each layout of the kernel's scratch memory on
+CUDA (``diffcontact.contact.fused.CUDA_SCRATCH``, default all three; on the CPU there is
+one layout); ``same f`` says whether its impulses are bitwise those of the first
+layout's.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ optimality conditions and closed-form cases, which need no other solver.
 from __future__ import annotations
 
 import gc
+import itertools
 import math
 
 import pytest
@@ -293,6 +294,50 @@ def test_sparse_and_meta_tensors_are_named(backend, name, change, message):
     args[name] = change(args[name])
     with pytest.raises(ValueError, match=f"solve_cone_qp: {message}"):
         solve_cone_qp(**args, d=2, settings=SolverSettings(backend=backend))
+
+
+def _set(name: str, index: tuple, value: float):
+    def fault(args: dict) -> None:
+        args[name][index] = value
+
+    return fault
+
+
+_FAULTS = {
+    "NaN in A": _set("A", (0, 0, 0), float("nan")),
+    "NaN in b": _set("b", (0, 0), float("nan")),
+    "NaN in mu": _set("mu", (0, 0), float("nan")),
+    "NaN in lower": _set("lower", (0, 0), float("nan")),
+    "NaN in warm_start": _set("warm_start", (0, 0), float("nan")),
+    "mu < 0": _set("mu", (1, 0), -1.0),
+    "lower < 0": _set("lower", (1, 0), -1.0),
+    "asymmetric A": _set("A", (1, 0, 1), 0.5),
+    "indefinite A": lambda args: (_set("A", (1, 0, 2), 1.5)(args), _set("A", (1, 2, 0), 1.5)(args)),
+}
+
+
+@pytest.mark.skipif(not fused.warp_installed(), reason="compares the two backends")
+def test_several_faults_name_the_same_one_on_both_backends():
+    # the Warp backend named a NaN warm start before mu < 0, lower < 0, an asymmetric or an
+    # indefinite A, where the torch backend names those first
+    assert set(fused._FLAG_ORDER) == {i for i, m in enumerate(fused.FLAGS) if m is not None}
+    base = {
+        "A": torch.eye(4, dtype=F64).expand(2, 4, 4).clone(),
+        "b": torch.ones(2, 4, dtype=F64),
+        "mu": torch.ones(2, 2, dtype=F64),
+        "lower": torch.zeros(2, 2, dtype=F64),
+        "warm_start": torch.zeros(2, 4, dtype=F64),
+    }
+    for first, second in itertools.combinations(_FAULTS, 2):
+        messages = []
+        for backend in ("torch", "warp"):
+            args = {k: v.clone() for k, v in base.items()}
+            _FAULTS[first](args)
+            _FAULTS[second](args)
+            with pytest.raises(ValueError) as err:
+                solve_cone_qp(**args, d=2, settings=SolverSettings(backend=backend))
+            messages.append(str(err.value))
+        assert messages[0] == messages[1], (first, second)
 
 
 @pytest.mark.parametrize("backend", _backends())

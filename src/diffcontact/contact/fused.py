@@ -563,11 +563,17 @@ FLAGS = (
 )
 
 
+# the flags in the order the torch backend checks their conditions (warm_start last), so
+# that a call with several faults names the same one on both backends
+_FLAG_ORDER = (0, 1, 2, 3, 6, 7, 8, 9, 4)
+
+
 def input_error(flags: list[int]) -> str | None:
-    """The message of the first input error the forward kernel flagged, or None."""
-    for flag, message in zip(flags, FLAGS, strict=True):
-        if flag and message is not None:
-            return "solve_cone_qp: " + message
+    """The message of the first input error the forward kernel flagged (in the torch
+    backend's order of checks), or None."""
+    for i in _FLAG_ORDER:
+        if flags[i]:
+            return "solve_cone_qp: " + FLAGS[i]
     return None
 
 
