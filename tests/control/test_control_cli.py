@@ -170,3 +170,28 @@ def test_a_gif_of_another_name_is_refused(capsys, tmp_path):
     )
     assert_usage_error(code, err, "--gif", "must end in .gif")
     assert not (tmp_path / "s.png").exists()
+
+
+def test_json_replaces_only_a_plan_unless_forced(capsys, tmp_path):
+    """``--json rec.npz`` replaced a recording with the plan's JSON; ``--json x.gif --gif
+    x.gif`` wrote both to one file (the GIF won)."""
+    recording = tmp_path / "rec.json"
+    recording.write_text('{"traj": [1, 2, 3]}')
+    base = ["throw", "BD1-ground", "--target", "0.4", *QUICK, "--no-gif"]
+    code, _, err = run(capsys, *base, "--json", str(recording))
+    assert_usage_error(code, err, "--json", "is not a plan written by billiards or throw")
+    assert recording.read_text() == '{"traj": [1, 2, 3]}'
+    code, _, err = run(capsys, *base, "--json", str(tmp_path / "rec.npz"))
+    assert_usage_error(code, err, "--json", "must end in .json")
+    same = str(tmp_path / "x.json")
+    code, _, err = run(capsys, "throw", "BD1-ground", "--target", "0.4", *QUICK, "--json", same,
+                       "--gif", same)  # fmt: skip
+    assert_usage_error(code, err, "--gif", "must end in .gif")
+    # a plan is replaced by the next one; anything with --force
+    plan = tmp_path / "plan.json"
+    assert run(capsys, *base, "--json", str(plan))[0] == 0
+    assert run(capsys, *base, "--json", str(plan))[0] == 0
+    assert json.loads(plan.read_text())["task"]
+    code, _, err = run(capsys, *base, "--json", str(recording), "--force")
+    assert code == 0, err
+    assert "variables" in json.loads(recording.read_text())

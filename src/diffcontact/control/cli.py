@@ -48,7 +48,14 @@ def _common(p: argparse.ArgumentParser, task: str, starts: int, lr: float) -> No
         default=4.0,
         help="bound of each initial velocity component, m/s (default 4)",
     )
-    p.add_argument("--json", default=None, metavar="OUT", help="write the plan as JSON")
+    p.add_argument(
+        "--json",
+        default=None,
+        metavar="OUT",
+        help="write the plan as JSON (a .json file; an existing file that is not a plan of "
+        "billiards or throw is replaced only with --force)",
+    )
+    p.add_argument("--force", action="store_true", help="replace --json whatever it holds")
     p.add_argument(
         "--gif",
         default=f"{task}.gif",
@@ -115,18 +122,44 @@ class _InputError(ValueError):
     pass
 
 
+# what a plan's JSON holds (``Plan.as_json``): another billiards or throw may replace it
+_PLAN_KEYS = frozenset({"task", "variables", "distance_model"})
+
+
+def _is_plan_json(path: str) -> bool:
+    """Whether ``path`` holds a JSON object with :data:`_PLAN_KEYS` (a plan written here)."""
+    import json
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and _PLAN_KEYS <= data.keys()
+
+
 def _check_paths(args: argparse.Namespace) -> None:
+    import os
+
     from diffcontact.io import check_writable
 
+    suffixes = {"--json": ".json", "--gif": ".gif"}  # (so never the same file)
     for flag, path in (("--json", args.json), ("--gif", None if args.no_gif else args.gif)):
         if path is None:
             continue
-        if flag == "--gif" and Path(path).suffix.lower() != ".gif":  # a .png got GIF bytes
-            raise _InputError(f"--gif {path!r}: the file name must end in .gif")
+        if Path(path).suffix.lower() != suffixes[flag]:  # (a .png got GIF bytes; --json
+            # rec.npz replaced a recording)
+            raise _InputError(f"{flag} {path!r}: the file name must end in {suffixes[flag]}")
         try:
             check_writable(path)
         except OSError as err:
             raise _InputError(f"cannot write {flag} {path!r}: {err}") from None
+        if flag == "--json" and os.path.exists(path) and not args.force:
+            if not _is_plan_json(path):
+                raise _InputError(
+                    f"--json {path!r} exists and is not a plan written by billiards or throw: "
+                    "pass --force to replace it, or choose another name"
+                )
 
 
 def _planner(spec: str) -> Any:
