@@ -114,6 +114,10 @@ def test_read_npz_checks_headers_and_reads_good_files(tmp_path):
     np.save(tmp_path / "obj.npy", np.array([{}, 1], dtype=object), allow_pickle=True)
     with pytest.raises(ValueError, match="Python objects"):
         read_npz(tmp_path / "obj.npy")
+    # a text file said "the magic string is not correct; expected b'\\x93NUMPY'"
+    (tmp_path / "x.csv").write_text("6.9559,1.0\n2.0,3.0\n")
+    with pytest.raises(ValueError, match=r"not an \.npz or \.npy file \(it starts with b'6\.9559'"):
+        read_npz(tmp_path / "x.csv")
 
 
 # ---------------------------------------------------------------------- configs

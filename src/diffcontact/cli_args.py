@@ -87,6 +87,17 @@ def float_in(
     return parse
 
 
+def finite_float(text: str) -> float:
+    """An argparse type accepting any finite number (NaN and infinities are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {value:g}")
+    return value
+
+
 def one_line(err: BaseException) -> str:
     """An exception message on one line (multi-line validation messages joined by '; ').
 

@@ -397,8 +397,14 @@ def read_npz(
         fh = source
     try:
         start = fh.tell()
-        is_zip = fh.read(4) == b"PK\x03\x04"
+        magic = fh.read(6)
         fh.seek(start)
+        is_zip = magic[:4] == b"PK\x03\x04"
+        if not is_zip and magic != b"\x93NUMPY":  # (a CSV file said "the magic string is
+            # not correct; expected b'\x93NUMPY'")
+            raise ValueError(
+                f"not an .npz or .npy file (it starts with {magic!r}): save arrays with numpy.savez"
+            )
         if not is_zip:
             size = fh.seek(0, os.SEEK_END) - start
             fh.seek(start)

@@ -228,6 +228,10 @@ def test_convert_cli_mujoco_then_generate(tmp_path, capsys):
             "--origin", "2", "0", "1"]  # fmt: skip
     assert main(argv) == 0, capsys.readouterr().err
     assert "constraint_residual" in capsys.readouterr().out
+    # a NaN origin wrote a file full of NaN with exit status 0
+    bad = [*argv[:-3], "0", "0", "nan", "--force"]
+    assert main(bad) == 2
+    assert "--origin: must be a finite number, got nan" in capsys.readouterr().err
     data_dir = tmp_path / "data"
     assert main(["generate", "--from-arrays", str(out), "--out", str(data_dir), "--quiet",
                  "--val-fraction", "0.25", "--test-fraction", "0.25"]) == 0  # fmt: skip

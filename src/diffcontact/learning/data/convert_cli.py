@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from diffcontact.cli_args import float_in, one_line, report_errors
+from diffcontact.cli_args import finite_float, float_in, one_line, report_errors
 from diffcontact.io import check_writable
 
 __all__ = ["SOURCES", "register_cli", "run_convert_cli"]
@@ -91,7 +91,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--origin",
         nargs=3,
-        type=float,
+        type=finite_float,
         metavar=("X", "Y", "Z"),
         default=None,
         help="mujoco: world point that becomes the origin (e.g. a pivot)",
@@ -154,7 +154,8 @@ def _cli_convert(args: argparse.Namespace) -> int:
     if args.source != "mujoco":
         given = [flag for flag, value in mujoco_only.items() if value is not None]
         if given:
-            raise ValueError(f"{', '.join(given)} apply only to SOURCE mujoco")
+            verb = "applies" if len(given) == 1 else "apply"
+            raise ValueError(f"{', '.join(given)} {verb} only to SOURCE mujoco")
     elif args.model is None:
         raise ValueError("SOURCE mujoco needs --model XML (the MJCF model of the recording)")
     arrays, file_dt = _read(args.file, args.source)
