@@ -452,3 +452,17 @@ def test_overlapping_z0_and_integer_objectives_are_named(two_balls):
     with pytest.raises(ControlError, match="objective must return floating-point values"):
         dc.optimize(system, z0, lambda tr: torch.zeros(tr.shape[0], dtype=torch.long),
                     variables=[Velocity(0)], starts=2, steps=2, progress=False)  # fmt: skip
+
+
+def test_parameter_bounds_outside_the_valid_range_are_refused(two_balls):
+    """Bounds (-1, -0.5) on a mass were clipped to (1e-9, -0.5), warned about, and 1e-9
+    returned as the optimised mass."""
+    system, z0 = two_balls
+    goal = _final(0, torch.full((2,), 0.5))
+    for field, bounds, valid in (("mass", (-1.0, -0.5), r"\[1e-09, inf\]"),
+                                 ("cor", (1.5, 2.0), r"\[0, 1\]")):  # fmt: skip
+        var = Parameter(field, index=0, bounds=bounds)
+        with pytest.raises(ControlError, match=rf"bounds .* lie outside the valid range of "
+                           rf"{field} {valid}"):  # fmt: skip
+            dc.optimize(system, z0, goal, variables=[var], steps=2, starts=2, iterations=1,
+                        progress=False)  # fmt: skip

@@ -302,6 +302,11 @@ def optimize(
         if isinstance(v, Parameter):
             plo, phi = v.physical_bounds()
             low, high = low.clamp(min=plo), high.clamp(max=phi)
+            if (low > high).any():  # (a made-up value inside neither range was returned)
+                raise ControlError(
+                    f"{v.name}: its bounds {v.bounds!r} lie outside the valid range of "
+                    f"{v.field} [{plo:g}, {phi:g}]"
+                )
         bounds.append((low, high))
 
     start = time.perf_counter()
