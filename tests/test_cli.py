@@ -114,6 +114,44 @@ def test_simulate_from_config_file_is_reproducible(tmp_path, capsys):
 
 
 @needs_systems
+def test_ctrl_c_between_the_outputs_says_what_was_written(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the GIF was written left the new .npz beside an earlier run's GIF, and
+    the message said only "interrupted"."""
+    import diffcontact.viz
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(diffcontact.viz, "animate", interrupted)
+    out, gif = tmp_path / "r.npz", tmp_path / "r.gif"
+    argv = ["simulate", "BP5", "--n", "1", "--steps", "2", "--quiet", "--out", str(out)]
+    code, _, err = run(capsys, *argv, "--gif", str(gif))
+    assert code == 130 and out.is_file() and not gif.exists()
+    assert f"interrupted after writing {out}; not written: {gif} (a file of that name is " in err
+
+
+def test_simulate_warnings_are_one_line_each(tmp_path, capsys, monkeypatch):
+    """The tunnelling warning came as Python's two lines ('.../cli.py:278: RuntimeWarning:
+    ...' and the source line 'traj = system.simulate(')."""
+    import warnings
+
+    from diffcontact.systems import System
+
+    simulate = System.simulate
+
+    def warns(self, *args, **kwargs):
+        for _ in range(2):
+            warnings.warn("bodies tunnelled\n  in 1 of 1 states", RuntimeWarning, stacklevel=2)
+        return simulate(self, *args, **kwargs)
+
+    monkeypatch.setattr(System, "simulate", warns)
+    argv = ["simulate", "BP5", "--n", "1", "--steps", "2", "--quiet"]
+    code, _, err = run(capsys, *argv, "--out", str(tmp_path / "w.npz"))
+    assert code == 0, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert lines == ["diffcontact simulate: warning: bodies tunnelled: in 1 of 1 states"]
+
+
 def test_simulate_keeps_a_file_it_did_not_write(tmp_path, capsys):
     """``--out`` silently replaced any file, a user's recording too (convert refused)."""
     recording = tmp_path / "recording.npz"

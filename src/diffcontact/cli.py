@@ -28,6 +28,7 @@ imports (torch, matplotlib) happen inside the subcommands.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -245,6 +246,21 @@ def _check_size(n: int, steps: int, system: Any) -> None:
         )
 
 
+@contextlib.contextmanager
+def _one_line_warnings(prog: str):
+    """Print the warnings raised inside as ``PROG: warning: MESSAGE`` lines, each once (not
+    Python's two lines with a file name and a source line), also when the block fails."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield
+        finally:
+            for message in dict.fromkeys(one_line(w.message) for w in caught):
+                print(f"{prog}: warning: {message}", file=sys.stderr)
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_outputs(args)
     import torch
@@ -275,14 +291,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         z0 = system.sample_initial_conditions(args.n, seed=args.seed, device=args.device)
-        traj = system.simulate(
-            z0,
-            steps=steps,
-            contact_model=args.contact_model,
-            progress=not args.quiet,
-            threads=args.threads,
-            cuda_graph={"auto": "auto", "on": True, "off": False}[args.cuda_graph],
-        )
+        with _one_line_warnings("diffcontact simulate"):
+            traj = system.simulate(
+                z0,
+                steps=steps,
+                contact_model=args.contact_model,
+                progress=not args.quiet,
+                threads=args.threads,
+                cuda_graph={"auto": "auto", "on": True, "off": False}[args.cuda_graph],
+            )
     except ValueError as err:
         raise UsageError(one_line(err)) from None
     except RuntimeError as err:  # e.g. the contact solver did not converge
@@ -299,6 +316,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     traj_np = traj.detach().cpu().numpy()
     energy_np = energy.detach().cpu().numpy()
     config = system.config.model_dump(mode="json")
+    wrote: list[str] = []
     try:
         atomic_save_npz(
             args.out,
@@ -312,7 +330,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             contact_model=np.str_(args.contact_model),
             diffcontact_version=np.str_(__version__),
         )
-        wrote = [args.out]
+        wrote.append(args.out)
         if args.gif is not None or args.energy_plot is not None:
             from diffcontact.viz import animate, plot_energy, scene_from_system
 
@@ -328,6 +346,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     except OSError as err:
         print(f"diffcontact simulate: error: writing output failed: {err}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        if not wrote:
+            raise  # (nothing written: main says "interrupted")
+        # the outputs are written one after the other: say which ones this run replaced,
+        # so that a new .npz is not taken for the partner of an earlier run's GIF
+        left = [p for p in (args.gif, args.energy_plot) if p is not None and p not in wrote]
+        print(
+            f"diffcontact simulate: interrupted after writing {', '.join(wrote)}; not "
+            f"written: {', '.join(left)} (a file of that name is from an earlier run)",
+            file=sys.stderr,
+        )
+        return 130
 
     if not args.quiet:
         e0, e1 = energy_np[:, 0], energy_np[:, -1]
