@@ -28,7 +28,6 @@ imports (torch, matplotlib) happen inside the subcommands.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 import time
@@ -36,7 +35,13 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from diffcontact import __version__
-from diffcontact.cli_args import non_negative_int, one_line, positive_int, threads_arg
+from diffcontact.cli_args import (
+    non_negative_int,
+    one_line,
+    one_line_warnings,
+    positive_int,
+    threads_arg,
+)
 from diffcontact.contact.registry import contact_models
 
 
@@ -246,21 +251,6 @@ def _check_size(n: int, steps: int, system: Any) -> None:
         )
 
 
-@contextlib.contextmanager
-def _one_line_warnings(prog: str):
-    """Print the warnings raised inside as ``PROG: warning: MESSAGE`` lines, each once (not
-    Python's two lines with a file name and a source line), also when the block fails."""
-    import warnings
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            yield
-        finally:
-            for message in dict.fromkeys(one_line(w.message) for w in caught):
-                print(f"{prog}: warning: {message}", file=sys.stderr)
-
-
 def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_outputs(args)
     import torch
@@ -291,7 +281,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         z0 = system.sample_initial_conditions(args.n, seed=args.seed, device=args.device)
-        with _one_line_warnings("diffcontact simulate"):
+        with one_line_warnings("diffcontact simulate"):
             traj = system.simulate(
                 z0,
                 steps=steps,

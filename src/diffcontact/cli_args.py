@@ -1,15 +1,17 @@
 """Helpers shared by the ``diffcontact`` subcommands and the scripts of experiments/ and
 benchmarks/: argument types (argparse ``type=``), :func:`one_line` (the one-line form of
-an error message), :func:`report_errors` (errors as one line on stderr and an exit
-status) and :func:`interrupted` (a stop by Ctrl-C or SIGTERM as one line). No heavy
-imports."""
+an error message), :func:`one_line_warnings` (warnings as one line each),
+:func:`report_errors` (errors as one line on stderr and an exit status) and
+:func:`interrupted` (a stop by Ctrl-C or SIGTERM as one line). No heavy imports."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from typing import Any
 
 
@@ -110,6 +112,20 @@ def one_line(err: BaseException) -> str:
     if len(lines) == 1:
         return lines[0]
     return f"{lines[0].rstrip(':')}: " + "; ".join(lines[1:])
+
+
+@contextlib.contextmanager
+def one_line_warnings(prog: str) -> Iterator[None]:
+    """Print the warnings raised inside as ``PROG: warning: MESSAGE`` lines on stderr, each
+    once (not Python's two lines with a file name and a source line), also when the block
+    fails."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield
+        finally:
+            for message in dict.fromkeys(one_line(w.message) for w in caught):
+                print(f"{prog}: warning: {message}", file=sys.stderr)
 
 
 def report_errors(

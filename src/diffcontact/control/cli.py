@@ -10,11 +10,16 @@ import argparse
 import dataclasses
 import sys
 import time
-import warnings
 from pathlib import Path
 from typing import Any
 
-from diffcontact.cli_args import float_in, int_at_least, one_line, positive_float, report_errors
+from diffcontact.cli_args import (
+    float_in,
+    int_at_least,
+    one_line_warnings,
+    positive_float,
+    report_errors,
+)
 
 __all__ = ["register_cli"]
 
@@ -241,8 +246,7 @@ def _run(args: argparse.Namespace, plan_fn: Any, **kwargs: Any) -> int:
     from diffcontact.control.optimize import ControlError
 
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        with one_line_warnings(f"diffcontact {args.command}"):
             plan = plan_fn(
                 planner,
                 args.target,
@@ -257,9 +261,6 @@ def _run(args: argparse.Namespace, plan_fn: Any, **kwargs: Any) -> int:
             )
     except ControlError as err:
         raise _InputError(str(err)) from None
-    finally:  # each warning once, one line on stderr (not Python's, with a source line)
-        for message in dict.fromkeys(one_line(w.message) for w in caught):
-            print(f"diffcontact {args.command}: warning: {message}", file=sys.stderr)
     return _report(args, planner, plan, time.perf_counter() - start)
 
 
