@@ -66,6 +66,13 @@ def test_cli_bad_input_exits_2(recorded, tmp_path, capsys):
         "--dt", "0.02", "--out", out,
     )  # fmt: skip
     assert_one_line_error(code, err, "--dt 0.02 contradicts the dt 0.01 stored in")
+    # --dt -0.01 said "in [0, inf)", and then --dt 0 was refused with another message
+    from diffcontact.testing import assert_usage_error, run_cli
+
+    for dt in ("0", "-0.01"):
+        code, _, err = run_cli(capsys, "generate", "--from-arrays", str(tmp_path / "rec_dt.npz"),
+                               "--config", "BP5", "--dt", dt, "--out", out)  # fmt: skip
+        assert_usage_error(code, err, "--dt", "must be a finite number > 0")
     assert not Path(out).exists()
 
 

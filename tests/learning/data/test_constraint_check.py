@@ -99,7 +99,7 @@ def test_generate_warns_when_config_differs_from_the_files(tmp_path, capsys):
     code, err = _generate(capsys, *argv, "--config", str(tmp_path / "big.json"),
                           "--out", str(tmp_path / "d1"))  # fmt: skip
     assert code == 0
-    assert "--config differs from the config stored in" in err
+    assert "diffcontact generate: warning: --config differs from the config stored in" in err
     assert "the contact geometry differs" in err and "the dataset uses --config" in err
     same = {**stored, "mu": 0.9}  # what is learned may differ: no warning
     (tmp_path / "same.json").write_text(json.dumps(same))

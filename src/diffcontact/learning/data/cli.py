@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from diffcontact.cli_args import float_in, int_at_least, report_errors
+from diffcontact.cli_args import float_in, int_at_least, positive_float, report_errors
 from diffcontact.contact.registry import contact_models
 from diffcontact.learning.data.checks import DT_RTOL
 
@@ -122,7 +122,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--dt",
         metavar="DT",
-        type=float_in(0.0),
+        type=positive_float,
         default=None,
         help="with --from-arrays: the recording's time step, checked against the config",
     )
@@ -242,7 +242,8 @@ def _cli_generate(args: argparse.Namespace) -> int:
             differs = _config_differs(spec, file_config, traj)
             if differs:  # (also with --quiet, as convert's warnings)
                 print(
-                    f"warning: --config differs from the config stored in {args.from_arrays} "
+                    f"diffcontact generate: warning: --config differs from the config stored "
+                    f"in {args.from_arrays} "
                     f"({differs}); the dataset uses --config",
                     file=sys.stderr,
                 )
