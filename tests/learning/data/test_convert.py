@@ -335,6 +335,18 @@ def test_convert_cli_errors(tmp_path, capsys):
     assert main(["convert", "positions", str(raw), "--config", "CP3", "--out", out,
                  "--plane", "xz"]) == 2  # fmt: skip
     assert "only to SOURCE mujoco" in capsys.readouterr().err
+    # options that did nothing for the source or the file were ignored silently
+    both = tmp_path / "qq.npz"
+    np.savez(both, q=np.zeros((1, 5, 3)), qdot=np.zeros((1, 5, 3)))
+    for source, path, extra, said in (
+        ("positions", raw, ["--omega-frame", "body"], "--omega-frame applies only to SOURCE "
+         "coordinates"),
+        ("mujoco", raw, ["--model", "m.xml", "--threshold", "5"], "--threshold applies only"),
+        ("coordinates", both, ["--threshold", "5"], "--threshold is not used: "),
+    ):  # fmt: skip
+        argv = ["convert", source, str(path), "--config", "CP3", "--out", out, *extra]
+        assert main(argv) == 2
+        assert said in capsys.readouterr().err
     (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 truncated")
     assert main(["convert", "positions", str(tmp_path / "bad.npz"), "--config", "CP3",
                  "--out", out]) == 2  # fmt: skip

@@ -158,7 +158,16 @@ def _cli_convert(args: argparse.Namespace) -> int:
             raise ValueError(f"{', '.join(given)} {verb} only to SOURCE mujoco")
     elif args.model is None:
         raise ValueError("SOURCE mujoco needs --model XML (the MJCF model of the recording)")
+    if args.source != "coordinates" and args.omega_frame != "world":  # (was ignored)
+        raise ValueError("--omega-frame applies only to SOURCE coordinates")
+    if args.source == "mujoco" and args.threshold is not None:
+        raise ValueError("--threshold applies only to SOURCE positions and coordinates")
     arrays, file_dt = _read(args.file, args.source)
+    if args.threshold is not None and "qdot" in arrays:
+        raise ValueError(
+            f"--threshold is not used: {args.file} holds qdot, the velocities (it sets the "
+            "velocity-jump threshold of finite differences, without qdot)"
+        )
 
     import warnings
 
