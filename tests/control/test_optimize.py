@@ -466,3 +466,13 @@ def test_parameter_bounds_outside_the_valid_range_are_refused(two_balls):
                            rf"{field} {valid}"):  # fmt: skip
             dc.optimize(system, z0, goal, variables=[var], steps=2, starts=2, iterations=1,
                         progress=False)  # fmt: skip
+
+
+def test_non_finite_starts_are_named(two_balls):
+    """A NaN in ``starts`` was reported as 'simulation failed: z0 contains NaN'."""
+    system, z0 = two_balls
+    goal = _final(0, torch.full((2,), 0.5))
+    starts = {"velocity[0]": [[float("nan"), 1.0], [1.0, 1.0]]}
+    with pytest.raises(ControlError, match=r"starts\['velocity\[0\]'\] contains NaN"):
+        dc.optimize(system, z0, goal, variables=[Velocity(0)], starts=starts, steps=2,
+                    iterations=1, progress=False)  # fmt: skip

@@ -165,6 +165,8 @@ def _initial_values(
                     f"starts[{v.name!r}] must have shape ({S}, {cur.shape[-1]}) or "
                     f"({N}, {S}, {cur.shape[-1]}), got {tuple(given[v.name].shape)}"
                 )
+            if not bool(torch.isfinite(t).all()):  # (named "z0 contains NaN" after a step)
+                raise ControlError(f"starts[{v.name!r}] contains NaN or infinite values")
             out.append(t.clone())
             _warn_outside(v.name, out[-1], box, f"starts[{v.name!r}]")
         return out, S
