@@ -107,7 +107,7 @@ class _Launches:
     def profiled(self):
         if self.device != "cuda":
             return contextlib.nullcontext(None)
-        return profile(activities=[ProfilerActivity.CUDA])
+        return profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA])
 
     def use_kernel_times(self, prof) -> None:
         """Replace the wall times by the kernels' durations (CUDA)."""

@@ -118,9 +118,9 @@ def one_line(err: BaseException) -> str:
 def one_line_warnings(prog: str) -> Iterator[None]:
     """Print the warnings raised inside as ``PROG: warning: MESSAGE`` lines on stderr, each
     once (not Python's two lines with a file name and a source line), also when the block
-    fails."""
+    fails. The warning filters in force decide which are recorded, as they decide which
+    Python shows (a library's DeprecationWarning stays hidden)."""
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
         try:
             yield
         finally:
