@@ -263,6 +263,10 @@ def test_coordinates_errors():
         trajectories_from_coordinates("Gyro", 2 * np.ones((1, 4, 3, 3)), np.zeros((1, 4, 3)))
     with pytest.raises(ValueError, match="omega_frame"):
         trajectories_from_coordinates("Gyro", np.ones((1, 4, 4)), omega_frame="local")
+    # a chain pendulum has no angular velocity to be in a body frame (it was ignored)
+    with pytest.raises(ValueError, match="omega_frame='body' applies to a gyroscope's"):
+        trajectories_from_coordinates("CP3", np.zeros((1, 4, 3)), np.zeros((1, 4, 3)),
+                                      omega_frame="body")  # fmt: skip
 
 
 def test_trajectory_checks_see_wrong_geometry():

@@ -449,6 +449,11 @@ def trajectories_from_coordinates(
         raise ValueError(f"no generalised coordinates for system type {kind!r}")
     if omega_frame not in ("world", "body"):
         raise ValueError(f"omega_frame must be 'world' or 'body'; got {omega_frame!r}")
+    if omega_frame == "body" and kind != "gyroscope":  # (was ignored)
+        raise ValueError(
+            f"omega_frame='body' applies to a gyroscope's angular velocity; a {kind} system "
+            "has none"
+        )
     qt, numpy_out = _tensor(q, "q")
     cfg, dt = system.config, float(system.dt)
     meaning = _COORDINATES[kind]
