@@ -230,25 +230,11 @@ def _check_outputs(args: argparse.Namespace) -> None:
 def _check_size(n: int, steps: int, system: Any) -> None:
     """Refuse a simulation whose steps exceed ``MAX_STATES`` or whose trajectories would
     not fit in half the machine's memory (a typo would fill it), unless lifted."""
-    import math
+    from diffcontact.systems.config import rollout_size_error
 
-    from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, large_allowed
-
-    if large_allowed():
-        return
-    lift = f"set {ALLOW_LARGE_ENV}=1 to lift the limit"
-    if steps > MAX_STATES:
-        raise UsageError(f"--steps {steps}: at most {MAX_STATES} ({lift})")
-    size = n * (steps + 1) * math.prod(system.state_shape) * 8  # float64 trajectories
-    try:
-        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
-        return
-    if size > memory / 2:
-        raise UsageError(
-            f"--n {n} x --steps {steps}: the trajectories would take {size / 2**30:.1f} GiB, "
-            f"more than half of this machine's {memory / 2**30:.1f} GiB ({lift})"
-        )
+    too_large = rollout_size_error(n, steps, system.state_shape, names=("--steps ", "--n "))
+    if too_large:
+        raise UsageError(too_large)
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:

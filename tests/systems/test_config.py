@@ -375,6 +375,9 @@ def test_bad_initial_states_are_rejected():
         system.simulate(z0.to("meta"), steps=2)
     with pytest.raises(ValueError, match=r"z0 must be a dense tensor, got layout torch\.sparse"):
         system.simulate(z0.to_sparse(), steps=2)  # (a SparseCPU error from deep inside)
+    # steps=10**12 ran, filling the memory at 100 MB/s before any error
+    with pytest.raises(ValueError, match=r"simulate BP5: steps=1000000000000: at most 1000000"):
+        system.simulate(z0, steps=10**12)
     bad = z0.clone()
     bad[2, 1, 0, 0] = float("nan")
     with pytest.raises(ValueError, match=r"NaN or infinite values \(states \[2\]\)"):

@@ -46,6 +46,7 @@ __all__ = [
     "SystemConfig",
     "large_allowed",
     "parse_config",
+    "rollout_size_error",
     "state_bytes",
     "stored_config",
 ]
@@ -214,6 +215,37 @@ def _bytes(n: float) -> str:
 def large_allowed() -> bool:
     """Whether :data:`ALLOW_LARGE_ENV` lifts the size limits (:data:`MAX_STATES`, ...)."""
     return os.environ.get(ALLOW_LARGE_ENV, "").strip().lower() in ("1", "true", "yes")
+
+
+def rollout_size_error(
+    n: int,
+    steps: int,
+    state_shape: tuple[int, ...],
+    itemsize: int = 8,
+    names: tuple[str, str] = ("steps=", "n="),
+) -> str | None:
+    """Why a rollout of ``n`` trajectories of ``steps`` steps is refused, or ``None``:
+    more than :data:`MAX_STATES` steps, or trajectories ``(n, steps + 1, *state_shape)``
+    of ``itemsize`` bytes per value taking more than half the machine's memory (a typo
+    such as ``steps=10**12`` would fill it before any error), unless :func:`large_allowed`.
+    ``names``: how the message names ``steps`` and ``n`` (e.g. ``("--steps ", "--n ")``)."""
+    if large_allowed():
+        return None
+    lift = f"set {ALLOW_LARGE_ENV}=1 to lift the limit"
+    steps_name, n_name = names
+    if steps > MAX_STATES:
+        return f"{steps_name}{steps}: at most {MAX_STATES} ({lift})"
+    size = n * (steps + 1) * math.prod(state_shape) * itemsize
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+    if size > memory / 2:
+        return (
+            f"{n_name}{n} x {steps_name}{steps}: the trajectories would take {_bytes(size)}, "
+            f"more than half of this machine's {_bytes(memory)} ({lift})"
+        )
+    return None
 
 
 def state_bytes(n_points: int, dim: int, n_contacts: int) -> int:

@@ -82,6 +82,7 @@ from diffcontact.systems.config import (
     GyroscopeConfig,
     RopeConfig,
     parse_config,
+    rollout_size_error,
 )
 from diffcontact.systems.config_file import read_config_file
 from diffcontact.systems.graph import ENVIRONMENT, Body, BodyGraph, Edge
@@ -1577,6 +1578,8 @@ class System:
         given, steps = steps, _integer(steps)  # numpy integers too
         if steps is None or steps < 0:
             raise ValueError(f"steps must be a non-negative integer, got {given!r}")
+        if too_large := rollout_size_error(z0.shape[0], steps, self.state_shape, z0.itemsize):
+            raise ValueError(f"simulate {self.name}: {too_large}")
         model, dynamics, fraction, params = self._options(
             contact_model, dynamics, penetration_fraction, params, eps
         )

@@ -92,6 +92,15 @@ def test_every_task_rolls_out_with_the_state_layout(name, task):
     assert traj32.dtype == torch.float32 and traj32.shape == (1, 2, *z0.shape[1:])
 
 
+@pytest.mark.parametrize("name", BASELINE_MODELS)
+def test_a_rollout_too_large_is_refused_up_front(name):
+    """simulate(z0, 10**12) stepped until the memory was full."""
+    model = build(name, "BP5")
+    z0 = load_system("BP5").sample_initial_conditions(2, seed=0)
+    with pytest.raises(ValueError, match=r"simulate BP5: steps=1000000000000: at most"):
+        model.simulate(z0, 10**12)
+
+
 @pytest.mark.parametrize("task", ["BP5", "BD5", "CP3", "Gyro", "Rope"])
 @pytest.mark.parametrize("name", BASELINE_MODELS)
 def test_gradients_reach_every_parameter(name, task):

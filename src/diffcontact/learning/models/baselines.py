@@ -60,6 +60,7 @@ from diffcontact.learning.models.physical import (
 from diffcontact.learning.models.protocol import OptimizerSettings
 from diffcontact.learning.models.registry import BASELINE_MODELS
 from diffcontact.systems import NonFiniteRolloutError, PhysicalParams, System, load_config
+from diffcontact.systems.config import rollout_size_error
 from diffcontact.systems.graph import EDGE_KINDS, ENVIRONMENT
 from diffcontact.threads import thread_scope
 
@@ -948,6 +949,8 @@ class INSPCP(nn.Module):
             steps = system.default_steps
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
             raise ValueError(f"steps must be a non-negative integer, got {steps!r}")
+        if too_large := rollout_size_error(z0.shape[0], steps, system.state_shape, z0.itemsize):
+            raise ValueError(f"simulate {system.name}: {too_large}")
         if check_overlap:
             system._check_no_overlap(z0, "z0")
         iterator: Any = range(steps)
