@@ -96,6 +96,38 @@ def test_evaluate_without_run_dir(tmp_path, dataset):
         evaluate(None, model=SystemModel(TINY), data_dir=dataset, steps=5, n_gif=0)
 
 
+def test_a_model_object_that_breaks_the_contract_is_named(tmp_path, dataset):
+    """A model without simulate, one returning the wrong shape, or learned_parameters()
+    returning None or strings gave AttributeError or numpy's broadcast error."""
+
+    class NoSimulate:
+        def learned_parameters(self):
+            return {}
+
+    class Short(SystemModel):
+        def simulate(self, z0, steps):
+            return super().simulate(z0, steps)[:, :-1]
+
+    class Unlearned(SystemModel):
+        def learned_parameters(self):
+            return None
+
+    class Words(SystemModel):
+        def learned_parameters(self):
+            return {"mu": "x"}
+
+    out = tmp_path / "out"
+    with pytest.raises(EvaluationInputError, match="model must have a method simulate"):
+        evaluate(None, out, model=NoSimulate(), data_dir=dataset, steps=5, n_gif=0)
+    assert not out.exists()  # refused before any file
+    with pytest.raises(EvaluationInputError, match=r"model\.simulate returned shape \(\d+, 5,"):
+        evaluate(None, out, model=Short(TINY), data_dir=dataset, steps=5, n_gif=0)
+    with pytest.raises(EvaluationInputError, match=r"must return a dict .* got NoneType"):
+        evaluate(None, out, model=Unlearned(TINY), data_dir=dataset, steps=5, n_gif=0)
+    with pytest.raises(EvaluationInputError, match=r"\['mu'\] must hold numbers"):
+        evaluate(None, out, model=Words(TINY), data_dir=dataset, steps=5, n_gif=0)
+
+
 def test_evaluate_bad_input(tmp_path, dataset):
     with pytest.raises(EvaluationInputError, match="does not exist"):
         evaluate(tmp_path / "missing")

@@ -89,6 +89,18 @@ def _floats(value: Any) -> list[float] | None:
 
 def _learned(raw: Mapping[str, Any], n_bodies: int) -> dict[str, Any]:
     """Normalise ``model.learned_parameters()``: mass ratios ``m_i/m_1`` for i >= 2."""
+    if not isinstance(raw, Mapping):
+        raise EvaluationInputError(
+            f"model.learned_parameters() must return a dict (mass_ratios, mu, cor, ...), "
+            f"got {type(raw).__name__}"
+        )
+    for key in ("mass_ratios", "mass", "mu", "cor", "eps"):
+        try:
+            _floats(raw.get(key))
+        except (TypeError, ValueError) as err:
+            raise EvaluationInputError(
+                f"model.learned_parameters()[{key!r}] must hold numbers: {err}"
+            ) from None
     out: dict[str, Any] = {}
     ratios = _floats(raw.get("mass_ratios"))
     if ratios is None and raw.get("mass") is not None:
@@ -330,7 +342,14 @@ def _rollouts(model: Any, z0: torch.Tensor, steps: int) -> tuple[np.ndarray, lis
             keep = keep[mask]
     pred = np.full((z0.shape[0], steps + 1, *z0.shape[1:]), np.nan)
     if out is not None:
-        pred[keep.cpu().numpy()] = as_numpy(out)
+        out = as_numpy(out)
+        expected = (len(keep), *pred.shape[1:])
+        if out.shape != expected:  # (numpy's broadcast error before)
+            raise EvaluationInputError(
+                f"model.simulate returned shape {out.shape} for {len(keep)} states and "
+                f"{steps} steps, expected {expected} (N, steps + 1, 2, P, dim)"
+            )
+        pred[keep.cpu().numpy()] = out
     return pred, sorted(failed)
 
 
@@ -410,7 +429,9 @@ def evaluate(
             config; a model or data file that cannot be read, fails its
             checksum or would run code to load; ``out_dir`` holding another
             evaluation (without ``force``); bad arguments (``steps`` beyond
-            the recorded states); CUDA requested but unavailable.
+            the recorded states); CUDA requested but unavailable; a ``model``
+            without ``simulate``, whose rollouts have the wrong shape, or whose
+            ``learned_parameters()`` is not a dict of numbers.
     """
     # ---- arguments and files
     from diffcontact.viz.animation import MAX_PANELS
@@ -450,6 +471,12 @@ def evaluate(
             )
     elif model is None:
         raise EvaluationInputError("give a run directory or a model")
+    if model is not None:  # (an AttributeError from deep inside, after files were written)
+        if not callable(getattr(model, "simulate", None)):
+            raise EvaluationInputError(
+                f"model must have a method simulate(z0, steps) (docs/evaluation.md); "
+                f"{type(model).__name__} has none"
+            )
     data_path = _resolve_data_dir(run_path, run, data_dir)
     traj, system, dataset = _load_test(data_path)
     recorded = dataset.metadata.get("source") != "simulated"
@@ -518,7 +545,7 @@ def evaluate(
             source = "simulated (test trajectories shorter than the rollout)"
         pred, failed = _rollouts(model, z0, steps)
     if pred.shape != true.shape:
-        raise RuntimeError(
+        raise EvaluationInputError(
             f"model.simulate returned shape {pred.shape}, expected {true.shape} "
             "(N, steps + 1, 2, P, dim)"
         )
