@@ -139,7 +139,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """
     target = Path(path)
     folder = target.parent if str(target.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{target.stem}.tmp-", suffix=target.suffix)
+    try:
+        fd, tmp_name = tempfile.mkstemp(
+            dir=folder, prefix=f".{target.stem}.tmp-", suffix=target.suffix
+        )
+    except OSError as err:  # (a missing folder named the hidden temporary file)
+        raise type(err)(err.errno, err.strerror or str(err), str(target)) from None
     os.close(fd)
     tmp = Path(tmp_name)
     try:

@@ -298,12 +298,22 @@ def test_bad_arguments_of_the_plots_are_named(tmp_path):
         (lambda: plot_energy(E, float("nan"), tmp_path / "e.png"), "dt must be"),
         (lambda: plot_energy(E[:0], 0.01, tmp_path / "e.png"), "N, T >= 1"),
         (lambda: plot_energy(E * np.nan, 0.01, tmp_path / "e.png"), "no finite value"),
+        # a blank GIF, and NaN or negative steps in the titles, were accepted
+        (lambda: animate(traj * np.nan, scene, tmp_path / "a.gif"), "no finite position"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", dt=float("nan")), "dt must be"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", dt=-1.0), "dt must be"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", trail=-1), "trail must be"),
     ]
     for call, needle in cases:
         with pytest.raises(ValueError, match=needle):
             call()
     assert no_temp_files(tmp_path) and not list(tmp_path.iterdir())
     render_frame(traj, scene, tmp_path / "last.png", frame=-1)  # from the end
+    # a missing folder named the hidden temporary file, not the path given
+    missing = tmp_path / "nope" / "a.gif"
+    with pytest.raises(FileNotFoundError) as err:
+        animate(traj, scene, missing)
+    assert err.value.filename == str(missing)
 
 
 def test_a_diverging_overlay_does_not_set_the_axis_limits(tmp_path):

@@ -623,6 +623,8 @@ def _build_figure(
         )
     _positive("max_frames", max_frames, integer=True)
     n = min(n_total, max_trajectories)
+    if not np.isfinite(x[:n]).any():  # (a blank GIF was written)
+        raise ValueError("traj holds no finite position in the trajectories shown: nothing to draw")
     if not np.isfinite(x[:n]).all():
         warnings.warn(
             "traj holds NaN or infinite positions; those bodies are not drawn in those frames",
@@ -836,6 +838,10 @@ def animate(
     _image_format(path, (".gif",))
     _positive("fps", fps)
     _positive("dpi", dpi)
+    if dt is not None:  # (NaN or a negative step were shown in the titles)
+        _positive("dt", dt)
+    if isinstance(trail, bool) or not isinstance(trail, int) or trail < 0:
+        raise ValueError(f"trail must be a non-negative integer, got {trail!r}")
     fig, panels, idx = _build_figure(
         traj,
         scene,
