@@ -131,3 +131,49 @@ def test_building_the_parser_imports_no_torch_or_lightning():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_a_plugin_that_breaks_the_protocol_is_named(tmp_path):
+    """A factory raising ZeroDivisionError escaped as a traceback; a model without
+    state_shape or model_name failed with AttributeError deep inside training; one without
+    trainable parameters with torch's 'optimizer got an empty parameter list'."""
+
+    def raising(config):
+        return 1 / 0
+
+    class NoShape(LearnedRestitution):
+        def __init__(self, config):
+            super().__init__(config)
+            del self.state_shape
+
+    class Frozen(LearnedRestitution):
+        def __init__(self, config):
+            super().__init__(config)
+            self.raw_cor.requires_grad_(False)
+
+    with pytest.raises(ValueError, match=r"factory of model 'Raising' raised ZeroDivisionError"):
+        dc.learning.register_model("Raising", raising)
+        try:
+            dc.learning.create_model("Raising", BALL)
+        finally:
+            dc.learning.unregister_model("Raising")
+    dc.learning.register_model("NoShape", NoShape)
+    try:
+        with pytest.raises(ValueError, match=r"returned NoShape, which has no state_shape"):
+            dc.learning.create_model("NoShape", BALL)
+    finally:
+        dc.learning.unregister_model("NoShape")
+    config = tmp_path / "ball.json"
+    config.write_text(json.dumps(BALL))
+    data = tmp_path / "data"
+    assert main(["generate", str(config), "--out", str(data), "--n-train", "4", "--n-val", "2",
+                 "--n-test", "1", "--quiet"]) == 0  # fmt: skip
+    from diffcontact.learning.training.run import train
+
+    dc.learning.register_model("Frozen", Frozen)
+    try:
+        with pytest.raises(ValueError, match="model 'Frozen' has no trainable parameters"):
+            train(data, tmp_path / "run", model="Frozen", epochs=1, progress=False)
+        assert not (tmp_path / "run").exists()
+    finally:
+        dc.learning.unregister_model("Frozen")

@@ -55,6 +55,8 @@ REGISTRY = Registry(
     entry_point_group="diffcontact.models",
 )
 REQUIRED = ("simulate", "param_groups", "metrics", "options")
+# the protocol's attributes (training reads them; a plugin without one failed deep inside)
+REQUIRED_ATTRIBUTES = ("model_name", "config", "dt", "state_shape", "default_steps")
 
 
 def parse_model_name(name: str) -> tuple[str, str]:
@@ -106,7 +108,22 @@ def create_model(name: str, config: Any, **options: Any) -> Any:
 
     Raises:
         ValueError: an unknown name (the message lists the registered ones),
-            options the factory does not take, or a product that lacks a method
-            of the :class:`~diffcontact.learning.models.protocol.DynamicsModel` protocol.
+            options the factory does not take, a factory that raises, or a product
+            that lacks a method or attribute of the
+            :class:`~diffcontact.learning.models.protocol.DynamicsModel` protocol.
     """
-    return REGISTRY.create(name, config, required=REQUIRED, **options)
+    try:
+        model = REGISTRY.create(name, config, required=REQUIRED, **options)
+    except ValueError:
+        raise
+    except Exception as err:  # a plugin's factory failing: one line, its cause chained
+        raise ValueError(
+            f"the factory of model {name!r} raised {type(err).__name__}: {err}"
+        ) from err
+    missing = [attr for attr in REQUIRED_ATTRIBUTES if not hasattr(model, attr)]
+    if missing:
+        raise ValueError(
+            f"the factory of model {name!r} returned {type(model).__name__}, which has no "
+            f"{', '.join(missing)} (the DynamicsModel protocol, docs/architecture.md)"
+        )
+    return model

@@ -556,6 +556,13 @@ def train(
         learned = create_model(model, stored_config(meta["config"]), **options)
     except ValueError as err:
         raise TrainingInputError(str(err)) from None
+    if not isinstance(learned, torch.nn.Module):
+        raise TrainingInputError(
+            f"model {model!r}: its factory returned {type(learned).__name__}, not a "
+            "torch.nn.Module (docs/architecture.md)"
+        )
+    if not any(p.requires_grad for p in learned.parameters()):  # (torch's empty-list error)
+        raise TrainingInputError(f"model {model!r} has no trainable parameters")
     if tuple(train_chunks.shape[2:]) != learned.state_shape:
         raise TrainingInputError(
             f"{data_path}: chunks hold states {tuple(train_chunks.shape[2:])}, the config's "
