@@ -478,8 +478,9 @@ def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
         with pytest.raises(ValueError, match=str(tmp_path / "edited.pt")) as caught:
             load_model(tmp_path / "edited.pt")
         assert "\n" not in str(caught.value), what
-        if what == "a newer format":
+        if what == "a newer format":  # (a CM model's said "format 1 ...: retrain")
             assert "format 99 is not supported" in str(caught.value)
+            assert "written by a newer diffcontact" in str(caught.value), model
         if what == "a NaN weight":
             assert "weights with NaN or infinite values: " in str(caught.value)
         if what == "a model name the options disagree with" and model == "CM-CD-CLNN":

@@ -752,9 +752,14 @@ class LearnedModel(nn.Module):
         """Rebuild a model from :meth:`checkpoint`'s dict (dtype of the stored weights)."""
         version = data.get("format_version") if isinstance(data, Mapping) else None
         if version not in (2, FORMAT_VERSION):
+            newer = isinstance(version, int) and not isinstance(version, bool)
+            if newer and version > FORMAT_VERSION:
+                why = "written by a newer diffcontact: update diffcontact to read it"
+            else:
+                why = "format 1 parameterised e_P differently: retrain"
             raise ValueError(
                 f"model file format {version!r} is not supported (this diffcontact reads "
-                f"formats 2 and {FORMAT_VERSION}; format 1 parameterised e_P differently): retrain"
+                f"formats 2 and {FORMAT_VERSION}; {why})"
             )
         try:
             options = dict(data["options"])
