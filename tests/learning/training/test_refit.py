@@ -149,6 +149,14 @@ def test_bad_input(cp3_data, tmp_path):
         refit(_model(), chunks, torch.full_like(chunks, float("nan")))
     with pytest.raises(ValueError, match="iterations must be a non-negative integer"):
         refit(_model(), chunks, chunks, -1)
+    # refit_run(RUN, iterations=True) ran one iteration; refit_run(None) a raw TypeError;
+    # both checked before anything is loaded
+    from diffcontact.learning.training.refit import refit_run
+
+    with pytest.raises(ValueError, match="iterations must be a non-negative integer, got True"):
+        refit_run(tmp_path / "missing", iterations=True)
+    with pytest.raises(ValueError, match="run_dir must be a path, got NoneType"):
+        refit_run(None)
     with pytest.raises(ValueError, match="float64"):
         refit(LearnedModel("CP3", hidden=(4,)).float(), chunks, chunks)
     (tmp_path / "unfinished").mkdir()

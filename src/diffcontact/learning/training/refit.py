@@ -176,7 +176,7 @@ def refit(
             bad chunk shapes, no finite chunk, or ``iterations < 0``.
     """
     out_layer = _check_model(model)
-    if not isinstance(iterations, int) or iterations < 0:
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
         raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
     if out_layer.weight.dtype != torch.float64:
         raise ValueError(f"refit needs float64 parameters, got {out_layer.weight.dtype}")
@@ -336,6 +336,11 @@ def refit_run(
     from diffcontact.learning.data.format import load_dataset
     from diffcontact.learning.models.storage import load_model, save_model
 
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
+        # (checked before the model and the dataset are loaded; True ran one iteration)
+        raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
+    if not isinstance(run_dir, (str, os.PathLike)):
+        raise ValueError(f"run_dir must be a path, got {type(run_dir).__name__}")
     run = Path(run_dir)
     if not run.exists():
         raise ValueError(f"run directory {run} does not exist")
