@@ -890,12 +890,12 @@ def solve_cone_qp(
         active = _all_active(K, A.device)
     elif not isinstance(active, Tensor) or active.dtype != torch.bool:
         raise ValueError("solve_cone_qp: active must be a bool tensor of shape (..., K)")
-    elif active.layout != torch.strided or active.device.type == "meta":
+    else:
         check_dense("solve_cone_qp", "active", active)
-    elif active.dim() < 1 or active.shape[-1] != K:
-        raise ValueError(
-            f"solve_cone_qp: active must have shape (..., {K}), got {tuple(active.shape)}"
-        )
+        if active.dim() < 1 or active.shape[-1] != K:
+            raise ValueError(
+                f"solve_cone_qp: active must have shape (..., {K}), got {tuple(active.shape)}"
+            )
     for name, x in (("b", b), ("mu", mu), ("lower", lower)):
         if x.dtype != A.dtype:
             raise ValueError(f"solve_cone_qp: {name} has dtype {x.dtype}, A has {A.dtype}")

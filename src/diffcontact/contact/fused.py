@@ -699,14 +699,10 @@ def _as(x: Tensor, dtype: torch.dtype) -> Tensor:
     return x if x.dtype == dtype else x.to(dtype)
 
 
-def _forward_workspace(n: int, C: int, K: int, dtype, device) -> _Layout:
-    """The forward kernel's scratch memory of n problems (two rows per problem), laid out
-    as :data:`CUDA_SCRATCH` says on CUDA."""
-    return _workspace_layout(n, C, K, dtype, device, _scratch_layout(device))
-
-
 @functools.lru_cache(maxsize=64)
 def _workspace_layout(n: int, C: int, K: int, dtype, device, layout: str) -> _Layout:
+    """The forward kernel's scratch memory of n problems (two rows per problem), in
+    ``layout`` (:func:`_scratch_layout`)."""
     from diffcontact.contact.warp_kernels import N_SC, N_SLOTS
 
     ws = _Layout(dtype, device, layout)
@@ -731,7 +727,9 @@ _WS_NAMES = (
 _SAVED_NAMES = ("sv", "LU", "piv", "scratch")
 
 
-def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings) -> _Recorded:
+def _record_forward(
+    inputs, outputs, n, d, warm: bool, settings: SolverSettings, layout: str
+) -> _Recorded:
     """Record ``fused_forward`` for the call signature of ``inputs`` (A, b, mu, lower,
     active, warm start) and ``outputs`` (f, residual, iterations, converged, unbounded,
     flags). A replay takes the pointers of the inputs, the outputs (f to unbounded), the
@@ -742,7 +740,7 @@ def _record_forward(inputs, outputs, n, d, warm: bool, settings: SolverSettings)
     K = C // d
     scalar, finfo = _scalar(work), torch.finfo(work)
     eps = finfo.eps
-    ws = _forward_workspace(n, C, K, work, device)
+    ws = _workspace_layout(n, C, K, work, device, layout)
     saved = _saved_layout(n, C, d, work, device)
     w, s = ws.arrays(0), saved.arrays(0)  # (a replay sets the pointers)
     args = [_ctype(x) for x in inputs]
@@ -912,7 +910,7 @@ class FusedConeQP(torch.autograd.Function):
         key = ("forward", d, work, device, warm_start is None, settings, sig, layout)
 
         def record() -> _Recorded:
-            return _record_forward(inputs, outputs, n, d, warm_start is not None, settings)
+            return _record_forward(inputs, outputs, n, d, warm_start is not None, settings, layout)
 
         saved = _saved_layout(n, C, d, work, device)
         keep = saved.allocate()

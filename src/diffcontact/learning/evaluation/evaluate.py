@@ -94,26 +94,27 @@ def _learned(raw: Mapping[str, Any], n_bodies: int) -> dict[str, Any]:
             f"model.learned_parameters() must return a dict (mass_ratios, mu, cor, ...), "
             f"got {type(raw).__name__}"
         )
-    for key in ("mass_ratios", "mass", "mu", "cor", "eps"):
+
+    def numbers(key: str) -> list[float] | None:
         try:
-            _floats(raw.get(key))
+            return _floats(raw.get(key))
         except (TypeError, ValueError) as err:
             raise EvaluationInputError(
                 f"model.learned_parameters()[{key!r}] must hold numbers: {err}"
             ) from None
+
     out: dict[str, Any] = {}
-    ratios = _floats(raw.get("mass_ratios"))
-    if ratios is None and raw.get("mass") is not None:
-        mass = _floats(raw["mass"])
+    ratios = numbers("mass_ratios")
+    if ratios is None:
+        mass = numbers("mass")
         ratios = [m / mass[0] for m in mass] if mass else None
     if ratios is not None and len(ratios) == n_bodies:
         # the model's list includes the first body (ratio 1): drop it
         ratios = [r / ratios[0] for r in ratios[1:]] if ratios[0] != 0 else ratios[1:]
     out["mass_ratios"] = ratios
-    out["mu"] = _floats(raw.get("mu"))
-    out["cor"] = _floats(raw.get("cor"))
-    eps = raw.get("eps")
-    out["eps"] = None if eps is None else _floats(eps)
+    out["mu"] = numbers("mu")
+    out["cor"] = numbers("cor")
+    out["eps"] = numbers("eps")
     if out["eps"] is not None and len(out["eps"]) == 1:
         out["eps"] = out["eps"][0]
     return out
