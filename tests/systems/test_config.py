@@ -110,6 +110,17 @@ def test_unknown_task_lists_known_ones():
         dc.load_system("/nonexistent/system.yaml")
 
 
+def test_system_takes_a_task_name_or_a_path_like_load_system(tmp_path):
+    # System("BP5") said "expected a mapping of keys, got str"
+    assert dc.System("BP5").config == dc.load_system("BP5").config
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(dc.load_system("CP3").config.model_dump(mode="json")))
+    for spec in (path, str(path)):
+        assert dc.System(spec).config == dc.load_system("CP3").config
+    with pytest.raises(ValueError, match=r"unknown task 'BP6'"):
+        dc.System("BP6")
+
+
 def test_a_file_that_is_not_a_config_is_named(tmp_path):
     path = tmp_path / "sim.npz"  # e.g. what diffcontact simulate writes
     path.write_bytes(b"")

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import operator
+import os
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
@@ -187,10 +188,10 @@ def load_config(spec: Any, **overrides: Any):
             unreadable file or an invalid config (the message names the key).
     """
     source = ""
-    if isinstance(spec, (str, Path)):
-        name = str(spec)
+    if isinstance(spec, (str, os.PathLike)):
+        name = spec if isinstance(spec, str) else os.fsdecode(os.fspath(spec))
         builtin = _TASK_DIR / f"{name}.yaml"
-        path = Path(spec)
+        path = Path(name)
         if builtin.is_file() and "/" not in name and "\\" not in name:
             data, source = read_config_file(builtin), f" of built-in task {name!r}"
         elif path.suffix.lower() in (".yaml", ".yml", ".json"):
@@ -352,8 +353,9 @@ class _Context:
 class System:
     """A simulated system of extended bodies with contacts (see the module docstring).
 
-    Build it with :func:`load_system` (or ``System(config)`` with a validated
-    config). Attributes:
+    Build it with :func:`load_system`, or ``System(spec)`` with anything
+    :func:`load_config` takes (a task name such as ``"BP5"``, a ``.yaml``/``.json``
+    path, a mapping or a validated config). Attributes:
 
     - structure: ``config``, ``name``, ``type``, ``dim``, ``n_points``,
       ``n_bodies``, ``body_points`` (first point of each body), ``n_contacts``
@@ -371,7 +373,10 @@ class System:
     """
 
     def __init__(self, config: Any) -> None:
-        cfg = parse_config(config)
+        # a task name or a path as load_system takes it (parse_config alone said
+        # "expected a mapping of keys, got str" to System("BP5"))
+        named = isinstance(config, (str, os.PathLike))
+        cfg = load_config(config) if named else parse_config(config)
         self.config = cfg
         self.type: str = cfg.type
         self.name: str = cfg.name or cfg.type
