@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from torch import nn
 import diffcontact as dc
 from diffcontact.cli import main
 from diffcontact.contact import PoissonTwoPhase
+from diffcontact.registry import Registry
 
 BALL = {
     "name": "ball",
@@ -177,3 +179,36 @@ def test_a_plugin_that_breaks_the_protocol_is_named(tmp_path):
         assert not (tmp_path / "run").exists()
     finally:
         dc.learning.unregister_model("Frozen")
+
+
+@pytest.mark.parametrize("name", ["--out", " ", "", "a b", "runs/x", "../x", "-m", ".hidden", "é"])
+def test_a_model_name_that_cannot_be_given_on_the_command_line_is_refused(name):
+    """``register_model`` took '--out', ' ', 'a b' and names with '/': names that cannot be
+    given as ``diffcontact train DATA --model NAME`` or that break run-folder names."""
+    with pytest.raises(ValueError, match=r"model name .* (is not allowed|non-empty)"):
+        dc.learning.register_model(name, LearnedRestitution)
+    assert name not in dc.learning.model_names()
+
+
+def test_model_names_follow_one_rule_built_ins_and_entry_points(monkeypatch):
+    """The built-in names fit the rule that registered ones must; an entry point with a name
+    that breaks it is left out with a warning (it went into the --model choices)."""
+    import importlib.metadata
+
+    from diffcontact.learning.models import registry
+
+    for name in ["CM-CD-CLNN", "MLP-CD-CLNN", "IN-SP-CP", "My_Net.v2", "3body"]:
+        assert re.fullmatch(registry.NAME_PATTERN, name), name
+    for name in registry.model_names():
+        assert re.fullmatch(registry.NAME_PATTERN, name), name
+    dc.learning.register_model("My_Net.v2", LearnedRestitution)
+    dc.learning.unregister_model("My_Net.v2")
+
+    eps = [
+        importlib.metadata.EntryPoint("Good-Net", "tests.test_plugins:LearnedRestitution", "g"),
+        importlib.metadata.EntryPoint("--bad", "tests.test_plugins:LearnedRestitution", "g"),
+    ]
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group: eps)
+    fresh = Registry("model", {}, "g", name_pattern=registry.NAME_PATTERN, name_rule="rule")
+    with pytest.warns(RuntimeWarning, match=r"ignored entry point .* model name '--bad'"):
+        assert fresh.names() == ["Good-Net"]

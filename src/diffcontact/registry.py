@@ -11,10 +11,24 @@ from __future__ import annotations
 import importlib
 import inspect
 import re
+import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
 __all__ = ["Registry"]
+
+
+NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9._-]*"
+"""What a registered model or contact-model name looks like (CM-CD-CLNN, MLP-CD-CLNN, CMr):
+it is given as a command-line option's value and becomes part of folder names."""
+
+
+def name_rule(kind: str, option: str) -> str:
+    """:data:`NAME_PATTERN` in words, for the messages of the registry of ``kind``."""
+    return (
+        f"a {kind} name starts with a letter or digit, followed by letters, digits, '-', '_' "
+        f"or '.' (it is a {option} argument and part of folder names)"
+    )
 
 
 class Registry:
@@ -26,6 +40,10 @@ class Registry:
             cannot be replaced or removed.
         entry_point_group: the ``importlib.metadata`` entry-point group read
             on first use.
+        name_pattern: a regular expression every name must match in full (registered
+            or from an entry point); ``None``: any non-empty name without surrounding
+            spaces.
+        name_rule: ``name_pattern`` in words, for messages.
     """
 
     def __init__(
@@ -33,12 +51,28 @@ class Registry:
         kind: str,
         builtins: dict[str, Callable[..., Any] | str],
         entry_point_group: str,
+        *,
+        name_pattern: str | None = None,
+        name_rule: str | None = None,
     ) -> None:
         self.kind = kind
         self._factories: dict[str, Callable[..., Any] | str] = dict(builtins)
         self._builtin = tuple(builtins)
         self._group = entry_point_group
         self._entry_points_loaded = False
+        self._pattern = re.compile(name_pattern) if name_pattern is not None else None
+        self._rule = name_rule or (f"names match {name_pattern}" if name_pattern else "")
+        for name in self._builtin:
+            if self._name_problem(name) is not None:
+                raise ValueError(f"built-in {kind} name {name!r} breaks its own rule: {self._rule}")
+
+    def _name_problem(self, name: object) -> str | None:
+        """Why ``name`` cannot be registered (one line), or ``None`` if it can."""
+        if not isinstance(name, str) or not name.strip() or name != name.strip():
+            return f"{self.kind} name must be a non-empty string, got {name!r}"
+        if self._pattern is not None and self._pattern.fullmatch(name) is None:
+            return f"{self.kind} name {name!r} is not allowed: {self._rule}"
+        return None
 
     def _load_entry_points(self) -> None:
         if self._entry_points_loaded:
@@ -47,17 +81,27 @@ class Registry:
         from importlib.metadata import entry_points
 
         for ep in entry_points(group=self._group):
+            problem = self._name_problem(ep.name)
+            if problem is not None:  # one package's bad name must not break every command
+                warnings.warn(
+                    f"ignored entry point {ep.value!r} of group {self._group}: {problem}",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+                continue
             self._factories.setdefault(ep.name, ep.value)
 
     def register(self, name: str, factory: Callable[..., Any], *, overwrite: bool = False) -> None:
         """Add ``factory`` under ``name``.
 
         Raises:
-            ValueError: an empty name, a name already taken (unless
-                ``overwrite``; built-ins never), or a factory that is not callable.
+            ValueError: an empty name or one that breaks the registry's name rule, a
+                name already taken (unless ``overwrite``; built-ins never), or a factory
+                that is not callable.
         """
-        if not isinstance(name, str) or not name.strip() or name != name.strip():
-            raise ValueError(f"{self.kind} name must be a non-empty string, got {name!r}")
+        problem = self._name_problem(name)
+        if problem is not None:
+            raise ValueError(problem)
         if not callable(factory):
             raise ValueError(f"factory for {self.kind} {name!r} must be callable")
         self._load_entry_points()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -68,6 +70,9 @@ def test_registry_guards(frictionless):
         register_contact_model("CM", Frictionless, overwrite=True)
     with pytest.raises(ValueError, match="callable"):
         register_contact_model("Broken", 3)
+    for bad in ("--out", "my model", "a/b", ".hidden"):  # --contact-model values, folder names
+        with pytest.raises(ValueError, match=rf"contact model name '{re.escape(bad)}' is not al"):
+            register_contact_model(bad, Frictionless)
     with pytest.raises(ValueError, match="contact model 'CM' has no option 'eps'; it takes: none"):
         create_contact_model("CM", eps=0.1)
     with pytest.raises(ValueError, match="options are for contact-model names"):

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from diffcontact.registry import Registry
+from diffcontact.registry import NAME_PATTERN, Registry, name_rule
 
 __all__ = [
     "contact_models",
@@ -29,6 +29,8 @@ REGISTRY = Registry(
         "Coulomb": "diffcontact.contact.coulomb:Coulomb",
     },
     entry_point_group="diffcontact.contact_models",
+    name_pattern=NAME_PATTERN,
+    name_rule=name_rule("contact model", "--contact-model"),
 )
 
 
@@ -41,10 +43,13 @@ def register_contact_model(
     --contact-model name`` and ``diffcontact generate --contact-model name``
     use it.
 
+    ``name`` starts with a letter or digit, followed by letters, digits, ``-``, ``_``
+    or ``.`` (:data:`diffcontact.registry.NAME_PATTERN`).
+
     Raises:
-        ValueError: an empty name, a name already taken (unless ``overwrite``;
-            the built-in names can never be replaced) or a factory that is not
-            callable.
+        ValueError: an empty name or one that breaks that rule, a name already taken
+            (unless ``overwrite``; the built-in names can never be replaced) or a
+            factory that is not callable.
     """
     REGISTRY.register(name, factory, overwrite=overwrite)
 

@@ -219,3 +219,73 @@ def test_refit_of_a_missing_folder_says_it_does_not_exist(tmp_path, capsys):
     """``refit nope`` said "nope: no model.pt (not a finished run ...)"."""
     code, _, err = _refit_cli(capsys, tmp_path / "nope", 2)
     assert code == 2 and f"run directory {tmp_path / 'nope'} does not exist" in err
+
+
+def test_a_refit_killed_between_its_writes_is_finished_by_the_next(cp3_data, tmp_path):
+    """A kill after ``model.pt`` was written left ``learned.json`` (and ``refit.json``) of the
+    model before, and a second refit, starting from the refitted model, kept no step and
+    returned without touching them: the run stayed inconsistent."""
+    from diffcontact import io as dc_io
+
+    run = _fake_run(tmp_path / "run", cp3_data)
+    adam = {"finished": True, "learned": _model().learned_parameters()}  # training's
+    (run / "learned.json").write_text(json.dumps(adam))
+    before = (run / "model.pt").read_bytes()
+    write_json = dc_io.atomic_write_json
+
+    def killed_at_learned_json(path, data):
+        if path.name == "learned.json":
+            raise KeyboardInterrupt  # the kill: after model.pt, before learned.json
+        return write_json(path, data)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dc_io, "atomic_write_json", killed_at_learned_json)
+        with pytest.raises(KeyboardInterrupt):
+            refit_module.refit_run(run, 1, log=None)
+    assert (run / "model.pt").read_bytes() != before  # the refitted model
+    assert json.loads((run / "learned.json").read_text()) == adam  # Adam's, not the refit's
+    assert not (run / "refit.json").exists()
+
+    lines: list[str] = []
+    report = refit_module.refit_run(run, 0, log=lines.append)  # no iteration: only the repair
+    assert report.iterations == []
+    model = load_model(run)
+    learned = json.loads((run / "learned.json").read_text())
+    assert learned["learned"] == json.loads(json.dumps(model.learned_parameters()))
+    assert learned["learned"] != adam["learned"]  # the refit moved the physical parameters
+    assert learned["finished"] is True  # training's entries kept
+    refit_report = json.loads((run / "refit.json").read_text())
+    assert learned["refit"]["val_mse"] == refit_report["val_mse"]
+    assert refit_report["iterations"][0]["accepted"]
+    assert refit_report["data_dir"] == str(cp3_data)
+    assert any("finished the writes of an interrupted refit" in line for line in lines), lines
+    assert not (run / refit_module.PENDING).exists()
+
+
+def test_a_refit_killed_before_model_pt_leaves_the_run_as_it_was(cp3_data, tmp_path):
+    """The journal of a refit killed before it replaced ``model.pt`` is removed by the next
+    refit, which says so and goes on from the model before."""
+    from diffcontact import io as dc_io
+
+    run = _fake_run(tmp_path / "run", cp3_data)
+    before = (run / "model.pt").read_bytes()
+    write_bytes = dc_io.atomic_write_bytes
+
+    def killed_at_model_pt(path, data):
+        if path.name == "model.pt":
+            raise KeyboardInterrupt
+        return write_bytes(path, data)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dc_io, "atomic_write_bytes", killed_at_model_pt)
+        with pytest.raises(KeyboardInterrupt):
+            refit_module.refit_run(run, 1, log=None)
+    assert (run / "model.pt").read_bytes() == before
+    assert (run / refit_module.PENDING).is_file()
+
+    lines: list[str] = []
+    refit_module.refit_run(run, 0, log=lines.append)
+    assert any("model.pt is not the one it names" in line for line in lines), lines
+    assert not (run / refit_module.PENDING).exists()
+    assert (run / "model.pt").read_bytes() == before
+    assert not (run / "learned.json").exists() and not (run / "refit.json").exists()

@@ -21,11 +21,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from diffcontact.registry import Registry
+from diffcontact.registry import NAME_PATTERN, Registry, name_rule
 
 __all__ = [
     "BASELINE_MODELS",
     "BUILTIN_MODELS",
+    "NAME_PATTERN",
     "PHYSICAL_CONTACT_MODELS",
     "create_model",
     "is_physical_model",
@@ -44,6 +45,9 @@ BUILTIN_MODELS = tuple(
 # the paper's baselines (diffcontact.learning.models.baselines): an MLP or an interaction
 # network replaces the impulse (MLP-CD-CLNN, IN-CP-CLNN) or the whole step (IN-SP-CP)
 BASELINE_MODELS = ("MLP-CD-CLNN", "IN-CP-CLNN", "IN-SP-CP")
+# a model name is a `diffcontact train --model NAME` argument and part of run-folder names
+# (CM-CD-CLNN, MLP-CD-CLNN, IN-SP-CP): no leading '-', no spaces, no '/'
+NAME_RULE = name_rule("model", "--model")
 _PHYSICAL = "diffcontact.learning.models.physical"
 _BASELINES = "diffcontact.learning.models.baselines"
 REGISTRY = Registry(
@@ -53,6 +57,8 @@ REGISTRY = Registry(
         **{name: f"{_BASELINES}:{name.replace('-', '_')}" for name in BASELINE_MODELS},
     },
     entry_point_group="diffcontact.models",
+    name_pattern=NAME_PATTERN,
+    name_rule=NAME_RULE,
 )
 REQUIRED = ("simulate", "param_groups", "metrics", "options")
 # the protocol's attributes (training reads them; a plugin without one failed deep inside)
@@ -86,9 +92,15 @@ def register_model(name: str, factory: Callable[..., Any], *, overwrite: bool = 
     data (what the model's ``options()`` returns, stored with a trained model
     and passed back when it is loaded).
 
+    ``name`` starts with a letter or digit, followed by letters, digits, ``-``, ``_``
+    or ``.`` (:data:`NAME_PATTERN`): it is given as ``diffcontact train DATA --model
+    NAME`` and becomes part of folder names. Entry points of the group
+    ``diffcontact.models`` with another name are ignored, with a ``RuntimeWarning``.
+
     Raises:
-        ValueError: an empty name, a name already taken (unless ``overwrite``;
-            built-in names can never be replaced) or a factory that is not callable.
+        ValueError: an empty name or one that breaks that rule, a name already taken
+            (unless ``overwrite``; built-in names can never be replaced) or a factory
+            that is not callable.
     """
     REGISTRY.register(name, factory, overwrite=overwrite)
 

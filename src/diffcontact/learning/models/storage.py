@@ -35,6 +35,7 @@ __all__ = [
     "UnsafeFileError",
     "load_model",
     "load_torch_file",
+    "model_bytes",
     "model_checkpoint",
     "model_from_checkpoint",
     "model_spec",
@@ -54,7 +55,9 @@ def load_torch_file(path: str | os.PathLike[str], what: str, map_location: Any =
     Raises:
         UnsafeFileError: the file needs more than tensors and plain data
             (unpickling it could execute code); it is not loaded.
-        ValueError: the file is missing, truncated or not a torch file.
+        ValueError: the file is missing, truncated or not a torch file, or
+            ``map_location`` (or the device the tensors were saved on) names a device
+            this machine does not have (e.g. ``"cuda"`` without CUDA).
     """
     if Path(path).is_file() and not _is_empty(path) and not zipfile.is_zipfile(path):
         # torch.save writes zip archives (diffcontact's files all are); anything else went
@@ -75,10 +78,38 @@ def load_torch_file(path: str | os.PathLike[str], what: str, map_location: Any =
     except FileNotFoundError:
         raise ValueError(f"{what} {path} does not exist") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError, KeyError) as err:
+        device = _missing_device(err)
+        if device is not None:  # a good file, to be read onto a device this machine lacks
+            raise ValueError(
+                f"{what} {path} cannot be loaded with map_location={map_location!r}: "
+                f"{device} (pass map_location='cpu')"
+            ) from None
         reason = "it is empty" if _is_empty(path) else one_line(err).split(". ")[0]
         raise ValueError(
             f"{what} {path} cannot be read (truncated or corrupted?): {reason}"
         ) from None
+
+
+def _missing_device(err: BaseException) -> str | None:
+    """What ``torch.load``'s ``err`` says is missing when it failed because the tensors were
+    to go to a device this machine lacks (``"CUDA is not available on this machine"``);
+    ``None`` for any other error (torch's messages: ``torch.serialization._validate_device``).
+    """
+    if not isinstance(err, RuntimeError):
+        return None
+    text = str(err)
+    found = re.search(r"deserialize object on an? (\w+) device but torch\.\w+\.is_avail", text)
+    if found:
+        return f"{found[1]} is not available on this machine"
+    found = re.search(
+        r"deserialize object on (\w+) device (\d+) but .*?device_count\(\) is (\d+)", text
+    )
+    if found:
+        return f"{found[1]} device {found[2]} does not exist (this machine has {found[3]})"
+    found = re.search(r"The (\w+) device module is not registered", text)
+    if found:
+        return f"{found[1]} is not available in this torch build"
+    return None
 
 
 def _is_empty(path: str | os.PathLike[str]) -> bool:
@@ -160,12 +191,19 @@ def model_from_checkpoint(data: Mapping[str, Any]) -> Any:
     return model
 
 
-def save_model(model: Any, path: str | os.PathLike[str]) -> Path:
-    """Write ``model`` (name, config, options, weights) to ``path`` atomically."""
+def model_bytes(model: Any) -> bytes:
+    """The bytes of ``model``'s model file (name, config, options, weights), as
+    :func:`save_model` writes them (for writers that must know them first, e.g. to record
+    their hash)."""
     checkpoint = model.checkpoint() if hasattr(model, "checkpoint") else model_checkpoint(model)
     buf = io.BytesIO()
     torch.save(checkpoint, buf)
-    return atomic_write_bytes(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def save_model(model: Any, path: str | os.PathLike[str]) -> Path:
+    """Write ``model`` (name, config, options, weights) to ``path`` atomically."""
+    return atomic_write_bytes(path, model_bytes(model))
 
 
 def load_model(run_dir: str | os.PathLike[str], map_location: Any = "cpu") -> Any:

@@ -32,6 +32,7 @@ hidden layers are not touched.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -47,7 +48,15 @@ from torch import Tensor, nn
 from diffcontact.contact import ConeQPError
 from diffcontact.learning.training.module import _is_nonfinite_error
 
-__all__ = ["FD_STEP", "LAMBDAS", "RefitReport", "refit", "refit_run", "rollout_residual"]
+__all__ = [
+    "FD_STEP",
+    "LAMBDAS",
+    "PENDING",
+    "RefitReport",
+    "refit",
+    "refit_run",
+    "rollout_residual",
+]
 
 LAMBDAS = (1e-12, 1e-10, 1e-8, 1e-6, 1e-4)
 """Levenberg-Marquardt damping factors tried in each iteration (the best on validation wins)."""
@@ -55,6 +64,10 @@ FD_STEP = 1e-6
 """Central finite-difference step of the physical parameters' Jacobian columns (raw units)."""
 CHUNKS_PER_PASS = 1000
 """Chunks rolled out in one graph when accumulating the normal equations (memory bound)."""
+PENDING = "refit.pending.json"
+"""The journal of :func:`refit_run`'s writes, in the run folder while they are under way:
+the SHA-256 of the new ``model.pt`` and the ``learned.json`` and ``refit.json`` that go
+with it (a refit killed between its writes is finished by the next ``refit_run``)."""
 
 
 @dataclass
@@ -324,17 +337,23 @@ def refit_run(
     The model before the refit is kept as ``model_adam.pt`` (written by the first refit
     after training: ``train`` removes it whenever it writes a new ``model.pt``, so a second
     refit keeps it); ``refit.json`` records the report. Files are written
-    atomically. The data are the run's dataset (``run.json``'s ``data_dir``) unless
-    ``data_dir`` is given. A refit that lowers nothing leaves every file as it was.
+    atomically, and together through a journal (:data:`PENDING`, written before
+    ``model.pt``, removed after ``refit.json``): a ``refit_run`` that finds one left by a
+    refit killed between its writes first finishes them (``learned.json`` and
+    ``refit.json`` of the ``model.pt`` written) or, where ``model.pt`` is not the one the
+    journal names, removes it; ``log`` says which. The data are the run's dataset
+    (``run.json``'s ``data_dir``) unless ``data_dir`` is given. A refit that lowers
+    nothing leaves every file as it was.
 
     Raises:
         ValueError: no finished run in ``run_dir`` (no ``model.pt``), a run folder that
-            cannot be written (checked before any work, e.g. read-only storage), a model
-            without a potential network, an unreadable dataset, or a bad ``iterations``.
+            cannot be written (checked before any work, e.g. read-only storage), an
+            unreadable journal, a model without a potential network, an unreadable
+            dataset, or a bad ``iterations``.
     """
     from diffcontact.io import atomic_write_bytes, atomic_write_json, check_writable_folder
     from diffcontact.learning.data.format import load_dataset
-    from diffcontact.learning.models.storage import load_model, save_model
+    from diffcontact.learning.models.storage import load_model, model_bytes
 
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
         # (checked before the model and the dataset are loaded; True ran one iteration)
@@ -353,6 +372,7 @@ def refit_run(
             f"cannot refit {run}: {err} (refit rewrites model.pt and learned.json there; "
             "copy the run to writable storage)"
         ) from None
+    _finish_interrupted(run, log)
     info = _read_json(run / "run.json")
     source = data_dir if data_dir is not None else info.get("data_dir")
     if source is None:
@@ -370,13 +390,49 @@ def refit_run(
         return report  # nothing changed: model.pt is still what it was
     if not (run / "model_adam.pt").is_file():  # model.pt is Adam's (train removes a stale copy)
         atomic_write_bytes(run / "model_adam.pt", (run / "model.pt").read_bytes())
-    save_model(model, run / "model.pt")
+    weights = model_bytes(model)
     learned = _read_json(run / "learned.json")
     learned["learned"] = model.learned_parameters()
     learned["refit"] = {"iterations": len(report.iterations), "val_mse": report.val_mse}
+    refit_json = report.as_dict() | {"data_dir": str(source)}
+    # three files, each written atomically; the journal makes them one write (a kill between
+    # them leaves it, and the next refit_run finishes them: _finish_interrupted)
+    journal = {"model_sha256": hashlib.sha256(weights).hexdigest()}
+    atomic_write_json(run / PENDING, journal | {"learned": learned, "refit": refit_json})
+    atomic_write_bytes(run / "model.pt", weights)
     atomic_write_json(run / "learned.json", learned)
-    atomic_write_json(run / "refit.json", report.as_dict() | {"data_dir": str(source)})
+    atomic_write_json(run / "refit.json", refit_json)
+    (run / PENDING).unlink()
     return report
+
+
+def _finish_interrupted(run: Path, log: Callable[[str], None] | None) -> None:
+    """Finish the writes of a refit of ``run`` killed between them, named by its journal
+    (:data:`PENDING`), or remove a journal whose ``model.pt`` was never written."""
+    from diffcontact.io import atomic_write_json
+
+    pending = run / PENDING
+    if not pending.is_file():
+        return
+    say = log or (lambda _line: None)
+    journal = _read_json(pending)
+    journal = journal if isinstance(journal, dict) else {}
+    digest, learned, report = (journal.get(k) for k in ("model_sha256", "learned", "refit"))
+    if not (isinstance(digest, str) and isinstance(learned, dict) and isinstance(report, dict)):
+        raise ValueError(
+            f"{pending} is not a refit journal (no model_sha256, learned or refit): was it "
+            "edited? remove it, and check learned.json against model.pt"
+        )
+    if hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != digest:
+        pending.unlink()
+        say(f"refit: removed {pending}: model.pt is not the one it names (a refit "
+            "interrupted before writing model.pt, or a model.pt written since)")  # fmt: skip
+        return
+    atomic_write_json(run / "learned.json", learned)
+    atomic_write_json(run / "refit.json", report)
+    pending.unlink()
+    say(f"refit: finished the writes of an interrupted refit of {run}: learned.json and "
+        "refit.json now match its model.pt")  # fmt: skip
 
 
 def _read_json(path: Path) -> dict[str, Any]:
