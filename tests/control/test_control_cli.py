@@ -195,3 +195,64 @@ def test_json_replaces_only_a_plan_unless_forced(capsys, tmp_path):
     code, _, err = run(capsys, *base, "--json", str(recording), "--force")
     assert code == 0, err
     assert "variables" in json.loads(recording.read_text())
+
+
+TABLE = "allowed: x in [0.13, 0.87], y in [0.13, 0.87], where ball 2, of radius 0.13, fits"
+REACH = "allowed: x in [-4000, 4000], within 1000 times the 4 m a throw from x = 0 covers in 1 s"
+
+
+@pytest.mark.parametrize(
+    ("argv", "needles"),
+    [
+        (["billiards", "BP5", "--target", "1e300", "0.5"], ["[1e+300, 0.5] is outside", TABLE]),
+        # (argparse took -1e300 for an option: "expected 2 arguments")
+        (["billiards", "BP5", "--target", "-1e300", "0.5"], ["[-1e+300, 0.5] is outside", TABLE]),
+        (["billiards", "BP5", "--target", "1e30", "0.5"], ["[1e+30, 0.5] is outside", TABLE]),
+        # ("target must be finite (x, y) points, got shape (1, 2)")
+        (["billiards", "BP5", "--target", "nan", "0.5"], ["[nan, 0.5] is not finite", TABLE]),
+        (["billiards", "BP5", "--target", "0.5", "-inf"], ["[0.5, -inf] is not finite", TABLE]),
+        # (planned, exit 0: "velocity = (0, 0)", a distance of 1e+300)
+        (["throw", "BD1-ground", "--target", "1e300"], ["x = 1e+300 is far out of reach", REACH]),
+        (["throw", "BD1-ground", "--target", "-1e300"], ["x = -1e+300 is far out of", REACH]),
+        (["throw", "BD1-ground", "--target", "1e30"], ["x = 1e+30 is far out of reach", REACH]),
+        (["throw", "BD1-ground", "--target", "nan"], ["x = nan is not finite", REACH]),
+        (["throw", "BD1-ground", "--target", "-inf"], ["x = -inf is not finite", REACH]),
+    ],
+)  # fmt: skip
+def test_absurd_targets_are_refused_with_the_allowed_range(capsys, argv, needles):
+    """Targets that are not finite or far outside where a shot can go: one line naming the
+    target and the allowed range, exit status 2."""
+    code, _, err = run(capsys, *argv, "--quiet", "--no-gif")
+    assert_usage_error(code, err, "error: target ", *needles)
+
+
+def test_absurd_targets_are_refused_by_the_python_api_too():
+    """plan_billiards and plan_throw raise ControlError (the module's error for bad input)
+    naming the target and the allowed range; a table no wall bounds refuses targets
+    FAR times beyond the cue's reach."""
+    import math
+
+    import diffcontact as dc
+    from diffcontact.control import ControlError
+    from diffcontact.control.tasks import FAR, plan_billiards, plan_throw
+
+    quick = {"starts": 1, "iterations": 1, "progress": False}
+    for target in ((1e300, 0.5), (-1e300, 0.5), (math.inf, 0.5), (0.5, math.nan)):
+        with pytest.raises(ControlError, match=r"allowed: x in \[0\.13, 0\.87\]"):
+            plan_billiards("BP5", target, **quick)
+    with pytest.raises(ControlError, match=r"\[1e\+300, 0\.5\] is outside the table"):
+        plan_billiards("BP5", [[0.5, 0.5], [1e300, 0.5]], **quick)  # (one of two)
+    for target in (1e300, -1e300, 1e30, math.nan, [0.5, math.inf]):
+        with pytest.raises(ControlError, match=r"allowed: x in \[-4000, 4000\]"):
+            plan_throw("BD1-ground", target, **quick)
+    # no walls: the table is open; the cue covers at most 0.1 * 4 * sqrt(2) m in 0.1 s
+    cfg = {"name": "open", "type": "bouncing_masses", "masses": [0.1, 0.2, 0.3],
+           "radii": [0.05] * 3, "mu": 0.2, "cor": 0.9, "dt": 0.01, "horizon": 0.1}  # fmt: skip
+    open_table = dc.load_system(cfg)
+    with pytest.raises(ControlError, match=r"\[1e\+300, 0\.5\] is far out of reach \(allowed: x"):
+        plan_billiards(open_table, (1e300, 0.5), time=0.1, **quick)
+    with pytest.raises(ControlError, match="is not finite"):
+        plan_billiards(open_table, (math.nan, 0.5), time=0.1, **quick)
+    near = FAR * 0.1 * 4 * math.sqrt(2) / 2  # well within the range: planned
+    plan = plan_billiards(open_table, (near, 0.5), time=0.1, **quick)
+    assert plan.target.tolist() == [[near, 0.5]]

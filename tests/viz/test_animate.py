@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -365,3 +367,46 @@ def test_a_plan_s_target_is_drawn_and_kept_in_view(tmp_path):
         Scene(dim=2, targets=((0.5,),))
     with pytest.raises(ValueError, match="2D elements"):
         Scene(dim=3, target_x=(1.0,))
+
+
+@pytest.mark.parametrize(
+    ("data", "drawn", "shapes"),
+    [
+        ("BP5", "CP3", ((2, 5, 2), (2, 3, 2))),
+        ("CP3", "BP5", ((2, 3, 2), (2, 5, 2))),
+        ("BP5", "BD5", ((2, 5, 2), (2, 15, 2))),
+        ("Gyro", "BP5", ((2, 4, 3), (2, 5, 2))),
+    ],
+)
+def test_a_trajectory_of_another_system_is_refused(tmp_path, data, drawn, shapes):
+    """BP5's five point masses animated with CP3's scene were drawn as a 3-link pendulum
+    (its first three masses), without a word; the shapes are named now."""
+    systems = pytest.importorskip("diffcontact.systems")
+    system = systems.load_system(data)
+    traj = system.simulate(system.sample_initial_conditions(2, seed=0), steps=3)
+    scene = scene_from_system(systems.load_system(drawn))
+    said = re.escape(
+        f"trajectory states have shape {shapes[0]}, but the scene ({drawn}) draws a system "
+        f"with states {shapes[1]}: the scene of another system"
+    )
+    with pytest.raises(ValueError, match=said):
+        animate(traj, scene, tmp_path / "wrong.gif")
+    with pytest.raises(ValueError, match=said):
+        render_frame(traj, scene, tmp_path / "wrong.png")
+    assert not (tmp_path / "wrong.gif").exists() and not (tmp_path / "wrong.png").exists()
+    # the right pair is drawn
+    animate(traj, scene_from_system(system), tmp_path / "right.gif", max_frames=2)
+    assert n_frames(tmp_path / "right.gif") == 2
+
+
+def test_a_scene_knows_its_systems_points():
+    """``scene_from_config`` records the state points of its system (``Scene.n_points``);
+    a hand-made scene without them accepts any trajectory whose points it refers to."""
+    for cfg, n_points, _ in CONFIG_SCENES:
+        assert scene_from_config(cfg).n_points == n_points
+    scene = Scene(dim=2, circles=(Circle(0, 0.1),))
+    scene.check(n_points=7, dim=2)
+    with pytest.raises(ValueError, match=r"\(2, 7, 2\).*\(2, 1, 2\)"):
+        dataclasses.replace(scene, n_points=1).check(n_points=7, dim=2)
+    with pytest.raises(ValueError, match="n_points must be a positive integer"):
+        Scene(dim=2, n_points=0)

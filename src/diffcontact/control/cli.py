@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import sys
 import time
 from pathlib import Path
@@ -27,6 +28,19 @@ _MODEL_HELP = (
     "a run directory or model.pt (plan with the trained model), or a built-in task name "
     "or config file (plan with the true system)"
 )
+
+
+_NEGATIVE_NUMBER = re.compile(
+    r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE
+)
+
+
+def _negative_numbers(p: argparse.ArgumentParser) -> None:
+    """Let ``p`` take ``-1e300``, ``-2E-3`` or ``-inf`` as a value, as it takes ``-1.5``
+    (argparse's own pattern knows only ``-1`` and ``-1.5``: ``--target -1e3 0.5`` was
+    refused as "expected 2 arguments"; the target's own check names what is wrong)."""
+    if hasattr(p, "_negative_number_matcher"):  # (argparse's, since Python 2.7)
+        p._negative_number_matcher = _NEGATIVE_NUMBER
 
 
 def _common(p: argparse.ArgumentParser, task: str, starts: int, lr: float) -> None:
@@ -94,6 +108,7 @@ def register_cli(subparsers: Any) -> None:
         "--seed", type=int_at_least(0), default=0, help="layout of the balls (default 0)"
     )
     _common(b, "billiards", 16, 0.05)
+    _negative_numbers(b)
     b.set_defaults(func=_cmd_billiards)
 
     t = subparsers.add_parser(
@@ -120,6 +135,7 @@ def register_cli(subparsers: Any) -> None:
         "--max-spin", type=positive_float, default=30.0, help="spin bound, rad/s (default 30)"
     )
     _common(t, "throw", 16, 0.1)
+    _negative_numbers(t)
     t.set_defaults(func=_cmd_throw)
 
 

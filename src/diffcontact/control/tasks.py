@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,6 +34,7 @@ from diffcontact.control.variables import Spin, Velocity
 from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, large_allowed
 
 __all__ = [
+    "FAR",
     "ShotPlan",
     "billiards_scene",
     "plan_billiards",
@@ -125,18 +127,82 @@ def billiards_scene(planner: Planner, n: int, seed: int = 0) -> Tensor:
     return torch.stack([z0[:, 0], torch.zeros_like(z0[:, 1])], dim=1)
 
 
-def _check_table_targets(cfg: Any, target: Tensor, radius: float) -> None:
-    if not cfg.walls:
+FAR = 1000
+"""Targets farther than ``FAR`` times the reach of a shot (its top speed times ``time``)
+where no wall bounds the table, and throws' targets that far from the start, are refused
+(:class:`ControlError`): nothing near them is planned, and their distances swamp the
+position of the ball in float64 (``1e300`` was planned as a shot at rest)."""
+
+
+def _table_box(walls: Tensor, radius: float) -> tuple[tuple[float, float], ...] | None:
+    """The x and y ranges of the points where a ball of ``radius`` fits inside ``walls``
+    (``(W, 3)``, unit normals), or ``None`` where the walls do not bound them (or nothing
+    fits)."""
+    normal, offset = walls[:, :2], walls[:, 2] - radius
+    angles = torch.atan2(normal[:, 1], normal[:, 0]).sort().values
+    turns = torch.diff(torch.cat([angles, angles[:1] + 2 * math.pi]))
+    if len(angles) < 3 or float(turns.max()) >= math.pi - 1e-12:  # open in some direction
+        return None
+    corners = []
+    for i in range(len(walls)):
+        for j in range(i + 1, len(walls)):
+            pair = normal[[i, j]]
+            if abs(float(torch.linalg.det(pair))) < 1e-12:  # parallel walls
+                continue
+            point = torch.linalg.solve(pair, -offset[[i, j]])
+            if bool((normal @ point + offset >= -1e-9).all()):
+                corners.append(point)
+    if not corners:
+        return None
+    pts = torch.stack(corners)
+    low, high = pts.min(0).values.tolist(), pts.max(0).values.tolist()
+    return (low[0], high[0]), (low[1], high[1])
+
+
+def _ranges(box: Sequence[tuple[float, float]]) -> str:
+    """``x in [lo, hi], y in [lo, hi]`` of ``box``: ``((x_lo, x_hi), (y_lo, y_hi))``."""
+    return ", ".join(
+        f"{name} in [{lo:.4g}, {hi:.4g}]" for name, (lo, hi) in zip("xy", box, strict=True)
+    )
+
+
+def _check_table_targets(
+    cfg: Any, target: Tensor, ball: int, radius: float, start: Tensor, reach: float, time: float
+) -> None:
+    """Refuse targets ``(N, 2)`` that are not finite, where ball ``ball`` (of ``radius``,
+    at ``start``: ``(N, 2)``) does not fit inside the walls or, where no wall bounds the
+    table, farther from its start than :data:`FAR` times ``reach`` (the distance the cue's
+    top speed covers in ``time``); the error names the target and the allowed range."""
+    finite = torch.isfinite(target).all(-1)
+    box = None
+    outside = torch.zeros_like(finite)
+    if cfg.walls:
+        walls = _walls(cfg)
+        box = _table_box(walls, radius)
+        gap = torch.where(finite[:, None], target, 0.0) @ walls[:, :2].T + walls[:, 2]  # (N, W)
+        outside = (gap < radius).any(-1)
+    far = torch.zeros_like(finite)
+    if box is None and 0 < reach < math.inf:  # (a bad max_speed: optimize's error)
+        far = ((target - start).abs() > FAR * reach).any(-1)
+    bad = ~finite | outside | far
+    if not bool(bad.any()):
         return
-    walls = _walls(cfg)
-    gap = target @ walls[:, :2].T + walls[:, 2]  # (N, W)
-    bad = (gap < radius).any(-1)
-    if bad.any():
-        i = int(bad.nonzero()[0])
-        raise ControlError(
-            f"target {target[i].tolist()} is outside the table (the ball of radius "
-            f"{radius:g} must fit inside the walls)"
+    i = int(bad.nonzero()[0])
+    what = "is not finite" if not finite[i] else "is outside the table" if outside[i] else ""
+    fits = f", where ball {ball}, of radius {radius:g}, fits inside the walls"
+    if box is not None:
+        allowed = f"allowed: {_ranges(box)}{fits}"
+    else:
+        x0, y0 = start[i].tolist()
+        span = FAR * reach
+        box = ((x0 - span, x0 + span), (y0 - span, y0 + span))
+        allowed = (
+            f"allowed: {_ranges(box)}{fits if cfg.walls else ''}: within {FAR} times the "
+            f"{reach:.4g} m the cue's top speed covers in {time:g} s of ball {ball} at "
+            f"({x0:.4g}, {y0:.4g})"
         )
+        what = what or "is far out of reach"
+    raise ControlError(f"target {target[i].tolist()} {what} ({allowed})")
 
 
 def _billiards_starts(
@@ -195,8 +261,10 @@ def plan_billiards(
         progress: progress bar.
 
     Raises:
-        ControlError: not a system of circles, bad indices, a target outside
-            the table, a time that is not a multiple of ``dt``.
+        ControlError: not a system of circles, bad indices, a target that is not
+            finite or outside the table (or, where no wall bounds the table, farther
+            from the ball than :data:`FAR` times the cue's top speed times ``time``),
+            a time that is not a multiple of ``dt``.
     """
     planner = as_planner(simulator)
     cfg = _circle_system(planner, "billiards")
@@ -208,16 +276,25 @@ def plan_billiards(
     tgt = torch.as_tensor(target, dtype=torch.float64)
     if tgt.dim() == 1:
         tgt = tgt.unsqueeze(0)
-    if tgt.dim() != 2 or tgt.shape[-1] != 2 or not torch.isfinite(tgt).all():
-        raise ControlError(f"target must be finite (x, y) points, got shape {tuple(tgt.shape)}")
+    if tgt.dim() != 2 or tgt.shape[-1] != 2:
+        raise ControlError(
+            f"target must be (x, y) points, shape (2,) or (N, 2), got shape {tuple(tgt.shape)}"
+        )
     radii = torch.tensor(cfg.radii, dtype=torch.float64)
-    _check_table_targets(cfg, tgt, float(radii[ball]))
     N = tgt.shape[0]
     if z0 is None:
         z0 = billiards_scene(planner, 1, seed).expand(N, -1, -1, -1).clone()
     else:
-        z0 = torch.stack([z0[:, 0], torch.zeros_like(z0[:, 1])], dim=1).to(torch.float64)
+        z0 = torch.as_tensor(z0, dtype=torch.float64)
+        if tuple(z0.shape) != (N, *planner.state_shape):
+            raise ControlError(
+                f"z0 must have shape {(N, *planner.state_shape)} (a layout per target), got "
+                f"{tuple(z0.shape)}"
+            )
+        z0 = torch.stack([z0[:, 0], torch.zeros_like(z0[:, 1])], dim=1)
     point = planner.bodies[ball].points[0]
+    reach = time * max_speed * math.sqrt(2)  # the cue's top speed (each component bounded)
+    _check_table_targets(cfg, tgt, ball, float(radii[ball]), z0[:, 0, point], reach, time)
     tgt_b = tgt.unsqueeze(1)  # (N, 1, 2)
 
     def objective(traj: Tensor) -> Tensor:
@@ -282,7 +359,9 @@ def plan_throw(
 
     Raises:
         ControlError: not a disk system with gravity, a start inside the
-            ground, a non-finite target, a bad time.
+            ground, a target that is not finite or farther from the start than
+            :data:`FAR` times the reach (nearer targets beyond reach are planned
+            as close as they can be, with a warning), a bad time.
     """
     planner = as_planner(simulator)
     cfg = _circle_system(planner, "throw")
@@ -294,8 +373,8 @@ def plan_throw(
         )
     steps = _steps(time, planner.dt)
     tgt = torch.as_tensor(target, dtype=torch.float64).reshape(-1)
-    if tgt.numel() < 1 or not torch.isfinite(tgt).all():
-        raise ControlError(f"target must be finite numbers, got {target!r}")
+    if tgt.numel() < 1:
+        raise ControlError(f"target must be one or more numbers, got {target!r}")
     st = torch.as_tensor(start, dtype=torch.float64)
     if st.shape != (2,) or not torch.isfinite(st).all():
         raise ControlError(f"start must be a finite point (x, y), got {start!r}")
@@ -306,6 +385,18 @@ def plan_throw(
     # the centre moves horizontally at most at the larger of the thrown speed and the
     # rolling speed the spin can give (friction only trades one for the other)
     reach = time * max(max_speed, max_spin * float(cfg.radii[0]))
+    absurd = ~torch.isfinite(tgt)
+    if 0 < reach < math.inf:  # (a bad max_speed or max_spin: optimize's error)
+        absurd |= (tgt - st[0]).abs() > FAR * reach
+    if bool(absurd.any()):
+        bad = float(tgt[absurd][0])
+        x0, span = float(st[0]), FAR * reach
+        what = "is not finite" if not math.isfinite(bad) else "is far out of reach"
+        raise ControlError(
+            f"target x = {bad:g} {what} (allowed: x in [{x0 - span:g}, {x0 + span:g}], within "
+            f"{FAR} times the {reach:g} m a throw from x = {x0:g} covers in {time:g} s at "
+            f"max_speed {max_speed:g} m/s and max_spin {max_spin:g} rad/s)"
+        )
     far = (tgt - st[0]).abs() > reach
     if bool(far.any()):
         warnings.warn(

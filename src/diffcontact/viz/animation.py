@@ -809,7 +809,9 @@ def animate(
 
     Args:
         traj: ``(T, 2, P, dim)`` or ``(N, T, 2, P, dim)`` states (numpy or torch).
-        scene: what to draw (see :mod:`diffcontact.viz.scene`).
+        scene: what to draw (see :mod:`diffcontact.viz.scene`); one of a system with
+            states of another shape (:attr:`Scene.n_points <diffcontact.viz.scene.Scene>`,
+            ``dim``) is refused with a ``ValueError`` naming both shapes.
         path: output ``.gif`` (written atomically).
         fps: playback frames per second.
         max_trajectories: at most this many trajectories, as a grid of subplots (at

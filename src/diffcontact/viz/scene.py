@@ -90,6 +90,11 @@ class Scene:
         view: 3D camera ``(elevation, azimuth)`` in degrees (orthographic). By
             default the camera looks along the first plane, so that the plane
             is seen edge-on at the left and distances to it are true on screen.
+        n_points: the number of state points ``P`` of the system the scene draws
+            (:func:`scene_from_config` sets it): states of another shape
+            ``(2, P, dim)``, another system's, are refused by :meth:`check`
+            rather than drawn as this one. ``None``: any ``P`` whose points the
+            scene refers to.
     """
 
     dim: int
@@ -105,10 +110,16 @@ class Scene:
     title: str = ""
     limits: tuple[tuple[float, float], ...] | None = None
     view: tuple[float, float] | None = None
+    n_points: int | None = None
 
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
             raise ValueError(f"Scene.dim must be 2 or 3, got {self.dim}")
+        if self.n_points is not None and (
+            isinstance(self.n_points, bool) or not isinstance(self.n_points, int)
+            or self.n_points < 1
+        ):  # fmt: skip
+            raise ValueError(f"Scene.n_points must be a positive integer, got {self.n_points!r}")
         if self.dim == 3 and (self.circles or self.chains or self.walls):
             raise ValueError("Scene: circles, chains and walls are 2D elements (dim=2)")
         if self.dim == 2 and (self.disks3d or self.planes):
@@ -146,7 +157,15 @@ class Scene:
         return used
 
     def check(self, n_points: int, dim: int) -> None:
-        """Raise ``ValueError`` if states of ``n_points`` points in ``dim`` don't fit."""
+        """Raise ``ValueError`` if states of ``n_points`` points in ``dim`` don't fit: another
+        dimension, points the scene refers to beyond ``n_points``, or (where the scene
+        knows its system's :attr:`n_points`) states of another shape than its system's."""
+        if self.n_points is not None and (n_points, dim) != (self.n_points, self.dim):
+            of = f" ({self.title})" if self.title else ""
+            raise ValueError(
+                f"trajectory states have shape {(2, n_points, dim)}, but the scene{of} draws a "
+                f"system with states {(2, self.n_points, self.dim)}: the scene of another system"
+            )
         if dim != self.dim:
             raise ValueError(f"trajectory has dim={dim} but the scene is {self.dim}D")
         bad = sorted(i for i in self.used_points() if not 0 <= i < n_points)
@@ -158,7 +177,7 @@ class Scene:
     @classmethod
     def points(cls, n_points: int, dim: int, title: str = "") -> Scene:
         """A fallback scene drawing every point as a dot."""
-        return cls(dim=dim, dots=tuple(range(n_points)), title=title)
+        return cls(dim=dim, dots=tuple(range(n_points)), title=title, n_points=n_points)
 
 
 # ---------------------------------------------------------------------------
@@ -243,7 +262,7 @@ def scene_from_config(cfg: Any, *, title: str | None = None) -> Scene:
         walls = _lines(_get(cfg, "walls"), 3, "wall")
         per = 3 if kind == "bouncing_disks" else 1
         circles = tuple(Circle(point=per * i, radius=radii[i], oriented=per == 3) for i in range(n))
-        return Scene(dim=2, circles=circles, walls=walls, title=name)
+        return Scene(dim=2, circles=circles, walls=walls, title=name, n_points=per * n)
 
     if kind == "chain_pendulum":
         lengths = _get(cfg, "link_lengths", "lengths", "links")
@@ -258,6 +277,7 @@ def scene_from_config(cfg: Any, *, title: str | None = None) -> Scene:
             walls=walls,
             pivots=(pivot,),
             title=name,
+            n_points=n,
         )
 
     if kind == "rope":
@@ -268,6 +288,7 @@ def scene_from_config(cfg: Any, *, title: str | None = None) -> Scene:
             chains=(Chain(points=tuple(range(n)), anchor=anchor, style="rope"),),
             pivots=(anchor,),
             title=name,
+            n_points=n,
         )
 
     if kind == "gyroscope":
@@ -280,6 +301,7 @@ def scene_from_config(cfg: Any, *, title: str | None = None) -> Scene:
             planes=planes,
             pivots=(pivot,),
             title=name,
+            n_points=4,
         )
 
     raise ValueError(f"scene: unknown system type {kind!r}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 
 import pytest
 
@@ -184,3 +185,41 @@ def test_a_run_without_last_ckpt_is_scored_from_its_newest_epoch_checkpoint(
     assert err.startswith("diffcontact evaluate: error: no trained model in") and (
         "epoch0000.ckpt cannot be read" in err
     )
+
+
+def test_diverged_rollouts_are_said_once(tmp_path, dataset, capsys, monkeypatch):
+    """evaluate() warns (RuntimeWarning) on diverged rollouts; the command says so on its
+    own WARNING line and does not repeat it as Python's two-line warning."""
+    import diffcontact.learning.models.storage as storage
+    from diffcontact.systems import NonFiniteRolloutError, System, load_config
+
+    system = System(load_config(TINY))
+
+    class Diverging:
+        """The truth, except that the first test trajectory's rollout diverges."""
+
+        def __init__(self):
+            self.bad = None
+
+        def simulate(self, z0, steps):
+            if self.bad is None:
+                self.bad = z0[0].clone()
+            hit = (z0 - self.bad).flatten(1).abs().amax(-1) == 0
+            if bool(hit.any()):
+                raise NonFiniteRolloutError("diverged", hit.nonzero().flatten().tolist())
+            return system.simulate(z0, steps)
+
+    root = tmp_path / "r"
+    root.mkdir()
+    run = run_dir(root, dataset, log=False)
+    (run / "model.pt").write_bytes(b"")  # (load_model is replaced)
+    monkeypatch.setattr(storage, "load_model", lambda path: Diverging())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = cli(["evaluate", str(run), "--n-gif", "0", "--steps", "5", "--no-uncertainty"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert not [w for w in caught if "rollouts diverged" in str(w.message)]
+    assert "rollouts diverged" not in err
+    said = "WARNING: 1 of 3 test rollouts diverged (non-finite); left out below"
+    assert out.count("rollouts diverged") == 1 and said in out

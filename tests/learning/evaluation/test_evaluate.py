@@ -243,7 +243,9 @@ def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
                 raise err
             return system.simulate(z0, steps)
 
-    m = evaluate(None, tmp_path / "out", model=Failing(), data_dir=dataset, n_gif=0, steps=5)
+    said = r"1 of 3 test rollouts diverged \(non-finite\) \(1 on a failed contact solve\)"
+    with pytest.warns(RuntimeWarning, match=said):
+        m = evaluate(None, tmp_path / "out", model=Failing(), data_dir=dataset, n_gif=0, steps=5)
     assert m["solver_failures"] == [bad]
     assert m["n_nonfinite"] == 1
     assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)  # the truth's own rollouts
@@ -270,10 +272,28 @@ def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged)
                 raise NonFiniteRolloutError("diverged", hit.nonzero().flatten().tolist())
             return system.simulate(z0, steps)
 
-    m = evaluate(None, tmp_path / "out", model=Diverging(), data_dir=dataset, n_gif=0, steps=5)
+    said = rf"{len(diverged)} of 3 test rollouts diverged \(non-finite\): left out of the means"
+    with pytest.warns(RuntimeWarning, match=said) as caught:
+        m = evaluate(None, tmp_path / "out", model=Diverging(), data_dir=dataset, n_gif=0, steps=5)
     assert m["n_nonfinite"] == len(diverged) and m["solver_failures"] == []
     if len(diverged) < 3:
         assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)
+    # one warning, pointing at the caller's line (not inside evaluate)
+    said_here = [w for w in caught if "rollouts diverged" in str(w.message)]
+    assert len(said_here) == 1 and said_here[0].filename == __file__
+
+
+def test_no_diverged_warning_when_every_rollout_is_finite(tmp_path, dataset):
+    """A Python caller heard nothing about diverged rollouts (only n_nonfinite and the
+    command's line said so); with none diverged nothing is said."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m = evaluate(None, tmp_path / "out", model=SystemModel(TINY), data_dir=dataset,
+                     n_gif=0, steps=5, uncertainty=False)  # fmt: skip
+    assert m["n_nonfinite"] == 0
+    assert not [w for w in caught if "rollouts diverged" in str(w.message)]
 
 
 def test_an_evaluation_stopped_midway_can_run_again_in_its_folder(tmp_path, dataset, monkeypatch):

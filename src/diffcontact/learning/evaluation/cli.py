@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,10 @@ from typing import Any
 from diffcontact.cli_args import int_at_least, report_errors
 
 __all__ = ["register_cli"]
+
+_DIVERGED = r"\d+ of \d+ test rollouts? diverged \(non-finite\)"
+"""The start of ``evaluate()``'s RuntimeWarning on diverged rollouts, which the command
+says on its own line (``WARNING: N of M test rollouts diverged``)."""
 
 
 def register_cli(subparsers: Any) -> argparse.ArgumentParser:
@@ -174,18 +179,20 @@ def _evaluate(args: argparse.Namespace) -> int:
             "(2 rollouts of the training chunks per parameter; --no-uncertainty skips it)",
             flush=True,
         )
-    m = evaluate(
-        args.run_dir,
-        args.out,
-        data_dir=args.data,
-        n_gif=args.n_gif,
-        gif_frames=args.gif_frames,
-        device=args.device,
-        steps=args.steps,
-        n_test=args.n_test,
-        force=args.force,
-        uncertainty=not args.no_uncertainty,
-    )
+    with warnings.catch_warnings():  # said by the WARNING line below, not twice
+        warnings.filterwarnings("ignore", _DIVERGED, RuntimeWarning)
+        m = evaluate(
+            args.run_dir,
+            args.out,
+            data_dir=args.data,
+            n_gif=args.n_gif,
+            gif_frames=args.gif_frames,
+            device=args.device,
+            steps=args.steps,
+            n_test=args.n_test,
+            force=args.force,
+            uncertainty=not args.no_uncertainty,
+        )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
     n = m["n_test"]
     print(
@@ -201,7 +208,10 @@ def _evaluate(args: argparse.Namespace) -> int:
     if m.get("rollout_note"):
         print(f"  note: {m['rollout_note']}")
     if m["n_nonfinite"]:
-        print(f"  WARNING: {m['n_nonfinite']} rollouts diverged (non-finite); left out below")
+        print(
+            f"  WARNING: {m['n_nonfinite']} of {n} test {'rollout' if n == 1 else 'rollouts'} "
+            "diverged (non-finite); left out below"
+        )
     if m.get("solver_failures"):
         print(
             f"  (of those, {len(m['solver_failures'])} stopped on a failed contact solve: "

@@ -31,6 +31,7 @@ import inspect
 import json
 import math
 import os
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -377,6 +378,17 @@ def _uncertainty(model: Any, dataset: Any, wanted: bool) -> dict[str, Any] | Non
         return {"error": f"parameter uncertainty not assessed: {err}"}
 
 
+def _diverged_message(n_bad: int, n: int, n_failed: int = 0) -> str:
+    """The warning of :func:`evaluate` on ``n_bad`` of ``n`` diverged rollouts
+    (``n_failed`` of them stopped on a failed contact solve), on one line."""
+    rollouts = "rollout" if n == 1 else "rollouts"
+    solves = f" ({n_failed} on a failed contact solve)" if n_failed else ""
+    return (
+        f"{n_bad} of {n} test {rollouts} diverged (non-finite){solves}: left out of the "
+        "means (n_nonfinite in metrics.json)"
+    )
+
+
 def evaluate(
     run_dir: str | os.PathLike[str] | None,
     out_dir: str | os.PathLike[str] | None = None,
@@ -424,6 +436,11 @@ def evaluate(
 
     Returns:
         The metrics dict written to ``metrics.json`` (see ``docs/evaluation.md``).
+
+    Warns:
+        RuntimeWarning: some rollouts diverged (non-finite, or stopped on a failed
+            contact solve): how many of how many, left out of the means
+            (``n_nonfinite``).
 
     Raises:
         EvaluationInputError: missing run directory, checkpoint, test data or
@@ -690,4 +707,6 @@ def evaluate(
     metrics = jsonable(metrics)
     atomic_write_json(out / "metrics.json", metrics)
     (out / STARTED).unlink(missing_ok=True)
+    if n_bad:  # (after the files: a filter that makes warnings errors leaves them whole)
+        warnings.warn(_diverged_message(n_bad, N, len(failed)), RuntimeWarning, stacklevel=2)
     return metrics
