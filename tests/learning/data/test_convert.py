@@ -345,6 +345,10 @@ def test_convert_cli_errors(tmp_path, capsys):
     for source, path, extra, said in (
         ("positions", raw, ["--omega-frame", "body"], "--omega-frame applies only to SOURCE "
          "coordinates"),
+        ("positions", raw, ["--omega-frame", "world"], "--omega-frame applies only to SOURCE "
+         "coordinates"),  # the default value, given: accepted and ignored before
+        ("positions", raw, ["--axes", "body"], "--axes applies only to SOURCE mujoco"),
+        ("coordinates", raw, ["--axes", "inertial"], "--axes applies only to SOURCE mujoco"),
         ("mujoco", raw, ["--model", "m.xml", "--threshold", "5"], "--threshold applies only"),
         ("coordinates", both, ["--threshold", "5"], "--threshold is not used: "),
     ):  # fmt: skip

@@ -63,7 +63,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--omega-frame",
         choices=("world", "body"),
-        default="world",
+        default=None,  # world; None tells a given --omega-frame from the default
         help="coordinates, gyroscope: frame of the angular velocity (default world)",
     )
     p.add_argument("--model", metavar="XML", default=None, help="mujoco: the MJCF model file")
@@ -85,7 +85,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--axes",
         choices=("inertial", "body"),
-        default="inertial",
+        default=None,  # inertial; None tells a given --axes from the default
         help="mujoco: axis points along the principal axes (default) or the body frame",
     )
     p.add_argument(
@@ -150,7 +150,7 @@ def _cli_convert(args: argparse.Namespace) -> int:
     except OSError as err:
         raise ValueError(f"--out {args.out}: {err}") from None
     mujoco_only = {"--model": args.model, "--bodies": args.bodies, "--plane": args.plane,
-                   "--origin": args.origin}  # fmt: skip
+                   "--origin": args.origin, "--axes": args.axes}  # fmt: skip
     if args.source != "mujoco":
         given = [flag for flag, value in mujoco_only.items() if value is not None]
         if given:
@@ -158,7 +158,7 @@ def _cli_convert(args: argparse.Namespace) -> int:
             raise ValueError(f"{', '.join(given)} {verb} only to SOURCE mujoco")
     elif args.model is None:
         raise ValueError("SOURCE mujoco needs --model XML (the MJCF model of the recording)")
-    if args.source != "coordinates" and args.omega_frame != "world":  # (was ignored)
+    if args.source != "coordinates" and args.omega_frame is not None:  # (was ignored)
         raise ValueError("--omega-frame applies only to SOURCE coordinates")
     if args.source == "mujoco" and args.threshold is not None:
         raise ValueError("--threshold applies only to SOURCE positions and coordinates")
@@ -196,7 +196,7 @@ def _cli_convert(args: argparse.Namespace) -> int:
                 system,
                 arrays["q"],
                 arrays.get("qdot"),
-                omega_frame=args.omega_frame,
+                omega_frame=args.omega_frame or "world",
                 threshold=args.threshold,
             )
             if "qdot" not in arrays:
@@ -213,7 +213,7 @@ def _cli_convert(args: argparse.Namespace) -> int:
                 system,
                 bodies=args.bodies,
                 plane=args.plane,
-                axes=args.axes,
+                axes=args.axes or "inertial",
                 origin=args.origin,
             )
     extra = {k: v for k, v in extra.items() if v is not None}
