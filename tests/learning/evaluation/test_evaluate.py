@@ -255,7 +255,7 @@ def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
 def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged):
     """Rollouts that reach NaN (NonFiniteRolloutError naming them) are counted in
     n_nonfinite, as documented; the evaluation stopped with the error before."""
-    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.learning.evaluation.evaluate import DivergedRolloutsWarning, evaluate
     from diffcontact.systems import NonFiniteRolloutError, System, load_config
 
     system = System(load_config(TINY))
@@ -273,7 +273,7 @@ def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged)
             return system.simulate(z0, steps)
 
     said = rf"{len(diverged)} of 3 test rollouts diverged \(non-finite\): left out of the means"
-    with pytest.warns(RuntimeWarning, match=said) as caught:
+    with pytest.warns(DivergedRolloutsWarning, match=said) as caught:
         m = evaluate(None, tmp_path / "out", model=Diverging(), data_dir=dataset, n_gif=0, steps=5)
     assert m["n_nonfinite"] == len(diverged) and m["solver_failures"] == []
     if len(diverged) < 3:

@@ -33,6 +33,7 @@ _EXPORTS: dict[str, str] = {
     "true_parameters": _METRICS,
     "find_training_log": _LOG,
     "read_training_log": _LOG,
+    "DivergedRolloutsWarning": "diffcontact.learning.evaluation.evaluate",
     "EvaluationInputError": "diffcontact.learning.evaluation.evaluate",
     "register_cli": "diffcontact.learning.evaluation.cli",
     "UncertaintySettings": _UNCERTAINTY,

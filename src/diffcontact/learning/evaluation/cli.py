@@ -17,10 +17,6 @@ from diffcontact.cli_args import int_at_least, report_errors
 
 __all__ = ["register_cli"]
 
-_DIVERGED = r"\d+ of \d+ test rollouts? diverged \(non-finite\)"
-"""The start of ``evaluate()``'s RuntimeWarning on diverged rollouts, which the command
-says on its own line (``WARNING: N of M test rollouts diverged``)."""
-
 
 def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``evaluate RUN_DIR [--out DIR --device cpu|cuda --n-gif 4 ...]`` to a CLI.
@@ -171,7 +167,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from diffcontact.learning.evaluation.evaluate import evaluate
+    from diffcontact.learning.evaluation.evaluate import DivergedRolloutsWarning, evaluate
 
     if not args.no_uncertainty and Path(args.run_dir).is_dir():  # (else evaluate's error)
         print(
@@ -180,7 +176,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             flush=True,
         )
     with warnings.catch_warnings():  # said by the WARNING line below, not twice
-        warnings.filterwarnings("ignore", _DIVERGED, RuntimeWarning)
+        warnings.simplefilter("ignore", DivergedRolloutsWarning)
         m = evaluate(
             args.run_dir,
             args.out,

@@ -63,7 +63,13 @@ from diffcontact.learning.evaluation.metrics import (
 )
 from diffcontact.learning.evaluation.plots import plot_energy, plot_rel_error, plot_training
 
-__all__ = ["METRICS_FORMAT_VERSION", "OUTPUT_FILES", "EvaluationInputError", "evaluate"]
+__all__ = [
+    "METRICS_FORMAT_VERSION",
+    "OUTPUT_FILES",
+    "DivergedRolloutsWarning",
+    "EvaluationInputError",
+    "evaluate",
+]
 
 METRICS_FORMAT_VERSION = 1
 OUTPUT_FILES = (
@@ -74,6 +80,10 @@ OUTPUT_FILES = (
 
 class EvaluationInputError(ValueError):
     """Bad input to :func:`evaluate` (missing run, checkpoint, test data or config)."""
+
+
+class DivergedRolloutsWarning(RuntimeWarning):
+    """:func:`evaluate` left diverged rollouts out of its means (``n_nonfinite``)."""
 
 
 # ---------------------------------------------------------------------------
@@ -438,9 +448,9 @@ def evaluate(
         The metrics dict written to ``metrics.json`` (see ``docs/evaluation.md``).
 
     Warns:
-        RuntimeWarning: some rollouts diverged (non-finite, or stopped on a failed
-            contact solve): how many of how many, left out of the means
-            (``n_nonfinite``).
+        DivergedRolloutsWarning: (a ``RuntimeWarning``) some rollouts diverged
+            (non-finite, or stopped on a failed contact solve): how many of how
+            many, left out of the means (``n_nonfinite``).
 
     Raises:
         EvaluationInputError: missing run directory, checkpoint, test data or
@@ -708,5 +718,7 @@ def evaluate(
     atomic_write_json(out / "metrics.json", metrics)
     (out / STARTED).unlink(missing_ok=True)
     if n_bad:  # (after the files: a filter that makes warnings errors leaves them whole)
-        warnings.warn(_diverged_message(n_bad, N, len(failed)), RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            _diverged_message(n_bad, N, len(failed)), DivergedRolloutsWarning, stacklevel=2
+        )
     return metrics
