@@ -63,7 +63,7 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     hidden = ",".join(map(str, options.DEFAULT_HIDDEN))
     p = subparsers.add_parser(
         "train",
-        help="train a CM/CMr-CD-CLNN/CHNN model or a baseline on a dataset",
+        help="train a physical model (CM/CMr/LCP/Coulomb-CD-CLNN/CHNN) or a baseline on a dataset",
         description=(
             "Train a learned model (contact model CM, CMr, LCP or Coulomb, true collision "
             "detection, "
