@@ -338,20 +338,31 @@ def test_task_rollouts_do_not_tunnel(task):
 
 
 def test_a_failed_contact_solve_names_the_states_and_the_cause():
-    """A rollout that blows up (CP3 under gravity 1e6 at dt = 0.01) stops with the states
+    """A rollout that blows up (CP3 under a huge gravity at dt = 0.01) stops with the states
     whose contact problems failed, their speeds and the likely cause, not a bare
-    solver error."""
+    solver error. Which gravity ends in a failed solve rather than in NaN (also an
+    error naming the states, tested above) depends on the chaotic blow-up:
+    1e6 did until the contact step took the velocities' constraint drift out, 1e4 since;
+    the first of several that fails so is taken."""
     from diffcontact.contact import ConeQPError
 
     system = dc.load_system("CP3")
     z0 = system.sample_initial_conditions(8, seed=0)
-    params = system.parameters().replace(gravity=1e6)
-    with pytest.raises(ConeQPError) as info:
-        system.simulate(z0, 20, params=params, on_tunnelling="ignore")
-    message = str(info.value)
+    info = None
+    for gravity in (1e4, 1e6, 1e5, 3e3, 3e4, 3e5):
+        params = system.parameters().replace(gravity=gravity)
+        try:
+            system.simulate(z0, 20, params=params, on_tunnelling="ignore")
+        except NonFiniteRolloutError:
+            continue
+        except ConeQPError as err:
+            info = err
+            break
+    assert info is not None, "no gravity ended in a failed contact solve"
+    message = str(info)
     assert "simulate CP3: the contact solve failed at step" in message
     assert "the motion blew up" in message and "smaller dt" in message
-    assert info.value.status is not None
+    assert info.status is not None
     states = [int(s) for s in re.findall(r"state (\d+) \(speed", message)]
     assert states and all(0 <= s < 8 for s in states)
 
