@@ -248,6 +248,38 @@ def test_canonical_must_be_a_bool():
         SolverSettings(canonical="no")
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "said"),
+    [
+        ("tol", -1.0, "tol must be a finite number > 0"),  # every solve "unconverged" before
+        ("tol", "x", "tol must be a finite number > 0"),  # a str/float comparison inside
+        ("gap", float("nan"), "gap must be a finite number > 0"),
+        ("polish_tol", 0.0, "polish_tol must be a finite number > 0"),
+        ("kkt_reg", -1.0, "kkt_reg must be a finite number >= 0"),
+        ("max_iter", -5, "max_iter must be an integer >= 1"),  # ran no iteration silently
+        ("max_iter", 2.5, "max_iter must be an integer >= 1"),
+        ("polish_steps", -1, "polish_steps must be an integer >= 0"),
+        ("retries", True, "retries must be an integer >= 0"),
+        ("check_inputs", "no", "check_inputs must be a bool"),  # int('no') inside before
+    ],
+)
+def test_settings_are_checked_when_made(field, value, said):
+    with pytest.raises(ValueError, match=rf"SolverSettings\.{said}"):
+        SolverSettings(**{field: value})
+    SolverSettings(**{field: {"check_inputs": False}.get(field, 1)})  # a good value is fine
+
+
+def test_settings_must_be_solver_settings():
+    A, b, mu = (
+        torch.eye(2, dtype=torch.float64)[None],
+        torch.ones(1, 2, dtype=torch.float64),
+        torch.ones(1, 1, dtype=torch.float64),
+    )
+    for bad in ({"tol": 1e-3}, {}):  # an AttributeError, and {} was taken as the default
+        with pytest.raises(ValueError, match="settings must be a SolverSettings, got dict"):
+            solve_cone_qp(A, b, mu, 2, settings=bad)
+
+
 @pytest.mark.parametrize(("d", "K", "rank"), [(1, 3, 2), (1, 8, 7), (2, 3, 2)])
 def test_unbounded_problems_have_the_same_status(d, K, rank):
     A, b, mu, lower = _singular_problems(60, K, d, rank, seed=K + 10 * d, unbounded=True)

@@ -77,6 +77,8 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
+import numbers
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -106,6 +108,16 @@ class ConeQPError(RuntimeError):
         super().__init__(message)
         self.status = status
         self.states: list[int] | None = None
+
+
+def _is_real(value: object) -> bool:
+    """A real number that is not a bool (``numbers.Real``: floats, ints, numpy scalars)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_int(value: object) -> bool:
+    """An integer that is not a bool (``numbers.Integral``)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -165,6 +177,30 @@ class SolverSettings:
     canonical: bool = True
 
     def __post_init__(self) -> None:
+        # (a negative tol ended every solve "unconverged", max_iter=-5 ran none silently, a
+        # string reached a comparison deep inside the solve)
+        for name, low, strict in (("tol", 0.0, True), ("polish_tol", 0.0, True),
+                                  ("gap", 0.0, True), ("kkt_reg", 0.0, False)):  # fmt: skip
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if (
+                not _is_real(value)
+                or not math.isfinite(value)
+                or not (value > low if strict else value >= low)
+            ):
+                bound = "a finite number > 0" if strict else "a finite number >= 0"
+                raise ValueError(f"SolverSettings.{name} must be {bound} or None, got {value!r}")
+        for name, low in (("max_iter", 1), ("polish_steps", 0), ("retries", 0)):
+            value = getattr(self, name)
+            if not _is_int(value) or value < low:
+                raise ValueError(
+                    f"SolverSettings.{name} must be an integer >= {low}, got {value!r}"
+                )
+        if not isinstance(self.check_inputs, bool):
+            raise ValueError(
+                f"SolverSettings.check_inputs must be a bool, got {self.check_inputs!r}"
+            )
         cd = self.compute_dtype
         if cd is not None and not (isinstance(cd, torch.dtype) and cd.is_floating_point):
             # ("float64", a string, failed as a device; an integer dtype in torch.finfo)
@@ -854,7 +890,13 @@ def solve_cone_qp(
             semi-definite on the active contacts.
         ConeQPError: unbounded or unconverged problems (unless ``return_status``).
     """
-    settings = settings or SolverSettings()
+    if settings is None:
+        settings = SolverSettings()
+    elif not isinstance(settings, SolverSettings):  # (a dict: AttributeError; {}: accepted)
+        raise ValueError(
+            "solve_cone_qp: settings must be a SolverSettings, got "
+            f"{type(settings).__name__} (e.g. SolverSettings(tol=1e-8))"
+        )
     d = contact_dimension(d, "solve_cone_qp")
     _check("A", A, finite=False)
     resolved = settings.resolved(A.dtype, A.device)
