@@ -924,8 +924,9 @@ def test_solver_settings_are_checked_where_given():
             SolverSettings(compute_dtype=dtype)
     system = dc.load_system("BP5")
     z0 = system.sample_initial_conditions(2, seed=0)
-    with pytest.raises(ValueError, match="solver_settings must be a diffcontact"):
-        system.simulate(z0, 3, solver_settings={"backend": "torch"})
+    for bad in ({"backend": "torch"}, {}):  # ({} had been taken for the defaults)
+        with pytest.raises(ValueError, match="solver_settings must be a SolverSettings, got"):
+            system.simulate(z0, 3, solver_settings=bad)
 
 
 @pytest.mark.parametrize("model", ["LCP", "Coulomb"])

@@ -236,6 +236,20 @@ class SolverSettings:
         )
 
 
+def settings_or_default(settings: object, what: str) -> SolverSettings:
+    """``settings``, or the defaults for ``None``; a ``ValueError`` naming ``what`` for
+    anything else (a dict had given an ``AttributeError`` inside, and ``{}``, being falsy,
+    had been taken for the defaults)."""
+    if settings is None:
+        return SolverSettings()
+    if not isinstance(settings, SolverSettings):
+        raise ValueError(
+            f"{what} must be a SolverSettings, got {type(settings).__name__} "
+            "(e.g. SolverSettings(backend='torch'))"
+        )
+    return settings
+
+
 @dataclass
 class SolverStatus:
     """Per-problem outcome, shaped like the batch dims of the call.
@@ -890,13 +904,7 @@ def solve_cone_qp(
             semi-definite on the active contacts.
         ConeQPError: unbounded or unconverged problems (unless ``return_status``).
     """
-    if settings is None:
-        settings = SolverSettings()
-    elif not isinstance(settings, SolverSettings):  # (a dict: AttributeError; {}: accepted)
-        raise ValueError(
-            "solve_cone_qp: settings must be a SolverSettings, got "
-            f"{type(settings).__name__} (e.g. SolverSettings(tol=1e-8))"
-        )
+    settings = settings_or_default(settings, "solve_cone_qp: settings")
     d = contact_dimension(d, "solve_cone_qp")
     _check("A", A, finite=False)
     resolved = settings.resolved(A.dtype, A.device)

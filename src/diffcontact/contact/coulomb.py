@@ -84,6 +84,7 @@ from diffcontact.contact.cone_qp import (
     SolverSettings,
     SolverStatus,
     flatten_batch,
+    settings_or_default,
     solve_cone_qp,
 )
 from diffcontact.contact.first_order import first_order_only
@@ -429,7 +430,7 @@ def solve_coulomb(
     Raises:
         ValueError: bad shapes, dtypes, devices, ``d`` or non-finite inputs.
     """
-    settings = settings or SolverSettings()
+    settings = settings_or_default(settings, "solve_coulomb: settings")
     coulomb = coulomb or CoulombSettings()
     d = contact_dimension(d, "solve_coulomb")
     for name, x in (("A", A), ("b", b), ("mu", mu)):

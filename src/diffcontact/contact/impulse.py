@@ -18,15 +18,24 @@ of :mod:`diffcontact.contact.models` wrap this function.
 
 from __future__ import annotations
 
+import math
+import numbers
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from diffcontact.contact.cone_qp import SolverSettings, check_dense, solve_cone_qp
+from diffcontact.contact.cone_qp import (
+    SolverSettings,
+    check_dense,
+    settings_or_default,
+    solve_cone_qp,
+)
 from diffcontact.contact.operator import ContactOperator, DenseContact, as_operator
 from diffcontact.fastops import cholesky_solve, spd_solve
-from diffcontact.shapes import contact_dimension
+from diffcontact.shapes import broadcast_shapes, contact_dimension
 
 
 @dataclass
@@ -109,8 +118,118 @@ def penetration_target(
 
     Returns:
         v_C_star: (..., K*d).
+
+    Raises:
+        ValueError: ``dt`` not a finite number > 0, ``fraction`` outside [0, 1], ``depth``
+            not floating or NaN/infinite at an active contact, ``active`` not bool, shapes
+            (``J_C`` rows not ``K*d`` for ``depth``'s ``K``, ``J_E``, ``Mhat_inv``), dtypes
+            or devices that do not fit, or batch dimensions that do not broadcast.
     """
     d = contact_dimension(d, "penetration_target")
+    dt, fraction = _check_target_inputs(J_C, depth, active, dt, d, fraction, J_E, Mhat_inv)
+    return _penetration_target(J_C, depth, active, dt, d, fraction, J_E, Mhat_inv)
+
+
+def _target_number(name: str, value: Any, ok: Callable[[float], bool], want: str) -> float:
+    """``value`` (a real number, or a one-element real tensor) as a float for which ``ok``
+    holds, else a ``ValueError`` naming ``name`` (NaN fails every ``ok``)."""
+    real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if isinstance(value, Tensor):
+        real = value.numel() == 1 and value.dtype != torch.bool and not value.is_complex()
+    if not real or not ok(float(value)):
+        raise ValueError(f"penetration_target: {name} must be {want}, got {value!r}")
+    return float(value)
+
+
+def _check_target_inputs(
+    J_C: Any, depth: Any, active: Any, dt: Any, d: int, fraction: Any, J_E: Any, Mhat_inv: Any
+) -> tuple[float, float]:
+    """The checks of :func:`penetration_target`'s public entry (the simulator's step calls
+    :func:`_penetration_target`, whose inputs hold by construction): ``(dt, fraction)`` as
+    floats, or a ``ValueError`` naming the argument."""
+    caller = "penetration_target"
+    dt = _target_number("dt", dt, lambda x: 0 < x < math.inf, "a finite number > 0 (time step)")
+    fraction = _target_number(
+        "fraction", fraction, lambda x: 0 <= x <= 1, "a number in [0, 1] (share of the depth)"
+    )
+    if not isinstance(J_C, (Tensor, ContactOperator)):
+        raise ValueError(
+            f"{caller}: J_C must be a torch.Tensor (..., K*d, D) or a ContactOperator, "
+            f"got {type(J_C).__name__}"
+        )
+    named = {"depth": depth, "active": active, "J_E": J_E, "Mhat_inv": Mhat_inv}
+    for name, x in named.items():
+        if x is None and name in ("J_E", "Mhat_inv"):
+            continue
+        if not isinstance(x, Tensor):
+            raise ValueError(f"{caller}: {name} must be a torch.Tensor, got {type(x).__name__}")
+        check_dense(caller, name, x)
+    if not depth.is_floating_point() or depth.dim() < 1:
+        raise ValueError(
+            f"{caller}: depth must be a floating-point tensor of shape (..., K), got "
+            f"{depth.dtype} {tuple(depth.shape)}"
+        )
+    K = depth.shape[-1]
+    if active.dtype != torch.bool or active.dim() < 1 or active.shape[-1] != K:
+        raise ValueError(
+            f"{caller}: active must be a bool tensor of shape (..., {K}) (K = {K} contacts, "
+            f"depth's last dimension), got {active.dtype} {tuple(active.shape)}"
+        )
+    batches = {"depth": depth.shape[:-1], "active": active.shape[:-1]}
+    D = None
+    if isinstance(J_C, Tensor):
+        check_dense(caller, "J_C", J_C)
+        if J_C.dim() < 2 or not J_C.is_floating_point() or J_C.shape[-2] != K * d:
+            raise ValueError(
+                f"{caller}: J_C must be a floating tensor of shape (..., K*d, D) with K = {K} "
+                f"contacts (depth's last dimension) and d = {d}, got {J_C.dtype} "
+                f"{tuple(J_C.shape)}"
+            )
+        D = J_C.shape[-1]
+        batches["J_C"] = J_C.shape[:-2]
+    for name, x in (("J_E", J_E), ("Mhat_inv", Mhat_inv)):
+        if x is None:
+            continue
+        rows = "E" if name == "J_E" else "D"
+        fits = x.dim() >= 2 and x.is_floating_point()
+        if fits and D is not None:  # J_E: (..., E, D); Mhat_inv: (..., D, D)
+            fits = x.shape[-1] == D and (name == "J_E" or x.shape[-2] == D)
+        if not fits:
+            cols = "D" if D is None else D
+            raise ValueError(
+                f"{caller}: {name} must be a floating tensor of shape (..., {rows}, {cols})"
+                f"{'' if D is None else f' for J_C of shape {tuple(J_C.shape)}'}, got "
+                f"{x.dtype} {tuple(x.shape)}"
+            )
+        batches[name] = x.shape[:-2]
+    ref = J_C if isinstance(J_C, Tensor) else depth
+    for name, x in (("depth", depth), ("active", active), ("J_E", J_E), ("Mhat_inv", Mhat_inv)):
+        if x is None or x is ref:
+            continue
+        if name != "active" and x.dtype != ref.dtype:
+            what = "J_C" if ref is J_C else "depth"
+            raise ValueError(f"{caller}: {name} has dtype {x.dtype}, {what} has {ref.dtype}")
+        if x.device != ref.device:
+            what = "J_C" if ref is J_C else "depth"
+            raise ValueError(f"{caller}: {name} is on {x.device}, {what} is on {ref.device}")
+    check_batches(caller, batches)
+    if bool((active & ~torch.isfinite(depth.detach())).any()):
+        raise ValueError(f"{caller}: depth contains NaN or infinite values at active contacts")
+    return dt, fraction
+
+
+def _penetration_target(
+    J_C: Tensor | ContactOperator,
+    depth: Tensor,
+    active: Tensor,
+    dt: float,
+    d: int,
+    fraction: float,
+    J_E: Tensor | None = None,
+    Mhat_inv: Tensor | None = None,
+) -> Tensor:
+    """:func:`penetration_target` without its checks: what a simulation step calls, whose
+    inputs hold by construction (``d`` an int, ``dt > 0``, ``depth`` from the gaps)."""
     op = as_operator(J_C, None)
     depth = torch.where(active, depth.clamp_min(0), 0)
     v_d = torch.stack([fraction * depth / dt, *[torch.zeros_like(depth)] * (d - 1)], -1)
@@ -188,13 +307,15 @@ def check_impulse_inputs(
     active: Tensor | None = None,
     d: int | None = None,
     v_C_star: Tensor | None = None,
+    eps: float | Tensor | None = None,
 ) -> None:
     """The public impulse functions' checks (with ``SolverSettings.check_inputs``, off
     inside a simulation step, whose boundary checks once): ``cor`` a tensor in [0, 1] (a
     ``cor`` of 1.5 had sent a body away faster than it came), ``v`` a floating tensor,
     ``mu >= 0``, and where ``J_C`` is a tensor the shapes and dtypes of the problem
     (``J_C`` (..., K*d, D), ``Mhat_inv`` (..., D, D), ``v`` (..., D), ``mu``, ``cor``,
-    ``active`` (..., K), ``v_C_star`` (..., K*d)), each named where it does not fit."""
+    ``active`` (..., K), ``v_C_star`` (..., K*d)), each named where it does not fit, and
+    that the batch dimensions of all of them (and of a tensor ``eps``, ``(...)``) broadcast."""
     if not isinstance(v, Tensor) or not v.is_floating_point():
         what = v.dtype if isinstance(v, Tensor) else type(v).__name__
         raise ValueError(f"{caller}: v must be a floating-point torch.Tensor, got {what}")
@@ -216,6 +337,7 @@ def check_impulse_inputs(
         if mu.numel() and bool((mu.detach() < 0).any()):
             raise ValueError(f"{caller}: mu must be >= 0 (friction coefficients)")
     if not isinstance(J_C, Tensor) or d is None:
+        _check_batch(caller, v, mu, cor, active, v_C_star, eps)
         return  # (an operator's maps are the library's own)
     if J_C.dim() < 2 or not J_C.is_floating_point() or J_C.shape[-2] % d:
         raise ValueError(
@@ -237,6 +359,43 @@ def check_impulse_inputs(
             )
         if isinstance(x, Tensor) and name != "active" and x.dtype != J_C.dtype:
             raise ValueError(f"{caller}: {name} has dtype {x.dtype}, J_C has {J_C.dtype}")
+    _check_batch(caller, v, mu, cor, active, v_C_star, eps, J_C=J_C, Mhat_inv=Mhat_inv)
+
+
+def _check_batch(
+    caller: str,
+    v: Tensor,
+    mu: Any,
+    cor: Any,
+    active: Any,
+    v_C_star: Any,
+    eps: Any,
+    *,
+    J_C: Tensor | None = None,
+    Mhat_inv: Tensor | None = None,
+) -> None:
+    """``ValueError`` naming ``caller`` unless the batch dimensions of the impulse's
+    tensors broadcast (a ``v`` or ``eps`` of another batch size than ``J_C``'s had failed
+    in a product, with torch's message naming neither)."""
+    vectors = {"v": v, "mu": mu, "cor": cor, "active": active, "v_C_star": v_C_star}
+    batches = {n: x.shape[:-1] for n, x in vectors.items() if isinstance(x, Tensor) and x.dim()}
+    for name, x in (("J_C", J_C), ("Mhat_inv", Mhat_inv)):
+        if isinstance(x, Tensor) and x.dim() > 1:
+            batches[name] = x.shape[:-2]
+    if isinstance(eps, Tensor):  # (...): one per state
+        batches["eps"] = eps.shape
+    check_batches(caller, batches)
+
+
+def check_batches(caller: str, batches: dict[str, tuple[int, ...]]) -> None:
+    """``ValueError`` naming ``caller`` and each tensor's batch shape unless the batch
+    shapes ``batches`` (by argument name) broadcast."""
+    try:
+        broadcast_shapes(*batches.values())
+    except RuntimeError as err:
+        named = ", ".join(f"{name} {tuple(shape)}" for name, shape in batches.items())
+        why = str(err).split("cannot be broadcast: ")[-1]  # (the shapes: named here)
+        raise ValueError(f"{caller}: batch dimensions do not broadcast ({named}): {why}") from None
 
 
 def empty_impulse(v: Tensor, active: Tensor, d: int) -> ImpulseResult:
@@ -316,11 +475,11 @@ def two_phase_impulse(
     why; the canonical minimiser: :mod:`~diffcontact.contact.cone_qp`).
     """
     d = contact_dimension(d, "two_phase_impulse")
-    settings = settings or SolverSettings()
+    settings = settings_or_default(settings, "two_phase_impulse: settings")
     if settings.check_inputs:
         check_impulse_inputs(
             cor, v, "two_phase_impulse", J_C=J_C, Mhat_inv=Mhat_inv, mu=mu, active=active,
-            d=d, v_C_star=v_C_star,
+            d=d, v_C_star=v_C_star, eps=eps,
         )  # fmt: skip
         if eps is not None and bool((torch.as_tensor(eps).detach() < 0).any()):
             raise ValueError(f"two_phase_impulse: eps (CMr's regulariser) must be >= 0, got {eps}")

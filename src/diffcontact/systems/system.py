@@ -48,8 +48,9 @@ from torch import Tensor
 from diffcontact.contact.cone_qp import (
     ConeQPError,
     SolverSettings,
+    settings_or_default,
 )
-from diffcontact.contact.impulse import penetration_target
+from diffcontact.contact.impulse import _penetration_target
 from diffcontact.contact.models import ContactModel, ContactParams, ContactState
 from diffcontact.contact.registry import create_contact_model
 from diffcontact.fastops import spd_solve
@@ -57,6 +58,7 @@ from diffcontact.geometry import RimPlane, circles_2d, jacobian_matvec, rope_lim
 from diffcontact.geometry.base import SparseJacobian
 from diffcontact.geometry.sparse_contact import SparseContact
 from diffcontact.geometry.sparse_gram import MIN_DENSE_SIZE, sparse_gram_available
+from diffcontact.io import parse_device
 from diffcontact.mechanics import (
     INTEGRATORS,
     EqualityConstraints,
@@ -661,6 +663,21 @@ class System:
         s = params.second_moments.to(dtype=dtype, device=device)
         return body_inverse_mass_matrix(mass, s)
 
+    def _matrix_args(
+        self, dtype: Any, device: Any, params: PhysicalParams | None
+    ) -> tuple[PhysicalParams, torch.dtype, torch.device]:
+        """The checked arguments of :meth:`mass_matrix` and :meth:`inverse_mass_matrix`:
+        ``dtype`` float32 or float64 (an integer dtype had truncated the masses to 0),
+        ``device`` a CPU or available CUDA device, ``params`` batched or not."""
+        if not isinstance(dtype, torch.dtype) or dtype not in (torch.float32, torch.float64):
+            raise ValueError(
+                f"dtype must be torch.float32 or torch.float64 (the dtypes diffcontact "
+                f"computes in), got {dtype!r}"
+            )
+        device = parse_device(device)
+        n = params.batch_size() if isinstance(params, PhysicalParams) else None
+        return self._params(params, n), dtype, device
+
     def mass_matrix(
         self,
         dtype: torch.dtype = _F,
@@ -668,8 +685,15 @@ class System:
         *,
         params: PhysicalParams | None = None,
     ) -> Tensor:
-        """Mass matrix over points ``M: (P, P)`` (``(N, P, P)`` for batched ``params``)."""
-        return self._body_blocks(self._params(params, None), False, dtype, torch.device(device))
+        """Mass matrix over points ``M: (P, P)``, or ``(N, P, P)`` where ``params``' masses
+        or second moments carry a batch dimension (one set per trajectory).
+
+        Raises:
+            ValueError: ``dtype`` not ``torch.float32``/``torch.float64``, ``device`` not
+                a CPU or available CUDA device, bad ``params``.
+        """
+        params, dtype, device = self._matrix_args(dtype, device, params)
+        return self._body_blocks(params, False, dtype, device)
 
     def inverse_mass_matrix(
         self,
@@ -678,8 +702,10 @@ class System:
         *,
         params: PhysicalParams | None = None,
     ) -> Tensor:
-        """Inverse mass matrix over points ``M^-1: (P, P)`` (closed form per body)."""
-        return self._body_blocks(self._params(params, None), True, dtype, torch.device(device))
+        """Inverse mass matrix over points ``M^-1: (P, P)`` (closed form per body), or
+        ``(N, P, P)`` for batched masses or second moments (as :meth:`mass_matrix`)."""
+        params, dtype, device = self._matrix_args(dtype, device, params)
+        return self._body_blocks(params, True, dtype, device)
 
     def _context(
         self, like: Tensor, params: PhysicalParams | None = None, n_states: int | None = None
@@ -739,7 +765,9 @@ class System:
         )
 
     # ------------------------------------------------------------------ energy
-    def _potential(self, x: Tensor, ctx: _Context) -> Tensor:
+    def _potential(self, x: Tensor, ctx: _Context, check: bool = False) -> Tensor:
+        """``V(x)``; with ``check`` (the public entries), ``params.potential``'s output
+        shape is checked (:meth:`_check_potential_output`)."""
         weights, g_vec = ctx.per_state(ctx.weights, x, 1, 0), ctx.per_state(ctx.g_vec, x, 1, 0)
         if g_vec.dim() == 1:
             V = -(weights * (x @ g_vec)).sum(-1)
@@ -752,8 +780,37 @@ class System:
             rest = ctx.per_state(ctx.rest_length, x, 0, 1)
             V = V + (k * (length - rest) ** 2).sum(-1)
         if ctx.potential is not None:
-            V = V + ctx.potential(x)
+            extra = ctx.potential(x)
+            if check:
+                self._check_potential_output(extra, x)
+            V = V + extra
         return V
+
+    @staticmethod
+    def _check_potential_output(V: Any, x: Tensor) -> None:
+        """``ValueError`` unless ``V``, ``params.potential``'s output at positions ``x:
+        (..., P, dim)``, is a tensor of shape ``(...)`` (one energy per state: a potential
+        returning ``(..., P)`` had been accepted by :meth:`simulate`, whose forces sum it,
+        and broke :meth:`energy` with a broadcast error)."""
+        want = tuple(x.shape[:-2])
+        if not isinstance(V, Tensor) or tuple(V.shape) != want:
+            got = tuple(V.shape) if isinstance(V, Tensor) else type(V).__name__
+            raise ValueError(
+                f"potential (params.potential) must map positions (..., P, dim) to one energy "
+                f"per state (...): expected shape {want} for positions of shape "
+                f"{tuple(x.shape)}, got {got}"
+            )
+
+    def _check_potential(self, ctx: _Context, x: Tensor) -> None:
+        """:meth:`_check_potential_output` on one evaluation of ``params.potential`` at
+        positions ``x: (..., P, dim)``: once per call at the boundary of the methods that
+        use the potential only through its gradient (:meth:`simulate`, :meth:`step`,
+        :meth:`integrate`, :meth:`grad_potential`; not per step or RK4 stage)."""
+        if ctx.potential is None:
+            return
+        x = x.detach()
+        with torch.no_grad():
+            self._check_potential_output(ctx.potential(x), x)
 
     def _segments(self, x: Tensor, ctx: _Context) -> Tensor:
         anchor = ctx.anchor.expand(*x.shape[:-2], 1, 2)
@@ -793,14 +850,23 @@ class System:
         Gravity ``-g . sum_b m_b c_b`` (centres of mass), for the rope
         ``sum_k k (l_k - l0)^2`` over the segments, the first from the anchor,
         and ``params.potential`` when set. Batched ``params`` need ``x: (N, ..., P, dim)``.
+        ``x`` holds positions only: a state ``(N, 2, P, dim)`` has the same trailing shape
+        and would be read as ``(N, 2)`` positions (pass ``z[..., 0, :, :]``, or use
+        :meth:`energy`).
+
+        Raises:
+            ValueError: ``x`` not a float32/float64 ``(..., P, dim)`` tensor, bad
+                ``params``, or a ``params.potential`` whose output is not ``(...)``.
         """
         self._check_positions(x, "x")
-        return self._potential(x, self._context(x, params, self._batch(x, params, 2)))
+        return self._potential(x, self._context(x, params, self._batch(x, params, 2)), True)
 
     def grad_potential(self, x: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Analytic ``grad_x V: (..., P, dim)`` of :meth:`potential` (what the dynamics use)."""
         self._check_positions(x, "x")
-        return self._grad_potential(x, self._context(x, params, self._batch(x, params, 2)))
+        ctx = self._context(x, params, self._batch(x, params, 2))
+        self._check_potential(ctx, x)
+        return self._grad_potential(x, ctx)
 
     def kinetic_energy(self, z: Tensor, *, params: PhysicalParams | None = None) -> Tensor:
         """Kinetic energy ``0.5 sum_c v_c^T M v_c: (...)`` of states ``z: (..., 2, P, dim)``."""
@@ -824,7 +890,7 @@ class System:
         ctx = self._context(z, params, self._batch(z, params, 3))
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         return 0.5 * (v * (ctx.per_state(ctx.M, v, 2, 0) @ v)).sum((-2, -1)) + self._potential(
-            x, ctx
+            x, ctx, True
         )
 
     def gaps(self, x: Tensor) -> Tensor:
@@ -841,6 +907,7 @@ class System:
         tangential ones (none for the rope's one-row limits), in the contact
         frames of ``docs/conventions.md``.
         """
+        self._check_state_shape(z, "z", batched=False)
         geometry = self._static_on(z.device)[0]
         x, v = z[..., 0, :, :], z[..., 1, :, :]
         K = self.n_contacts
@@ -932,10 +999,15 @@ class System:
         Args:
             n: number of states (>= 1).
             seed: the seed; the same seed gives the same bytes.
-            device: where to put the result (drawn on the CPU).
+            device: where to put the result (drawn on the CPU): ``"cpu"``, ``"cuda"``,
+                ``"cuda:N"`` or a ``torch.device``.
 
         Returns:
             ``(n, 2, P, dim)`` float64.
+
+        Raises:
+            ValueError: bad ``n`` or ``seed``, a device that is not a CPU or CUDA one, or
+                CUDA asked for where it is not available.
         """
         given, n = n, _integer(n)
         if n is None or n < 1:
@@ -943,6 +1015,7 @@ class System:
         given, seed = seed, _integer(seed)
         if seed is None or not 0 <= seed < 2**63:  # (None: TypeError; 1.5 was read as 1)
             raise ValueError(f"seed must be an integer in [0, 2**63), got {given!r}")
+        target = None if device is None else parse_device(device)  # before the draws
         gen = torch.Generator().manual_seed(seed)
         drawer = ics.DRAWERS[self.type]
         geometry = self._static_on(torch.device("cpu"))[0]
@@ -964,7 +1037,7 @@ class System:
                 f"{self.contact_names[k]!r} ({100 * float(share[k]):.0f} % of them): check "
                 "its geometry (walls, pivot, anchor) against the initial_conditions"
             ) from None
-        return z if device is None else z.to(device)
+        return z if target is None else z.to(target)
 
     # -------------------------------------------------------------- simulation
     def _vector_field(self, ctx: _Context, dynamics: str):
@@ -1099,7 +1172,7 @@ class System:
                 graph = xs.requires_grad and torch.is_grad_enabled()
                 depth = -(ctx.geometry.gaps(xs) if graph else gaps[b]).gather(-1, idx)
                 metric = Mh if self.penetration_metric == "mass" else None
-                v_star = penetration_target(op, depth, mask, self.dt, d, fraction, J_E, metric)
+                v_star = _penetration_target(op, depth, mask, self.dt, d, fraction, J_E, metric)
         else:
             v_star = vs.new_zeros(n, Ka * d)
 
@@ -1197,12 +1270,7 @@ class System:
         restitution bound ``e_P f_c,n`` is clamped at zero. The finiteness check
         stays (a rollout that blew up is reported as NaN input).
         """
-        settings = settings or SolverSettings()
-        if not isinstance(settings, SolverSettings):  # a dict had given an AttributeError
-            raise ValueError(
-                "solver_settings must be a diffcontact.contact.SolverSettings, got "
-                f"{type(settings).__name__} (e.g. SolverSettings(backend='torch'))"
-            )
+        settings = settings_or_default(settings, "solver_settings")
         return settings if not settings.check_inputs else replace(settings, check_inputs=False)
 
     def _options(
@@ -1217,9 +1285,18 @@ class System:
         dynamics = self.dynamics if dynamics is None else dynamics
         if dynamics not in DYNAMICS:
             raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
-        fraction = self.penetration_fraction if fraction is None else float(fraction)
+        given = fraction
+        if fraction is None:
+            fraction = self.penetration_fraction
+        elif isinstance(fraction, bool):
+            fraction = math.nan  # (True had been read as 1)
+        else:
+            try:
+                fraction = float(fraction)
+            except (TypeError, ValueError, RuntimeError):
+                fraction = math.nan
         if not 0 <= fraction <= 1:
-            raise ValueError(f"penetration_fraction must lie in [0, 1], got {fraction}")
+            raise ValueError(f"penetration_fraction must be a number in [0, 1], got {given!r}")
         if eps is not None:
             params = (self.parameters() if params is None else params).replace(eps=eps)
         return model, dynamics, fraction, params
@@ -1234,7 +1311,9 @@ class System:
         then parted after 40 steps)."""
         return closed_below(dtype) if iterations and self.velocity_projection else 0.0
 
-    def _projection_iterations(self, iterations: int | None) -> int:
+    def _projection_iterations(
+        self, iterations: int | None, name: str = "position_projection"
+    ) -> int:
         if iterations is None:
             return self.position_projection
         if (
@@ -1243,7 +1322,7 @@ class System:
             or not 0 <= iterations <= MAX_PROJECTION_ITERATIONS
         ):
             raise ValueError(
-                f"position_projection must be an integer in [0, {MAX_PROJECTION_ITERATIONS}] "
+                f"{name} must be an integer in [0, {MAX_PROJECTION_ITERATIONS}] "
                 f"(as in a config), got {iterations!r}"
             )
         return iterations
@@ -1397,7 +1476,7 @@ class System:
         self._check_state(z, "z")
         if iterations is None:
             iterations = self.position_projection or 3
-        iterations = self._projection_iterations(iterations)
+        iterations = self._projection_iterations(iterations, "iterations")
         if velocities is None:
             velocities = self.velocity_projection
         if not isinstance(velocities, bool):
@@ -1423,7 +1502,9 @@ class System:
         """
         self._check_state(z, "z")
         _, dynamics, _, params = self._options("CM", dynamics, None, params)
-        return self._integrate(z, self._context(z, params, z.shape[0]), dynamics)
+        ctx = self._context(z, params, z.shape[0])
+        self._check_potential(ctx, z[:, 0])
+        return self._integrate(z, ctx, dynamics)
 
     def resolve_contacts(
         self,
@@ -1485,6 +1566,7 @@ class System:
         if iterations:  # the projection removes violations; the target would pump energy
             fraction = 0.0
         ctx = self._context(z, params, z.shape[0])
+        self._check_potential(ctx, z[:, 0])
         z1 = self._integrate(z, ctx, dynamics)
         margin = self._contact_margin(iterations, ctx.dtype)
         res = self._resolve(z1, ctx, model, fraction, solver_settings, margin=margin)
@@ -1614,6 +1696,10 @@ class System:
         if iterations:  # the projection removes violations; the target would pump energy
             fraction = 0.0
         ctx = self._context(z0, params, z0.shape[0])
+        self._check_potential(ctx, z0[:, 0])
+        for name, flag in (("check_overlap", check_overlap), ("progress", progress)):
+            if not isinstance(flag, bool):
+                raise ValueError(f"{name} must be True or False, got {flag!r}")
         if check_overlap:
             self._check_no_overlap(z0, "z0")
         # the gaps of each state, for the tunnelling check: the contact resolution's own
