@@ -150,6 +150,16 @@ def test_replace_is_immutable_and_checks_names():
         params.replace(friction=0.1)
     with pytest.raises(AttributeError):
         params.mu = params.mu * 2  # frozen
+    with pytest.raises(ValueError, match="mu must be a number or a tensor, got True"):
+        params.replace(mu=True)  # (became 1.0)
+
+
+def test_a_meta_tensor_parameter_is_named():
+    system = dc.load_system("BP5")
+    p = system.parameters()
+    z0 = system.sample_initial_conditions(1, seed=0)
+    with pytest.raises(ValueError, match="mass must be a dense tensor with values, got a meta"):
+        system.simulate(z0, 2, params=p.replace(mass=p.mass.to("meta")))  # (.item() error)
 
 
 def test_bad_parameters_are_named():

@@ -88,6 +88,8 @@ class PhysicalParams:
                 f"{', '.join(f.name for f in dataclasses.fields(self))}"
             )
         for name, value in changes.items():
+            if name in _UNBATCHED_DIMS and isinstance(value, bool):  # (True had become 1.0)
+                raise ValueError(f"{name} must be a number or a tensor, got {value!r}")
             if name in _UNBATCHED_DIMS and isinstance(value, (int, float)) and name != "eps":
                 changes[name] = torch.tensor(float(value), dtype=torch.float64)
         return dataclasses.replace(self, **changes)
@@ -160,6 +162,11 @@ class PhysicalParams:
                 raise ValueError(
                     f"{name} must be a floating-point tensor, got {type(value).__name__}"
                     + (f" of {value.dtype}" if isinstance(value, Tensor) else "")
+                )
+            if value.is_meta or value.layout != torch.strided:  # (.item() failed on meta)
+                raise ValueError(
+                    f"{name} must be a dense tensor with values, got a "
+                    f"{'meta' if value.is_meta else str(value.layout)} tensor"
                 )
             shape = tuple(value.shape)
             batched_ok = [(n_states, *s) for s in allowed if n_states is not None]
