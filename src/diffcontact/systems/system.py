@@ -384,7 +384,9 @@ class System:
       ``penetration_fraction``, ``penetration_metric`` (``"mass"`` or ``"euclidean"``),
       ``position_projection``, ``velocity_projection``, ``foresee_crossings``,
       ``dynamics``, ``integrator``
-      (``"rk4"`` or ``"rk4_38"``, the config's Runge-Kutta rule);
+      (``"rk4"`` or ``"rk4_38"``, the config's Runge-Kutta rule), ``contact_model``
+      (what ``simulate``, ``step`` and ``resolve_contacts`` use when given none: ``"CM"``,
+      or a learned model's own in its ``as_system()``);
     - parameters (float64 tensors; any may require grad): ``mass (B,)``,
       ``second_moments (B, k)`` or ``None`` for point masses, ``mu (K,)`` and
       ``cor (K,)`` (a 0-d tensor broadcasts to all contacts), ``gravity ()``
@@ -408,6 +410,9 @@ class System:
         self.velocity_projection: bool = bool(cfg.velocity_projection)
         self.foresee_crossings: bool = bool(cfg.foresee_crossings)
         self.dynamics: str = cfg.dynamics
+        # the contact model of simulate/step/resolve_contacts when they are given none (a
+        # learned model's as_system() sets its own, so that its rollouts are the model's)
+        self.contact_model: Any = "CM"
         self.integrator: str = cfg.integrator
         self.second_moments: Tensor | None = None
         self.stiffness: Tensor | None = None
@@ -1281,7 +1286,7 @@ class System:
         params: PhysicalParams | None = None,
         eps: float | Tensor | None = None,
     ) -> tuple[ContactModel, str, float, PhysicalParams | None]:
-        model = create_contact_model(contact_model)
+        model = create_contact_model(self.contact_model if contact_model is None else contact_model)
         dynamics = self.dynamics if dynamics is None else dynamics
         if dynamics not in DYNAMICS:
             raise ValueError(f"dynamics must be one of {DYNAMICS}, got {dynamics!r}")
@@ -1511,7 +1516,7 @@ class System:
         z: Tensor,
         *,
         params: PhysicalParams | None = None,
-        contact_model: Any = "CM",
+        contact_model: Any = None,
         eps: float | Tensor | None = None,
         penetration_fraction: float | None = None,
         solver_settings: SolverSettings | None = None,
@@ -1524,7 +1529,8 @@ class System:
             z: ``(N, 2, P, dim)``.
             params: physical parameters (default: the system's own).
             contact_model: a registered name (:func:`~diffcontact.contact.contact_models`)
-                or a :class:`~diffcontact.contact.ContactModel` object.
+                or a :class:`~diffcontact.contact.ContactModel` object; ``None``: the
+                system's :attr:`contact_model` (``"CM"`` unless set).
             eps: shorthand for ``params.replace(eps=eps)`` (CMr's regulariser).
             penetration_fraction: share of the depth removed per step by the
                 compensation target (default: the config's; 0 switches it off).
@@ -1545,7 +1551,7 @@ class System:
         z: Tensor,
         *,
         params: PhysicalParams | None = None,
-        contact_model: Any = "CM",
+        contact_model: Any = None,
         eps: float | Tensor | None = None,
         dynamics: str | None = None,
         penetration_fraction: float | None = None,
@@ -1578,7 +1584,7 @@ class System:
         steps: int | None = None,
         *,
         params: PhysicalParams | None = None,
-        contact_model: Any = "CM",
+        contact_model: Any = None,
         eps: float | Tensor | None = None,
         progress: bool = False,
         dynamics: str | None = None,
@@ -1608,7 +1614,9 @@ class System:
                 others it does gets none (``grad`` stays ``None``, torch's rule).
             contact_model: a registered name (``"CM"``, ``"CMr"``, see
                 :func:`~diffcontact.contact.contact_models`) or a
-                :class:`~diffcontact.contact.ContactModel` object.
+                :class:`~diffcontact.contact.ContactModel` object; ``None``: the
+                system's :attr:`contact_model` (``"CM"`` unless set, e.g. by a learned
+                model's ``as_system()``).
             eps: shorthand for ``params.replace(eps=eps)`` (CMr's regulariser).
             progress: show a progress bar over the steps.
             dynamics: ``"lagrangian"`` (S.2) or ``"hamiltonian"`` (S.4-S.7);

@@ -69,6 +69,11 @@ def test_format_and_shapes(which, bp5_dir, cp3_noisy_dir):
             assert torch.equal(split.chunks, expected)
     f32 = ds.split("train", dtype=torch.float32)
     assert f32.chunks.dtype == torch.float32 and f32.chunk_start.dtype == torch.int64
+    assert ds.split("train", dtype="float32").chunks.dtype == torch.float32
+    # an integer dtype had truncated the chunks, a string other than these a torch TypeError
+    for bad in (torch.int64, torch.bfloat16, torch.complex64, "bogus"):
+        with pytest.raises(ValueError, match=r"dtype must be torch\.float32 or torch\.float64"):
+            ds.split("train", dtype=bad)
 
 
 def test_checksum_corruption_and_missing_files(bp5_dir, tmp_path):

@@ -487,6 +487,23 @@ def test_model_files_whose_contents_do_not_fit_are_named(model, tmp_path):
             assert "disagree" in str(caught.value)  # (a baseline's options name no model)
 
 
+@pytest.mark.parametrize("name", ["CMr-CD-CLNN", "LCP-CD-CLNN", "Coulomb-CD-CLNN", "CM-CD-CHNN"])
+def test_as_system_rolls_out_the_model(name):
+    """as_system()'s simulate is the model's rollout: its contact model (CMr's eps with it)
+    and dynamics are the system's defaults (a CMr, LCP or Coulomb model's had run CM:
+    0.66 apart on BP5-e), and a CM model refuses an eps instead of ignoring it."""
+    options = {"eps": 0.05} if name.startswith("CMr") else {}
+    model = LearnedModel("CP3", model=name, hidden=(8,), **options).double()
+    z0 = model.system.sample_initial_conditions(4, seed=3)
+    system = model.as_system()
+    assert (system.contact_model, system.dynamics) == (model.contact_model, model.dynamics)
+    with torch.no_grad():
+        torch.testing.assert_close(system.simulate(z0, 30), model.simulate(z0, 30))
+    if not name.startswith("CMr"):
+        with pytest.raises(ValueError, match=f"{name} has no eps"):
+            model.simulate(z0, 3, eps=0.1)  # (ran as without it)
+
+
 @pytest.mark.parametrize("potential_dtype", [None, "float32"])
 def test_as_system_keeps_the_values_of_the_moment(potential_dtype):
     """as_system's potential was the live network: training on changed the system."""
@@ -519,3 +536,7 @@ def test_set_parameters_refuses_what_the_model_cannot_hold():
     assert model.learned_parameters() == before  # nothing changed
     tiny = LearnedModel("BP5", hidden=(8,)).double().set_parameters(mass=[1e-50] * 5)
     assert tiny.learned_parameters()["mass"][0] == pytest.approx(1e-50)  # float64 holds it
+    learnable = LearnedModel("BP5-e", model="CMr-CD-CLNN", eps="learnable", hidden=(8,))
+    for bad in (1e300, 1e-300):  # stored as inf and 0 (a later simulate: "eps must be positive")
+        with pytest.raises(ValueError, match=r"eps must be positive and finite in torch\.float32"):
+            learnable.set_parameters(eps=bad)

@@ -6,6 +6,7 @@ import csv
 import json
 import logging
 import os
+from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
@@ -116,6 +117,37 @@ def test_resume_with_fewer_epochs_than_trained_is_refused_and_changes_nothing(bp
     ):
         train(bp5_data, run, epochs=1, resume=True, **opts)
     assert (run / "run.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("variable", ["LOCAL_RANK", "SLURM_PROCID", "RANK"])
+def test_a_rank_variable_does_not_turn_off_the_checks_of_a_one_process_run(
+    bp5_data, tmp_path, monkeypatch, variable
+):
+    """A rank above 0 in the environment (a task of a multi-task SLURM job, a variable a
+    launcher left) had made train() skip every check of the output folder: a finished
+    run's model.pt was overwritten, a run written into the dataset folder."""
+    opts = dict(batch_size=4, **SMALL)
+    run = tmp_path / "run"
+    train(bp5_data, run, epochs=1, **opts)
+    before = (run / "model.pt").read_bytes()
+    monkeypatch.setenv(variable, "1")
+    with pytest.raises(TrainingInputError, match="resume"):
+        train(bp5_data, run, epochs=1, **opts)  # a finished run, no --resume
+    assert (run / "model.pt").read_bytes() == before
+    with pytest.raises(TrainingInputError):
+        train(bp5_data, bp5_data, epochs=1, **opts)  # the dataset folder
+    assert not (Path(bp5_data) / "model.pt").exists()
+
+
+def test_a_run_that_diverged_fails(bp5_data, tmp_path):
+    """lr 1e30: one step, then every loss NaN and every step skipped; train() had returned
+    as if finished (learned.json with null losses)."""
+    from diffcontact.learning.training.options import TrainingFailed
+
+    run = tmp_path / "run"
+    with pytest.raises(TrainingFailed, match="training diverged: the last epoch's training"):
+        train(bp5_data, run, epochs=3, lr=1e30, physics_lr=1e30, batch_size=4, **SMALL)
+    assert (run / "model.pt").is_file()  # the run directory is still written
 
 
 def test_resume_of_a_finished_run_keeps_its_model_and_refit(bp5_data, tmp_path, caplog):

@@ -417,15 +417,23 @@ class Dataset:
 
         Args:
             name: the split.
-            dtype: float dtype of ``traj`` and ``chunks`` (stored as float64).
+            dtype: ``torch.float32`` or ``torch.float64`` (or their names), the dtype of
+                ``traj`` and ``chunks`` (stored as float64); ``None``: float64.
             device: where to put the tensors.
 
         Raises:
-            ValueError: an unknown split name.
+            ValueError: an unknown split name or another ``dtype`` (an integer one had
+                truncated the chunks, a string had given torch's ``TypeError``).
             DatasetError: the file is missing, fails its checksum or lacks an array.
         """
         if name not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {name!r}")
+        named = {"float32": torch.float32, "float64": torch.float64}
+        dtype = named.get(dtype, dtype) if isinstance(dtype, str) else dtype
+        if dtype is not None and dtype not in (torch.float32, torch.float64):
+            raise ValueError(
+                f"dtype must be torch.float32 or torch.float64 (or None: float64), got {dtype!r}"
+            )
         path = self.path / f"{name}.npz"
         data = self._read_verified(path)
         try:

@@ -539,6 +539,13 @@ class LearnedModel(nn.Module):
                 eps_value = math.nan
             if not (math.isfinite(eps_value) and eps_value > 0):
                 raise ValueError(f"eps must be a positive number, got {eps!r}")
+            if self.eps_option == "learnable":  # (1e300 became inf, 1e-300 zero in float32)
+                held = torch.tensor(math.log(eps_value), dtype=self.log_eps.dtype).exp()
+                if not (bool(torch.isfinite(held)) and float(held) > 0):
+                    raise ValueError(
+                        f"eps must be positive and finite in {self.log_eps.dtype} (a learnable "
+                        f"eps is stored as its log), got {eps!r}"
+                    )
         for param, value in writes:
             param.copy_(value.to(param))
         if eps_value is not None:
@@ -665,6 +672,11 @@ class LearnedModel(nn.Module):
             )
         if eps is not None and self.contact_model == "CMr":
             raise ValueError("eps is a parameter of the model; use set_parameters(eps=...)")
+        if eps is not None:  # (it had been ignored: eps=0.1 and eps="bogus" ran as without)
+            raise ValueError(
+                f"{self.model_name} has no eps (its contact model {self.contact_model} has no "
+                f"regulariser; CMr models have one), got eps={eps!r}"
+            )
 
     def simulate(
         self,
@@ -722,8 +734,12 @@ class LearnedModel(nn.Module):
         return self.system.energy(z, params=self.physical_params())
 
     def as_system(self) -> System:
-        """A new :class:`System` holding the learned values (detached), potential included."""
+        """A new :class:`System` holding the learned values (detached), potential included,
+        with the model's contact model (``contact_model``, CMr's ``eps`` among the values)
+        and dynamics as its defaults: its ``simulate(z0, steps)`` is the model's rollout
+        (a CMr, LCP or Coulomb model's had run CM)."""
         system = System(self.system.config)
+        system.contact_model, system.dynamics = self.contact_model, self.dynamics
         with torch.no_grad():
             p = self.physical_params()
         for name, value in p.tensors().items():

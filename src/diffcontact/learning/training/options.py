@@ -65,9 +65,10 @@ class TrainingInputError(ValueError):
 
 
 class TrainingFailed(RuntimeError):
-    """``train()`` ran every epoch but took no optimiser step: every step was skipped
-    (non-finite losses or gradients, solver failures, spikes). The run directory is
-    written (its ``model.pt`` holds the untrained model); the message names the reasons."""
+    """``train()`` ran every epoch but took no optimiser step (every step was skipped:
+    non-finite losses or gradients, solver failures, spikes), or diverged (its last epoch's
+    training and validation losses are not finite). The run directory is written (its
+    ``model.pt`` holds the model as it ended); the message names the reasons."""
 
 
 class TrainingInterrupted(KeyboardInterrupt):

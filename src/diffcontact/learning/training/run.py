@@ -359,6 +359,15 @@ def _lightning_messages(progress: bool):
 # ----------------------------------------------------------------- run directory
 
 
+def _one_process(devices: Any, num_nodes: Any) -> bool:
+    """Whether a run with ``devices`` and ``num_nodes`` is one process (no launcher ranks:
+    this process is rank 0 whatever the environment says)."""
+    one = (isinstance(devices, int) and not isinstance(devices, bool) and devices == 1) or (
+        isinstance(devices, (list, tuple)) and len(devices) == 1
+    )
+    return one and num_nodes == 1
+
+
 def _launcher_rank() -> int:
     """This process's rank as set by a distributed launcher (0 when not launched as one)."""
     for key in ("RANK", "SLURM_PROCID", "LOCAL_RANK", "NODE_RANK", "JSM_NAMESPACE_RANK"):
@@ -600,8 +609,11 @@ def train(
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     checkpoints = out / "checkpoints"
-    # processes started by a DDP launcher (Lightning's, torchrun, SLURM) leave the files to rank 0
-    launcher = _launcher_rank() == 0
+    # processes started by a DDP launcher (Lightning's, torchrun, SLURM) leave the files to rank
+    # 0; a run of one process checks and writes them whatever rank variable the environment
+    # holds (SLURM_PROCID of a task of a multi-task job, LOCAL_RANK left by a launcher had
+    # turned off every check: a finished run's model.pt was overwritten)
+    launcher = _launcher_rank() == 0 or _one_process(devices, num_nodes)
     if launcher and _lock is not None:
         _lock.acquire()  # an existing folder: before any check reads it
     info = check_run_dir(out, run_info, resume) if launcher else None
@@ -835,6 +847,22 @@ def _fit(
         for stale in ("refit.json", "model_adam.pt"):  # of an earlier model.pt
             (out / stale).unlink(missing_ok=True)
         skipped = {r: c for r, c in module.skipped_total.items() if c}
+        last = module.last_epoch_summary  # (empty: this call trained no epoch)
+        if (
+            last
+            and int(trainer.global_step) > 0
+            and not any(
+                isinstance(last.get(k), (int, float)) and math.isfinite(last[k])
+                for k in ("train_loss", "val_loss")
+            )
+        ):  # (a run that blew up ended "finished" with NaN losses and no error)
+            raise TrainingFailed(
+                f"training diverged: the last epoch's training and validation losses are not "
+                f"finite (epoch {int(last['epoch']) + 1}; {sum(skipped.values())} steps "
+                f"skipped in all), so {out / 'model.pt'} holds a model that predicts no "
+                "finite motion: lower --lr or --physics-lr, or check the data "
+                "(docs/training.md, 'Skipped steps')"
+            )
         if skipped and int(trainer.global_step) == 0:
             reasons = ", ".join(f"{c} {r.replace('_', ' ')}" for r, c in skipped.items())
             raise TrainingFailed(
