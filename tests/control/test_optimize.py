@@ -476,3 +476,15 @@ def test_non_finite_starts_are_named(two_balls):
     with pytest.raises(ControlError, match=r"starts\['velocity\[0\]'\] contains NaN"):
         dc.optimize(system, z0, goal, variables=[Velocity(0)], starts=starts, steps=2,
                     iterations=1, progress=False)  # fmt: skip
+
+
+def test_a_system_planner_takes_the_systems_own_contact_model():
+    """A learned CMr model's as_system() plans with CMr (it had planned with CM); a System
+    with no contact model set plans with CM, and an explicit one wins."""
+    from diffcontact.control.planner import as_planner
+    from diffcontact.learning.models.physical import LearnedModel
+
+    model = LearnedModel("BP5-e", model="CMr-CD-CLNN", eps=0.05, hidden=(8,))
+    assert as_planner(model.as_system()).truth_contact_model == "CMr"
+    assert as_planner(dc.load_system("BP5-e")).truth_contact_model == "CM"
+    assert as_planner(model.as_system(), contact_model="LCP").truth_contact_model == "LCP"

@@ -203,7 +203,7 @@ def optimize(
     patience: int | None = None,
     seed: int = 0,
     progress: bool = True,
-    contact_model: Any = "CM",
+    contact_model: Any = None,
     threads: int | str | None = "auto",
 ) -> OptimizeResult:
     """Optimise parts of the initial state and/or physical parameters through ``simulate``.
@@ -231,7 +231,8 @@ def optimize(
             relative) for this many iterations.
         seed: seeds the random starts.
         progress: show a progress bar.
-        contact_model: the contact model of a System planner.
+        contact_model: the contact model of a System planner (``None``: the System's
+            ``contact_model``, ``"CM"`` unless set).
         threads: torch's CPU threads during the iterations (put back afterwards):
             ``"auto"`` (default) times the iterations and runs them on one thread or
             on all available cores, whichever is faster now (from 24 iterations on;

@@ -145,12 +145,14 @@ def _truth_of_run(run: Path) -> dict[str, Any]:
     }
 
 
-def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
+def as_planner(obj: Any, *, contact_model: Any = None) -> Planner:
     """Wrap ``obj`` (a System, a learned model, or a string; see the module docstring).
 
     Args:
         obj: what to plan with.
-        contact_model: the contact model of a System (a learned model has its own).
+        contact_model: the contact model of a System (``None``: the System's own
+            ``contact_model``, ``"CM"`` unless set, e.g. by a learned model's
+            ``as_system()``; a learned model has its own).
 
     Raises:
         ValueError: a string that names no run, model file, task or config; an
@@ -166,6 +168,8 @@ def as_planner(obj: Any, *, contact_model: Any = "CM") -> Planner:
         obj, about_truth = _from_string(str(obj))
     if isinstance(obj, System):
         system = obj
+        if contact_model is None:
+            contact_model = system.contact_model
         create_contact_model(contact_model)  # an unknown name: an error now, not mid-rollout
 
         def simulate(z0: Tensor, steps: int, params: Any, check: bool) -> Tensor:
