@@ -85,6 +85,17 @@ def test_arrays_validation_messages(recorded, tmp_path):
     )
 
 
+def test_an_out_dir_that_is_not_a_path_is_named(recorded):
+    """An int out_dir gave pathlib's TypeError (dataset_from_arrays and generate_dataset)."""
+    from diffcontact.learning.data.generate import generate_dataset
+
+    for bad in (5, None, ""):
+        with pytest.raises(ValueError, match="out_dir must be a path"):
+            dataset_from_arrays(recorded, BP5, bad)
+        with pytest.raises(ValueError, match="out_dir must be a path"):
+            generate_dataset("BP5", bad, n_train=2, n_val=1, n_test=1, progress=False)
+
+
 def test_flags_given_at_every_chunk_start_are_named_as_the_cause(recorded, tmp_path):
     """Flags given at every state were reported as "body 0 penetrates wall 2 (gap 0.00944)"."""
     out = tmp_path / "rec"

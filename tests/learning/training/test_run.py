@@ -150,6 +150,13 @@ def test_a_run_that_diverged_fails(bp5_data, tmp_path):
     assert (run / "model.pt").is_file()  # the run directory is still written
 
 
+def test_callbacks_that_are_not_callbacks_are_named(bp5_data, tmp_path):
+    """callbacks=[1] ended in Lightning's AttributeError (no on_exception) mid-setup."""
+    with pytest.raises(TrainingInputError, match=r"callbacks must be Lightning callbacks.*1"):
+        train(bp5_data, tmp_path / "run", epochs=1, callbacks=[1], **SMALL)
+    assert not (tmp_path / "run").exists()
+
+
 def test_resume_of_a_finished_run_keeps_its_model_and_refit(bp5_data, tmp_path, caplog):
     """Re-running the same ``--resume`` command on a finished run trained nothing but
     rewrote model.pt with the Adam model and deleted refit.json and model_adam.pt."""

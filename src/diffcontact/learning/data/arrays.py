@@ -28,7 +28,7 @@ from diffcontact.learning.data.chunks import (
     merge_cues,
 )
 from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
-from diffcontact.learning.data.write import prepare_folder, write_dataset
+from diffcontact.learning.data.write import output_folder, prepare_folder, write_dataset
 from diffcontact.systems import System, load_system
 
 __all__ = ["dataset_from_arrays", "read_arrays_file", "read_flag_entries"]
@@ -230,7 +230,7 @@ def dataset_from_arrays(
         arguments["flags_sha256"] = hashlib.sha256(
             b"".join(repr(a.shape).encode() + np.nan_to_num(a, nan=-1.0).tobytes() for a in given)
         ).hexdigest()
-    folder = Path(out_dir)
+    folder = output_folder(out_dir)
     if prepare_folder(folder, arguments, progress):
         return folder
 

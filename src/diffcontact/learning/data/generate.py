@@ -23,7 +23,13 @@ from diffcontact.io import jsonable, parse_device, read_npz
 from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
 from diffcontact.learning.data.chunks import chunk_split, contact_states
 from diffcontact.learning.data.format import ARRAYS, SPLITS, WINDOW_ARRAYS, split_seeds
-from diffcontact.learning.data.write import prepare_folder, say, write_dataset, write_split
+from diffcontact.learning.data.write import (
+    output_folder,
+    prepare_folder,
+    say,
+    write_dataset,
+    write_split,
+)
 from diffcontact.systems import load_system
 
 __all__ = ["generate_dataset"]
@@ -131,7 +137,7 @@ def generate_dataset(
         arguments["contact_model"] = contact_model
     if stride is not None:  # so do datasets of one chunk per trajectory
         arguments["stride"] = stride
-    folder = Path(out_dir)
+    folder = output_folder(out_dir)
     if prepare_folder(folder, arguments, progress):
         return folder
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from collections.abc import Callable, Collection
 from datetime import datetime, timezone
 from pathlib import Path
@@ -117,6 +118,14 @@ def _remove_stale_marker(folder: Path) -> None:
     if marker.exists():
         with contextlib.suppress(OSError):
             marker.unlink()
+
+
+def output_folder(out_dir: Any) -> Path:
+    """``out_dir`` as a ``Path``; a ``ValueError`` for anything but a ``str`` or an
+    ``os.PathLike`` (an int had given pathlib's ``TypeError``)."""
+    if isinstance(out_dir, (str, os.PathLike)) and str(out_dir):
+        return Path(out_dir)
+    raise ValueError(f"out_dir must be a path (str or os.PathLike), got {out_dir!r}")
 
 
 def prepare_folder(folder: Path, arguments: dict[str, Any], progress: bool) -> bool:

@@ -521,6 +521,12 @@ def train(
         raise TrainingInputError(
             f"refit: {model} has no potential network to refit (physical models only)"
         )
+    bad = [c for c in callbacks if not isinstance(c, pl.Callback)]
+    if bad:  # (Lightning's AttributeError "'int' object has no attribute 'on_exception'")
+        raise TrainingInputError(
+            f"callbacks must be Lightning callbacks (lightning.pytorch.Callback), got "
+            f"{', '.join(repr(c) for c in bad[:3])}"
+        )
     try:
         threads = parse_threads(threads)
     except ValueError as err:
