@@ -357,12 +357,12 @@ def _consistent_velocities(v: Tensor, J_E: Tensor, M_inv: Tensor) -> Tensor:
     ``J_E: (n, E, D)`` taken out in the mass metric (``M_inv``: ``(P, P)`` or ``(n, P, P)``
     over points): ``v - M^-1 J_E^T (J_E M^-1 J_E^T)^-1 J_E v``, so that ``J_E v = 0``.
 
-    The contact impulse acts on these. RK4 leaves ``J_E v`` of the order of its local error
-    (about 1e-4 on a fast gyroscope), and the part of ``J_C v`` it causes lies where
-    ``A = J_C Mhat^-1 J_C^T`` is singular (``Mhat^-1`` takes the constraints' directions
-    out, ``J_C`` does not): along a direction inside the friction cone (``mu`` above about
-    1.4 at a gyroscope's rim) the contact problem was then unbounded, and the simulation
-    stopped with ``ConeQPError``.
+    The contact impulse acts on these. RK4 leaves ``J_E v`` of the order of its local
+    error, and the part of ``J_C v`` it causes lies where ``A = J_C Mhat^-1 J_C^T`` is
+    singular (``Mhat^-1`` takes the constraints' directions out, ``J_C`` does not): along
+    such a direction inside the friction cone (a gyroscope's rim at ``mu = 2``,
+    ``test_a_gyroscope_with_much_friction_simulates``) the contact problem was then
+    unbounded, and the simulation stopped with ``ConeQPError``.
     """
     n, P, dim = v.shape
     flat = v.reshape(n, P * dim, 1)

@@ -40,6 +40,24 @@ def write_log(run: Path, epochs: int = 12) -> Path:
     return path
 
 
+class FailingTruth:
+    """The model contract backed by TINY's ground truth, except that the rollouts from the
+    initial states of the test trajectories ``states`` (taken from the first call, the
+    test set's) fail with ``error(failed_rows)``: a diverged or a failed-solve model."""
+
+    def __init__(self, states, error):
+        self.system = dc.load_system(TINY)
+        self.states, self.error, self.bad = list(states), error, None
+
+    def simulate(self, z0, steps):
+        if self.bad is None:
+            self.bad = z0[self.states].clone()
+        hit = ((z0[:, None] - self.bad[None]).flatten(2).abs().amax(-1) == 0).any(-1)
+        if bool(hit.any()):
+            raise self.error(hit.nonzero().flatten().tolist())
+        return self.system.simulate(z0, steps)
+
+
 class SystemModel:
     """The model contract, backed by a ground-truth System (optionally with other masses)."""
 

@@ -11,7 +11,7 @@ import pytest
 from diffcontact.cli import main
 from diffcontact.learning.models.physical import LearnedModel
 
-from .support import TINY, cli, run_dir
+from .support import TINY, FailingTruth, cli, run_dir
 
 
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, dataset, capsys):
@@ -191,29 +191,14 @@ def test_diverged_rollouts_are_said_once(tmp_path, dataset, capsys, monkeypatch)
     """evaluate() warns (RuntimeWarning) on diverged rollouts; the command says so on its
     own WARNING line and does not repeat it as Python's two-line warning."""
     import diffcontact.learning.models.storage as storage
-    from diffcontact.systems import NonFiniteRolloutError, System, load_config
+    from diffcontact.systems import NonFiniteRolloutError
 
-    system = System(load_config(TINY))
-
-    class Diverging:
-        """The truth, except that the first test trajectory's rollout diverges."""
-
-        def __init__(self):
-            self.bad = None
-
-        def simulate(self, z0, steps):
-            if self.bad is None:
-                self.bad = z0[0].clone()
-            hit = (z0 - self.bad).flatten(1).abs().amax(-1) == 0
-            if bool(hit.any()):
-                raise NonFiniteRolloutError("diverged", hit.nonzero().flatten().tolist())
-            return system.simulate(z0, steps)
-
+    first_diverges = FailingTruth([0], lambda states: NonFiniteRolloutError("diverged", states))
     root = tmp_path / "r"
     root.mkdir()
     run = run_dir(root, dataset, log=False)
     (run / "model.pt").write_bytes(b"")  # (load_model is replaced)
-    monkeypatch.setattr(storage, "load_model", lambda path: Diverging())
+    monkeypatch.setattr(storage, "load_model", lambda path: first_diverges)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         code = cli(["evaluate", str(run), "--n-gif", "0", "--steps", "5", "--no-uncertainty"])

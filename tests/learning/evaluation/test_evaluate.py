@@ -19,7 +19,7 @@ from diffcontact.learning.evaluation.evaluate import EvaluationInputError, evalu
 from diffcontact.learning.models.physical import LearnedModel
 from diffcontact.learning.training.run import train
 
-from .support import TINY, SystemModel, cli, run_dir
+from .support import TINY, FailingTruth, SystemModel, cli, run_dir
 
 
 def test_evaluate_truth_as_model(tmp_path, dataset):
@@ -223,29 +223,24 @@ def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
     """A learned model whose contact solve fails on one test trajectory: that trajectory
     is left out (NaN, ``n_nonfinite``, ``solver_failures``); the others are evaluated."""
     from diffcontact.contact import ConeQPError
-    from diffcontact.learning.evaluation.evaluate import evaluate
-    from diffcontact.systems import System, load_config
 
-    system = System(load_config(TINY))
     bad = 1  # the second test trajectory
 
-    class Failing:
-        def __init__(self):
-            self.first = None
-
-        def simulate(self, z0, steps):
-            if self.first is None:
-                self.first = z0[bad].clone()
-            hit = (z0 - self.first).flatten(1).abs().amax(-1) == 0
-            if bool(hit.any()):
-                err = ConeQPError("solve failed", None)
-                err.states = hit.nonzero().flatten().tolist()
-                raise err
-            return system.simulate(z0, steps)
+    def failed_solve(states):
+        err = ConeQPError("solve failed", None)
+        err.states = states
+        return err
 
     said = r"1 of 3 test rollouts diverged \(non-finite\) \(1 on a failed contact solve\)"
     with pytest.warns(RuntimeWarning, match=said):
-        m = evaluate(None, tmp_path / "out", model=Failing(), data_dir=dataset, n_gif=0, steps=5)
+        m = evaluate(
+            None,
+            tmp_path / "out",
+            model=FailingTruth([bad], failed_solve),
+            data_dir=dataset,
+            n_gif=0,
+            steps=5,
+        )
     assert m["solver_failures"] == [bad]
     assert m["n_nonfinite"] == 1
     assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)  # the truth's own rollouts
@@ -255,26 +250,22 @@ def test_a_failed_contact_solve_counts_as_a_diverged_rollout(tmp_path, dataset):
 def test_a_diverged_rollout_is_left_out_and_counted(tmp_path, dataset, diverged):
     """Rollouts that reach NaN (NonFiniteRolloutError naming them) are counted in
     n_nonfinite, as documented; the evaluation stopped with the error before."""
-    from diffcontact.learning.evaluation.evaluate import DivergedRolloutsWarning, evaluate
-    from diffcontact.systems import NonFiniteRolloutError, System, load_config
+    from diffcontact.learning.evaluation.evaluate import DivergedRolloutsWarning
+    from diffcontact.systems import NonFiniteRolloutError
 
-    system = System(load_config(TINY))
-
-    class Diverging:
-        def __init__(self):
-            self.bad = None
-
-        def simulate(self, z0, steps):
-            if self.bad is None:
-                self.bad = z0[diverged].clone()
-            hit = ((z0[:, None] - self.bad[None]).flatten(2).abs().amax(-1) == 0).any(-1)
-            if bool(hit.any()):
-                raise NonFiniteRolloutError("diverged", hit.nonzero().flatten().tolist())
-            return system.simulate(z0, steps)
+    def diverging(states):
+        return NonFiniteRolloutError("diverged", states)
 
     said = rf"{len(diverged)} of 3 test rollouts diverged \(non-finite\): left out of the means"
     with pytest.warns(DivergedRolloutsWarning, match=said) as caught:
-        m = evaluate(None, tmp_path / "out", model=Diverging(), data_dir=dataset, n_gif=0, steps=5)
+        m = evaluate(
+            None,
+            tmp_path / "out",
+            model=FailingTruth(diverged, diverging),
+            data_dir=dataset,
+            n_gif=0,
+            steps=5,
+        )
     assert m["n_nonfinite"] == len(diverged) and m["solver_failures"] == []
     if len(diverged) < 3:
         assert m["rel_err_mean"] == pytest.approx(0.0, abs=1e-9)
