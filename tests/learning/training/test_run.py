@@ -150,6 +150,23 @@ def test_a_run_that_diverged_fails(bp5_data, tmp_path):
     assert (run / "model.pt").is_file()  # the run directory is still written
 
 
+def test_an_epoch_without_an_optimiser_step_is_checkpointed(bp5_data, tmp_path):
+    """Epochs whose steps were all skipped wrote no checkpoint (Lightning saves only when
+    the global step has moved): last.ckpt stayed at epoch 1 and a resumed run repeated
+    epochs whose logs and summaries had been written."""
+    from diffcontact.learning.models.storage import load_torch_file
+    from diffcontact.learning.training.checkpoints import epochs_done
+    from diffcontact.learning.training.options import TrainingFailed
+
+    run = tmp_path / "run"
+    opts = dict(lr=1e30, physics_lr=1e30, batch_size=4, **SMALL)
+    with pytest.raises(TrainingFailed):  # one step, then every step skipped
+        train(bp5_data, run, epochs=3, **opts)
+    files = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert files == ["epoch0000.ckpt", "epoch0001.ckpt", "epoch0002.ckpt", "last.ckpt"]
+    assert epochs_done(load_torch_file(run / "checkpoints" / "last.ckpt", "checkpoint")) == 3
+
+
 def test_callbacks_that_are_not_callbacks_are_named(bp5_data, tmp_path):
     """callbacks=[1] ended in Lightning's AttributeError (no on_exception) mid-setup."""
     with pytest.raises(TrainingInputError, match=r"callbacks must be Lightning callbacks.*1"):

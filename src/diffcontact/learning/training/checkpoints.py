@@ -10,6 +10,9 @@ in ``$TMPDIR``), and reads every checkpoint with ``weights_only=True``
 :func:`resume_point` chooses what ``train(resume=True)`` continues from:
 ``last.ckpt``, else the newest readable ``epochNNNN.ckpt``, else nothing (the
 run starts from the beginning).
+
+:class:`EpochCheckpoint` is the run's ``ModelCheckpoint``: it writes a checkpoint at
+the end of every epoch, also of an epoch whose steps were all skipped.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Any
 
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 from diffcontact.io import atomic_write_bytes
 from diffcontact.learning.models.storage import UnsafeFileError, load_torch_file
@@ -29,6 +33,7 @@ from diffcontact.learning.training.options import TrainingInputError
 
 __all__ = [
     "LAST",
+    "EpochCheckpoint",
     "ResumePoint",
     "SafeCheckpointIO",
     "epochs_done",
@@ -58,6 +63,23 @@ class SafeCheckpointIO(TorchCheckpointIO):
         self, path: Any, map_location: Any = None, weights_only: bool | None = None
     ) -> dict[str, Any]:
         return load_torch_file(path, "checkpoint", map_location or "cpu")
+
+
+class EpochCheckpoint(ModelCheckpoint):
+    """Lightning's ``ModelCheckpoint``, but an epoch without an optimiser step is saved too.
+
+    Lightning skips a save when the global step has not moved since the last one. An
+    epoch whose steps were all skipped (non-finite losses, gradient spikes:
+    docs/training.md) then left ``last.ckpt`` at an earlier epoch, and a resumed run
+    repeated the epochs since, although their logs and summaries had been written.
+    """
+
+    def _should_skip_saving_checkpoint(self, trainer: Any) -> bool:
+        saved, self._last_global_step_saved = self._last_global_step_saved, -1
+        try:
+            return super()._should_skip_saving_checkpoint(trainer)
+        finally:
+            self._last_global_step_saved = saved
 
 
 @dataclass(frozen=True)

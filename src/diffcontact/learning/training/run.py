@@ -57,6 +57,7 @@ from diffcontact.learning.models.registry import (
 from diffcontact.learning.models.storage import save_model
 from diffcontact.learning.training.checkpoints import (
     LAST,
+    EpochCheckpoint,
     SafeCheckpointIO,
     prune_checkpoints,
     resume_point,
@@ -676,10 +677,8 @@ def train(
         n_reference=int(meta.get("n_train", len(train_chunks))),
     )  # fmt: skip
 
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
     keep = {} if keep_checkpoints is None else {"monitor": "step", "mode": "max"}
-    checkpoint = ModelCheckpoint(
+    checkpoint = EpochCheckpoint(
         dirpath=checkpoints,
         filename="epoch{epoch:04d}",
         auto_insert_metric_name=False,
