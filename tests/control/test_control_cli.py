@@ -226,6 +226,23 @@ def test_absurd_targets_are_refused_with_the_allowed_range(capsys, argv, needles
     assert_usage_error(code, err, "error: target ", *needles)
 
 
+@pytest.mark.parametrize(
+    "start",
+    [
+        ["1e300", "0.5"],  # (planned as a throw at rest, exit 0)
+        ["0", "1e300"],  # ("simulation failed: z0 contains NaN or infinite values")
+        ["-4000001", "0.5"],
+    ],
+)
+def test_a_start_too_far_from_the_origin_is_refused(capsys, start):
+    """A throw's start where float64 cannot resolve its motion: one line naming the start
+    and the allowed distance, exit status 2."""
+    code, _, err = run(capsys, "throw", "BD1-ground", "--target", "1", "--start", *start,
+                       "--quiet", "--no-gif")  # fmt: skip
+    assert_usage_error(code, err, "error: start (", "is too far from the origin",
+                       "within 1e+06 times the 4 m a throw covers in 1 s")  # fmt: skip
+
+
 def test_absurd_targets_are_refused_by_the_python_api_too():
     """plan_billiards and plan_throw raise ControlError (the module's error for bad input)
     naming the target and the allowed range; a table no wall bounds refuses targets

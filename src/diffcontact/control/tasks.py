@@ -361,7 +361,8 @@ def plan_throw(
         ControlError: not a disk system with gravity, a start inside the
             ground, a target that is not finite or farther from the start than
             :data:`FAR` times the reach (nearer targets beyond reach are planned
-            as close as they can be, with a warning), a bad time.
+            as close as they can be, with a warning), a start coordinate beyond
+            ``FAR**2`` times the reach, a bad time.
     """
     planner = as_planner(simulator)
     cfg = _circle_system(planner, "throw")
@@ -378,13 +379,20 @@ def plan_throw(
     st = torch.as_tensor(start, dtype=torch.float64)
     if st.shape != (2,) or not torch.isfinite(st).all():
         raise ControlError(f"start must be a finite point (x, y), got {start!r}")
+    # the centre moves horizontally at most at the larger of the thrown speed and the
+    # rolling speed the spin can give (friction only trades one for the other)
+    reach = time * max(max_speed, max_spin * float(cfg.radii[0]))
+    # (x = 1e300 had been planned as a throw at rest, y = 1e300 failed to simulate)
+    if 0 < reach < math.inf and bool((st.abs() > FAR**2 * reach).any()):
+        raise ControlError(
+            f"start {tuple(st.tolist())} is too far from the origin: each coordinate must be "
+            f"within {FAR**2:g} times the {reach:g} m a throw covers in {time:g} s (farther "
+            "out, float64 rounds the throw's motion away)"
+        )
     z = throw_scene(planner, tuple(st.tolist()))
     if (planner.truth.gaps(z[0].unsqueeze(0)) <= 0).any():
         raise ControlError(f"start {tuple(st.tolist())}: the disk overlaps a wall or another body")
     N = tgt.shape[0]
-    # the centre moves horizontally at most at the larger of the thrown speed and the
-    # rolling speed the spin can give (friction only trades one for the other)
-    reach = time * max(max_speed, max_spin * float(cfg.radii[0]))
     absurd = ~torch.isfinite(tgt)
     if 0 < reach < math.inf:  # (a bad max_speed or max_spin: optimize's error)
         absurd |= (tgt - st[0]).abs() > FAR * reach
