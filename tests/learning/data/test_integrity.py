@@ -50,6 +50,16 @@ def test_metadata_carries_its_own_checksum(bp5_dir, tmp_path, capsys):
         load_dataset(folder)
 
 
+@pytest.mark.parametrize("dt", [0.005, "0.01", None, True])
+def test_metadata_whose_dt_is_not_its_configs_is_refused(bp5_dir, tmp_path, dt):
+    """A hand-edited, re-signed metadata.json whose dt is not the config's had loaded:
+    Dataset.dt said one step, the data's system another."""
+    folder = copy_dataset(bp5_dir, tmp_path)
+    _edit_metadata(folder, lambda m: m.update(dt=dt), sign=True)
+    with pytest.raises(DatasetError, match=r"'dt' is .*, but its config steps at dt = 0\.01 s"):
+        load_dataset(folder)
+
+
 def test_metadata_of_earlier_versions_loads_with_one_warning(bp5_dir, tmp_path, caplog):
     folder = copy_dataset(bp5_dir, tmp_path)
     _edit_metadata(folder, lambda m: m.pop("metadata_sha256"))

@@ -27,6 +27,7 @@ import hashlib
 import io
 import json
 import logging
+import math
 import os
 import re
 import time
@@ -532,7 +533,19 @@ def load_dataset(data_dir: str | os.PathLike[str]) -> Dataset:
         config = load_config(stored_config(meta["config"]))
     except ValueError as err:
         raise DatasetError(f"{meta_path}: invalid config: {err}") from None
+    dt = meta["dt"]
+    # (a hand-edited file, re-signed, had loaded: Dataset.dt and the system disagreed)
+    if not _number(dt) or abs(float(dt) - config.dt) > 1e-12 * config.dt:
+        raise DatasetError(
+            f"{meta_path}: 'dt' is {dt!r}, but its config steps at dt = {config.dt:g} s: "
+            "the two must agree (the file was edited); delete the folder and generate it again"
+        )
     return Dataset(folder, meta, config, verified)
+
+
+def _number(x: Any) -> bool:
+    """A finite number (not a bool)."""
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def structure_mismatch(
