@@ -97,6 +97,16 @@ def test_velocity_jumps_flag_exactly_the_intervals_with_a_rebound(balls):
     assert not impact_intervals(traj[:, :2]).any()  # no neighbouring interval to compare with
 
 
+@pytest.mark.parametrize("scale", [2.0**-1000, 1e-300, 1e200, 1e300])
+def test_impact_flags_do_not_depend_on_the_units(balls, scale):
+    """The test is homogeneous in the velocities: recorded in other units, the same
+    intervals are flagged (at 1e300 the squared speeds overflowed and none was)."""
+    traj, events = balls
+    np.testing.assert_array_equal(
+        impact_intervals(traj * scale), _impact_intervals_expected(events)
+    )
+
+
 def test_event_times_flag_the_state_after_each_event(balls):
     _, events = balls
     E_max = max(map(len, events))

@@ -85,6 +85,11 @@ def impact_intervals(traj: Tensor | np.ndarray, tol: float = DEFAULT_IMPACT_TOL)
     flags = np.zeros((N, max(T - 1, 0)), dtype=bool)
     if T < 3 or math.isinf(tol):
         return flags
+    # the test is homogeneous in v: each trajectory is scaled exactly, by the power of two
+    # of its largest |v|, so that squared speeds do not overflow (velocities of 1e300 made
+    # the RMS speed inf, and nothing was flagged)
+    _, exponent = np.frexp(np.abs(v).max(axis=(1, 2, 3), keepdims=True))
+    v = np.ldexp(v, -exponent)
     dv = np.diff(v, axis=1)  # (N, T - 1, P, d)
     r = np.full(dv.shape[:3], np.inf)  # (N, T - 1, P)
     for k in _NEIGHBOURS:  # two fixed offsets, vectorised over trajectories and time
