@@ -297,6 +297,29 @@ def test_a_step_too_large_is_a_clear_error_naming_the_states():
     assert torch.equal(X[0], torch.ones(2, 1, dtype=torch.float64)) and X[1].isnan().all()
 
 
+def test_a_rollout_that_drifts_off_its_constraints_warns_naming_the_states():
+    """A chain whose light inner link is whipped by a heavy outer one, at a step too large
+    for it: RK4's error halved a link's length and quadrupled the energy, silently."""
+    from diffcontact.systems import ConstraintDriftWarning, RolloutWarning
+
+    cfg = dict(type="chain_pendulum", masses=[0.1, 1.0], link_lengths=[0.5, 0.5],
+               radii=[0.1, 0.1], walls=[[0, 1, 1e6]], gravity=9.8, dt=0.01,
+               horizon=1.0)  # fmt: skip
+    system = dc.load_system(cfg)
+    z0 = system.sample_initial_conditions(8, seed=3)
+    with pytest.warns(ConstraintDriftWarning, match=r"drifted by more than 0\.25 relative in "
+                      r"1 of 8 trajectories: state 7: 0\.8\d* \(above 0\.25 from step \d+\)\. "
+                      r"The step dt = 0\.01 is too large") as rec:  # fmt: skip
+        traj = system.simulate(z0)
+    assert len(rec) == 1
+    assert traj[7, :, 0, 0].norm(dim=-1).min() < 0.3  # (link 0: 0.5)
+    energy = system.energy(traj[7])
+    assert energy[-1] > 3.5 * energy[0] > 0  # (mu 0, cor 1: kept in the true motion)
+    with warnings.catch_warnings():  # equal masses: no drift to speak of
+        warnings.simplefilter("error", RolloutWarning)
+        dc.load_system({**cfg, "masses": [1.0, 1.0]}).simulate(z0)
+
+
 def test_tunnelling_warns_once_or_raises_naming_the_states():
     system = dc.load_system("BP5", dt=0.5, horizon=5.0)  # 50x the task's step
     z0 = system.sample_initial_conditions(4, seed=0)

@@ -8,9 +8,12 @@ dict) returns a :class:`System` with ``sample_initial_conditions``,
 from diffcontact.systems.config import SYSTEM_TYPES, parse_config
 from diffcontact.systems.params import PhysicalParams
 from diffcontact.systems.system import (
+    ConstraintDriftWarning,
     ContactResult,
     NonFiniteRolloutError,
+    RolloutWarning,
     System,
+    TunnellingWarning,
     list_tasks,
     load_config,
     load_system,
@@ -18,10 +21,13 @@ from diffcontact.systems.system import (
 
 __all__ = [
     "SYSTEM_TYPES",
+    "ConstraintDriftWarning",
     "ContactResult",
     "NonFiniteRolloutError",
     "PhysicalParams",
+    "RolloutWarning",
     "System",
+    "TunnellingWarning",
     "list_tasks",
     "load_config",
     "load_system",

@@ -100,7 +100,16 @@ from diffcontact.systems.projection import (
 )
 from diffcontact.systems.rollout import PROJECTION_ROWS, Rollout, RolloutOptions
 
-__all__ = ["ContactResult", "System", "list_tasks", "load_config", "load_system"]
+__all__ = [
+    "ConstraintDriftWarning",
+    "ContactResult",
+    "RolloutWarning",
+    "System",
+    "TunnellingWarning",
+    "list_tasks",
+    "load_config",
+    "load_system",
+]
 
 _F = torch.float64
 _TASK_DIR = Path(__file__).parent / "tasks"
@@ -117,6 +126,16 @@ TUNNELLING_FRACTION = 1.0
 (the centre has crossed the other surface; the built-in tasks at their own step reach about
 0.75 for BP5's smallest body, 0.46 for BD5)."""
 ON_TUNNELLING = ("warn", "raise", "ignore")
+CONSTRAINT_DRIFT_TOL = 0.25
+"""A rollout whose equality constraints are off by more than this (relative,
+:meth:`~diffcontact.mechanics.EqualityConstraints.relative_residual`: a squared link
+length 25 % off) has drifted off them: :class:`ConstraintDriftWarning`. The built-in
+tasks at their own step stay within a quarter of it
+(``tests/learning/data/test_constraint_check.py``); a chain with a light inner link
+whipped by a heavy outer one at a step too large for it exceeded 0.8 (a link's length
+halved, the energy quadrupled: ``tests/systems/test_simulate.py``). Recorded data off by
+more do not belong to their config (``diffcontact.learning.data.checks.CONSTRAINT_TOL``,
+the same number)."""
 BLOW_UP = 1e12
 """A rollout whose largest ``|value|`` exceeds ``BLOW_UP`` times its initial state's (at
 least 1) has blown up, finite or not (Gyro at ``dt = 0.5`` reached 1e38 in 3 steps and
@@ -132,6 +151,28 @@ are few numbers, and their dense products cost less than the kernel's launches.
 each, seconds): BP5 (10 columns) 0.34-0.41 dense against 0.47-0.75 sparse; Rope (20)
 0.64-0.75 against 0.66-0.72; Rope-D200 (200) 6.36-7.19 against 5.48-5.97; Rope-D400
 (400) 21.3-21.7 against 15.2-16.2."""
+
+
+TUNNELLING_HINT = " (on_tunnelling='ignore' silences this)"  # the end of its message
+
+
+class RolloutWarning(RuntimeWarning):
+    """A rollout finished, but its trajectory is not to be trusted: bodies tunnelled
+    (:class:`TunnellingWarning`) or the equality constraints drifted
+    (:class:`ConstraintDriftWarning`). Its own category, so that callers can filter or
+    count them (training reports one line per epoch instead of one warning per batch)."""
+
+
+class TunnellingWarning(RolloutWarning):
+    """Bodies passed into each other or a wall deeper than ``TUNNELLING_FRACTION`` of the
+    smaller radius during a rollout (``simulate(on_tunnelling="warn")``)."""
+
+
+class ConstraintDriftWarning(RolloutWarning):
+    """The equality constraints (link lengths, pivots, rigid bodies) drifted by more than
+    :data:`CONSTRAINT_DRIFT_TOL` during a rollout: the integration error of the step is
+    too large for the motion (``warnings.filterwarnings("ignore",
+    category=ConstraintDriftWarning)`` silences it)."""
 
 
 class NonFiniteRolloutError(ValueError):
@@ -1628,7 +1669,8 @@ class System:
                 or a wall than :data:`TUNNELLING_FRACTION` (1.0) of the smaller radius
                 at any state of the trajectory (a step too large for the speeds, so a
                 collision was missed or half-resolved): ``"warn"`` (one
-                ``RuntimeWarning`` per call naming the states), ``"raise"``
+                :class:`TunnellingWarning`, a ``RuntimeWarning``, per call naming the
+                states), ``"raise"``
                 (``ValueError``) or ``"ignore"``. Checked once, after the last step.
                 Contacts between bodies without a radius (the rope's limits) are not
                 checked.
@@ -1733,12 +1775,14 @@ class System:
             no = torch.zeros((), dtype=torch.bool, device=z0.device)
             if check_tunnelling:
                 gaps, bad = self._tunnelling(traj, gaps)
+            drift = self._constraint_drift(traj)
             checks = [
                 no if pending is None else pending,
                 ~torch.isfinite(traj.detach()).all() | _blown_up(traj, z0).any(),
                 bad.any() if check_tunnelling else no,
+                no if drift is None else (drift > CONSTRAINT_DRIFT_TOL).any(),
             ]
-            failed, nonfinite, tunnelled = torch.stack(checks).tolist()
+            failed, nonfinite, tunnelled, drifted = torch.stack(checks).tolist()
         if failed:  # a deferred solver error or padding overflow: step by step, as it was
             run.grow_padding()  # (the next rollout's)
             traj, gaps, _ = run.eager(defer=False)
@@ -1748,17 +1792,55 @@ class System:
                 if check_tunnelling:
                     gaps, bad = self._tunnelling(traj, gaps)
                     tunnelled = bool(bad.any())
+                drift = self._constraint_drift(traj)
+                drifted = drift is not None and bool((drift > CONSTRAINT_DRIFT_TOL).any())
         if nonfinite:
             raise self._nonfinite_error(list(traj.unbind(1)), steps, z0)
         if tunnelled:
             learned = getattr(model, "needs_contact_state", False)  # a learned contact model
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
+        if drifted:
+            self._report_drift(drift)
         if torch.is_grad_enabled() and not traj.requires_grad:
             given = () if params is None else params.tensors().values()
             wanted = [t for t in (z0, *given) if t.requires_grad]
             if wanted:  # a gradient was asked for: zero, not autograd's "does not require grad"
                 traj = _ZeroGradient.apply(traj, *wanted)
         return traj
+
+    def _constraint_drift(self, traj: Tensor) -> Tensor | None:
+        """``(N, T)`` the largest relative residual of the equality constraints at each
+        state of ``traj`` (no read of the device), or ``None`` without constraints."""
+        constraints = self.constraints
+        if constraints is None or constraints.num_equations == 0:
+            return None
+        with torch.no_grad():
+            x = traj[..., 0, :, :].detach()
+            return constraints.to(device=x.device, dtype=x.dtype).relative_residual(x).amax(-1)
+
+    def _report_drift(self, drift: Tensor) -> None:
+        """Warn once, naming the states whose constraints drifted (``drift`` of
+        :meth:`_constraint_drift`; some did)."""
+        with torch.no_grad():
+            above = drift > CONSTRAINT_DRIFT_TOL
+            rows = above.any(-1).nonzero().flatten().tolist()
+            first = above.to(torch.int8).argmax(-1)  # the first state above, per row
+            items = [
+                f"state {r}: {float(drift[r].max()):.3g} (above {CONSTRAINT_DRIFT_TOL:g} from "
+                f"step {int(first[r])})"
+                for r in rows[:5]
+            ]
+        more = "" if len(rows) <= 5 else f"; and {len(rows) - 5} more"
+        warnings.warn(
+            f"simulate {self.name}: the equality constraints (link lengths, pivots, rigid "
+            f"bodies) drifted by more than {CONSTRAINT_DRIFT_TOL:g} relative in {len(rows)} of "
+            f"{drift.shape[0]} trajectories: {'; '.join(items)}{more}. The step dt = "
+            f"{self.dt} is too large for these motions (RK4's error goes into the "
+            "constraints and the energy): use a smaller dt (a learned model: its potential "
+            "may make the motion too fast)",
+            ConstraintDriftWarning,
+            stacklevel=3,
+        )
 
     def _contact_sizes(self, like: Tensor) -> Tensor:
         """``(K,)`` the smaller radius of the bodies of each candidate (inf: none)."""
@@ -1812,11 +1894,11 @@ class System:
                 if learned
                 else f"The step dt = {self.dt} is too large for these speeds: use a smaller dt"
             )
-            + " (on_tunnelling='ignore' silences this)"
+            + TUNNELLING_HINT
         )
         if raise_error:
             raise ValueError(message)
-        warnings.warn(message, RuntimeWarning, stacklevel=3)
+        warnings.warn(message, TunnellingWarning, stacklevel=3)
 
     def _solver_failure_message(self, err: ConeQPError, z0: Tensor, z1: Tensor, at: int) -> str:
         """Which states' contact problems failed at step ``at``, and the likely cause."""

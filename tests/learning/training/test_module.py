@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import warnings
 
 import lightning.pytorch as pl
 import numpy as np
@@ -66,6 +67,41 @@ def test_nonfinite_and_failed_steps_are_skipped_and_reported(tmp_path, caplog, m
     assert all(torch.isfinite(p).all() for p in model.parameters())
     messages = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert len(messages) == 1 and "skipped 3 step(s)" in messages[0]
+
+
+def test_rollout_warnings_are_one_line_per_epoch(tmp_path, caplog, monkeypatch, recwarn):
+    """A learned contact model's rollouts tunnel until it has learned to stop the bodies:
+    one RuntimeWarning per batch had flooded the log (compare.py's MLP-CD-CLNN runs).
+    Tunnelling and constraint drift are counted, one line per epoch; other warnings pass
+    on."""
+    from diffcontact.systems import ConstraintDriftWarning, RolloutWarning, TunnellingWarning
+
+    data = write_dataset(tmp_path / "data", "BP5", n=(6, 2, 2), steps=10)
+    calls = {"n": 0}
+    real_loss = module_mod.rollout_loss
+
+    def tunnelling_loss(model, chunk):
+        calls["n"] += 1
+        if calls["n"] in (2, 7):  # two training batches (of 6), then a validation one
+            warnings.warn(f"bodies tunnelled in call {calls['n']} (on_tunnelling='ignore' "
+                          "silences this)", TunnellingWarning, stacklevel=2)  # fmt: skip
+        if calls["n"] == 5:
+            warnings.warn("drifted", ConstraintDriftWarning, stacklevel=2)
+        if calls["n"] == 3:
+            warnings.warn("another warning", UserWarning, stacklevel=2)
+        return real_loss(model, chunk)
+
+    monkeypatch.setattr(module_mod, "rollout_loss", tunnelling_loss)
+    with caplog.at_level(logging.WARNING, logger="diffcontact.learning.training.module"):
+        train(data, tmp_path / "run", epochs=1, batch_size=1, **SMALL)
+    assert calls["n"] == 8  # 6 training and 2 validation batches
+    lines = [r.getMessage() for r in caplog.records if "tunnelled" in r.getMessage()]
+    assert lines == [
+        "epoch 1: the rollouts of 2 training and 1 validation batch(es) warned (tunnelling, "
+        "constraint drift); first: bodies tunnelled in call 2"
+    ]
+    assert not [w for w in recwarn if issubclass(w.category, RolloutWarning)]
+    assert [str(w.message) for w in recwarn if w.category is UserWarning] == ["another warning"]
 
 
 def test_gradient_spikes_are_skipped_and_resume_keeps_the_history(bp5_data, tmp_path, monkeypatch):

@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from diffcontact.systems.system import CONSTRAINT_DRIFT_TOL
+
 __all__ = [
     "CONSTRAINT_TOL",
     "DT_RTOL",
@@ -67,13 +69,14 @@ def check_seed(seed: Any) -> int:
     return seed
 
 
-CONSTRAINT_TOL = 0.25
+CONSTRAINT_TOL = CONSTRAINT_DRIFT_TOL  # 0.25
 """Recorded positions whose equality constraints are off by more than this (relative,
 :meth:`~diffcontact.mechanics.EqualityConstraints.relative_residual`) do not belong to the
 config: its link lengths, pivot, rigid bodies' axis points or units differ from the data
 (a wrong origin, or axis points at the rim, are off by more than 0.5). A simulation's
 drift stays far below it (``tests/learning/data/test_constraint_check.py`` checks every
-built-in task with equality constraints over its horizon)."""
+built-in task with equality constraints over its horizon), and ``simulate`` warns where it
+does not (:data:`~diffcontact.systems.system.CONSTRAINT_DRIFT_TOL`, the same number)."""
 
 
 def constraint_violation(system: Any, x: np.ndarray) -> str | None:

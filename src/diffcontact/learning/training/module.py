@@ -122,6 +122,36 @@ def rollout_loss(model: DynamicsModel, chunk: Tensor) -> Tensor:
     return (pred[:, 1:] - chunk[:, 1:]).abs().mean()
 
 
+def counted_rollout_loss(model: DynamicsModel, chunk: Tensor) -> tuple[Tensor, str | None]:
+    """:func:`rollout_loss`, with its :class:`~diffcontact.systems.RolloutWarning` (bodies
+    tunnelled, constraints drifted) caught: ``(loss, the first such warning's message or
+    None)``. Other warnings pass on.
+
+    A learned contact model lets bodies pass through each other until it has learned to
+    stop them: one warning per batch flooded the log, so the module counts them and
+    reports one line per epoch.
+    """
+    from diffcontact.systems.system import TUNNELLING_HINT, RolloutWarning
+
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RolloutWarning)
+            loss = rollout_loss(model, chunk)
+    finally:
+        for w in caught:  # (the filters in force decide, as for any warning)
+            if not issubclass(w.category, RolloutWarning):
+                warnings.warn_explicit(
+                    w.message, w.category, w.filename, w.lineno, registry=_REEMITTED
+                )
+    mine = [str(w.message) for w in caught if issubclass(w.category, RolloutWarning)]
+    # (the hint names simulate's option, which train does not take)
+    return loss, (mine[0].removesuffix(TUNNELLING_HINT) if mine else None)
+
+
+_REEMITTED: dict[Any, Any] = {}  # warn_explicit's registry for the warnings passed on
+
+
 def _is_nonfinite_error(err: ValueError) -> bool:
     """A rollout that blew up: ``System.simulate``'s :class:`NonFiniteRolloutError` (NaN,
     infinite or beyond ``BLOW_UP``), or an input check of the solver that met one."""
@@ -210,6 +240,9 @@ class RolloutModule(pl.LightningModule):
         self._epoch_batches = 0
         self._epoch_skipped = dict.fromkeys(SKIP_REASONS, 0)
         self._epoch_first_error: str | None = None
+        # batches whose rollouts warned (tunnelling, constraint drift)
+        self._tunnelled = {"train": 0, "val": 0}
+        self._tunnelled_first: str | None = None
         self._train_sum = 0.0
         self._train_count = 0
         self._reset_validation()
@@ -220,6 +253,7 @@ class RolloutModule(pl.LightningModule):
         self._val_sum = 0.0
         self._val_count = 0
         self._val_failed = 0
+        self._tunnelled["val"] = 0
 
     # --------------------------------------------------------------- optimisation
     def _optimizer_settings(self) -> OptimizerSettings:
@@ -317,7 +351,8 @@ class RolloutModule(pl.LightningModule):
         reason, message, loss = None, None, None
         norms: list[float] = []
         try:
-            loss = rollout_loss(self.model, chunk)
+            loss, tunnelled = counted_rollout_loss(self.model, chunk)
+            self._count_tunnelled("train", tunnelled)
             if not bool(torch.isfinite(loss.detach())):
                 reason, message = "nonfinite_loss", f"loss {float(loss.detach())}"
         except ConeQPError as err:
@@ -369,6 +404,12 @@ class RolloutModule(pl.LightningModule):
         )  # fmt: skip
         return None
 
+    def _count_tunnelled(self, phase: str, message: str | None) -> None:
+        """Count a batch whose rollout warned (``message``: its warning, or None)."""
+        if message is not None:
+            self._tunnelled[phase] += 1
+            self._tunnelled_first = self._tunnelled_first or message
+
     def _add_train_loss(self, value: Tensor, n: int) -> None:
         """Add a batch's loss to the epoch's train loss: every batch with a finite loss,
         skipped ones included, so that a skipped batch is not hidden by the mean."""
@@ -378,7 +419,8 @@ class RolloutModule(pl.LightningModule):
     def validation_step(self, batch: Any, batch_idx: int) -> None:
         chunk = self._chunk(batch)
         try:
-            loss = rollout_loss(self.model, chunk)
+            loss, tunnelled = counted_rollout_loss(self.model, chunk)
+            self._count_tunnelled("val", tunnelled)
         except ConeQPError:
             self._val_failed += 1
             return None
@@ -458,6 +500,13 @@ class RolloutModule(pl.LightningModule):
             first = f"; first: {self._epoch_first_error}" if self._epoch_first_error else ""
             # (counted from 1, as the epoch's summary line that follows)
             log.warning("epoch %d: skipped %d step(s) (%s)%s", epoch + 1, n_skipped, detail, first)
+        tunnelled = self._reduce_sum(self._tunnelled["train"], self._tunnelled["val"])
+        if any(tunnelled) and self.trainer.is_global_zero:
+            log.warning(
+                "epoch %d: the rollouts of %d training and %d validation batch(es) warned "
+                "(tunnelling, constraint drift); first: %s",
+                epoch + 1, *map(int, tunnelled), self._tunnelled_first,
+            )  # fmt: skip
         self.last_epoch_summary = {
             "epoch": epoch,
             "global_step": int(self.global_step),
