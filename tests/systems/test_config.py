@@ -128,6 +128,15 @@ def test_a_file_that_is_not_a_config_is_named(tmp_path):
         dc.load_system(str(path))
 
 
+@pytest.mark.parametrize("name", ["dir.yaml", "files"])
+def test_a_directory_is_named_as_one(tmp_path, name):
+    """A directory named dir.yaml was said not to exist, one named files to be an unknown
+    task."""
+    (tmp_path / name).mkdir()
+    with pytest.raises(ValueError, match=rf"{name}' is a directory, not a config file"):
+        dc.load_system(tmp_path / name)
+
+
 @pytest.mark.parametrize(
     ("override", "pattern"),
     [
@@ -214,6 +223,21 @@ NOT_FROM_STRINGS = "numbers are not read from strings or booleans"
             [f"mu.pairs: Input should be a valid number (got '0.1'; {NOT_FROM_STRINGS})"],
         ),
         ("Gyro", {"mass": -1}, ["mass: Input should be greater than 0 (got -1)"]),
+        # the hint only where a number belongs and a string or boolean was given: "name:
+        # Input should be a valid string (got 5; numbers are not read from strings ...)"
+        ("BP5", {"name": 5}, ["name: Input should be a valid string (got 5)"]),
+        ("BP5", {"masses": 1.0}, ["masses: Input should be a valid list (got 1.0)"]),
+        (
+            "BP5",
+            {"masses": [0.1, "0.2", 0.3, 0.4, 0.5]},
+            [f"masses.1: Input should be a valid number (got '0.2'; {NOT_FROM_STRINGS})"],
+        ),
+        (
+            "Rope",
+            {"n_points": True},
+            [f"n_points: Input should be a valid integer (got True; {NOT_FROM_STRINGS})"],
+        ),
+        ("Rope", {"n_points": 5.0}, ["n_points: Input should be a valid integer (got 5.0)"]),
     ],
 )
 def test_number_or_list_errors_name_only_the_form_given(task, override, lines):
@@ -421,3 +445,197 @@ def test_bad_initial_states_are_rejected():
     zr[0, 0, 5] = zr[0, 0, 4] + 0.3 * (zr[0, 0, 5] - zr[0, 0, 4])  # squash segment 5
     with pytest.raises(ValueError, match=r"stretch limit of segment 5 exceeded"):
         rope.simulate(zr)
+
+
+# a config of the stress tests: two point masses in the unit box
+B = {
+    "type": "bouncing_masses",
+    "masses": [1.0, 1.0],
+    "radii": [0.1, 0.1],
+    "walls": [[1, 0, 0], [0, 1, 0], [-1, 0, 1], [0, -1, 1]],
+    "dt": 0.01,
+    "horizon": 0.1,
+}
+
+
+def _message(spec, **overrides):
+    with pytest.raises(ValueError) as info:
+        load_config(spec, **overrides)
+    return str(info.value)
+
+
+def test_yaml_aliases_expanding_past_the_limit_are_refused(tmp_path):
+    """Nested anchors made a 600-byte file stand for 10^8 values: load_system ran for
+    minutes (the depth check and pydantic walked every expanded value). The file is
+    sized before it is built (benchmarks, not tests, say how fast)."""
+    import yaml
+
+    from diffcontact.systems.config import MAX_NODES
+
+    valid = yaml.safe_dump(B)
+    bomb = ['a0: &a0 ["x", "x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    bomb += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 7)]
+    path = tmp_path / "bomb.yaml"  # 10^7 values once expanded
+    path.write_text(valid + "\n".join(bomb) + "\n")
+    with pytest.raises(
+        ValueError, match=rf"bomb\.yaml: with its aliases .* more than {MAX_NODES:,}"
+    ):
+        dc.load_system(path)
+    # the same shared structure from Python is counted where it appears, and refused
+    shared: list = ["x"] * 10
+    for _ in range(6):
+        shared = [shared] * 10
+    with pytest.raises(ValueError, match=rf"more than {MAX_NODES:,} values"):
+        load_config({**B, "extra": shared})
+    # an alias inside the value it names
+    (tmp_path / "loop.yaml").write_text(valid + "masses: &m [1.0, *m]\n".replace("masses", "x"))
+    with pytest.raises(ValueError, match=r"loop\.yaml: an alias lies inside the value it names"):
+        dc.load_system(tmp_path / "loop.yaml")
+    # a config with a few aliases loads
+    (tmp_path / "few.yaml").write_text(
+        "type: bouncing_masses\nmasses: &m [1.0, 1.0]\nradii: [0.1, 0.1]\n"
+        "walls: [&ground [0, 1, 0], [1, 0, 0]]\ndt: &dt 0.01\nhorizon: 0.1\n"
+        "mu: {pairs: *dt, walls: [*dt, *dt, 0, 0]}\n"
+    )
+    cfg = load_config(tmp_path / "few.yaml")
+    assert cfg.masses == [1.0, 1.0] and cfg.per_contact("mu") == [0.01, 0.01, 0.01, 0, 0]
+
+
+def test_rope_min_ratio_must_be_positive():
+    # min_ratio 0 let a segment collapse to a point, where its bending is undefined
+    assert "min_ratio: Input should be greater than 0 (got 0)" in _message("Rope", min_ratio=0)
+    assert load_config("Rope", min_ratio=1e-3).min_ratio == 1e-3
+
+
+def test_walls_of_any_finite_scale_are_normalised():
+    """[1e160, 0, 0] had a norm of inf and became a zero normal (every gap -r);
+    [1e-170, 0, 0] one of 0 ("wall normals (a, b) must be non-zero")."""
+    unit = dc.load_system({**B, "walls": [[1, 0, 0], [0, 1, 0]]})
+    x = unit.sample_initial_conditions(4, seed=0)[:, 0]
+    for scale in (1e160, 1e-170, 1e300, 5e-324):
+        scaled = dc.load_system({**B, "walls": [[scale, 0, 0], [0, 1, 0]]})
+        torch.testing.assert_close(scaled.gaps(x), unit.gaps(x), rtol=0, atol=1e-15)
+    gyro = dc.load_system("Gyro")
+    xg = gyro.sample_initial_conditions(4, seed=0)[:, 0]
+    plane_x = dc.load_system("Gyro", wall=[1, 0, 0, 0]).gaps(xg)
+    torch.testing.assert_close(dc.load_system("Gyro", wall=[1e300, 0, 0, 1]).gaps(xg), plane_x)
+    far = dc.load_system("Gyro", wall=[1e-200, 0, 0, 1]).gaps(xg)  # the plane x = -1e200
+    torch.testing.assert_close(far, torch.full_like(far, 1e200))
+    # the same normalisation where walls are read again: planning, event-driven data, drawing
+    from diffcontact.control.tasks import _walls
+    from diffcontact.geometry.base import unit_normal_planes
+    from diffcontact.viz.animation import _normalized_walls
+
+    lines = [[1e160, 0, 0], [0, -1e-170, 1e-170], [3, 4, 5]]
+    want = torch.tensor([[1.0, 0, 0], [0, -1, 1], [0.6, 0.8, 1]], dtype=torch.float64)
+    cfg = load_config({**B, "walls": lines})
+    torch.testing.assert_close(_walls(cfg), want)
+    torch.testing.assert_close(torch.from_numpy(_normalized_walls(lines)), want)
+    got = unit_normal_planes(torch.tensor(lines, dtype=torch.float64), 2)
+    torch.testing.assert_close(got, want)
+    # a line whose distance from the origin is no float64 is named
+    assert "walls[0]: [1e-300, 0.0, 1e+300] lies too far from the origin" in _message(
+        {**B, "walls": [[1e-300, 0, 1e300]]}
+    )
+    assert "wall: [0.0, 1e-300, 0.0, 1e+300] lies too far" in _message(
+        "Gyro", wall=[0, 1e-300, 0, 1e300]
+    )
+
+
+def test_yaml_keys_that_are_lists_or_mappings_are_named(tmp_path):
+    # "TypeError: unhashable type: 'list'" from the duplicate-key check
+    for name, text, line, what in (
+        ("list.yaml", "type: bouncing_masses\n? [1, 2]\n: 3\n", 2, "list"),
+        ("map.yaml", "type: bouncing_masses\n{a: 1}: 2\n", 2, "mapping"),
+        ("deep.yaml", "type: bouncing_masses\nmu:\n  ? [1]\n  : 2\n", 3, "list"),
+    ):
+        (tmp_path / name).write_text(text)
+        pattern = rf"config file .*{name}: line {line}: a key is a {what}; keys must be strings"
+        with pytest.raises(ValueError, match=pattern):
+            dc.load_system(tmp_path / name)
+
+
+@pytest.mark.parametrize(
+    ("task", "override", "key"),
+    [
+        ("CP3", {"link_lengths": [1e300, 0.4, 0.35]}, "link_lengths.0"),
+        ("CP3", {"radii": [0.1, 1e200, 0.1]}, "radii.1"),
+        ("Rope", {"rest_length": 1e300}, "rest_length"),
+        ("Gyro", {"rim_radius": 1e160}, "rim_radius"),
+        ("Gyro", {"com_distance": 1e300}, "com_distance"),
+        ("BD5", {"radii": [1e300, 0.1, 0.13, 0.15, 0.18]}, "radii.0"),
+    ],
+)
+def test_lengths_whose_square_overflows_are_refused_at_the_schema(task, override, key):
+    """link_lengths [1e300, 1] passed the schema, then load_system failed inside with
+    "target must be finite" (the squared length overflowed)."""
+    (value,) = (v[int(key[-1])] if isinstance(v, list) else v for v in override.values())
+    message = _message(task, **override)
+    assert f"{key}: Input should be less than or equal to 1e+150 (got {value!r})" in message
+    at_limit = {k: [1e150 if x == value else x for x in v] if isinstance(v, list) else 1e150
+                for k, v in override.items()}  # fmt: skip
+    dc.load_system(task, **at_limit)
+
+
+def test_many_errors_are_counted_not_listed():
+    """20,000 bad radii made a 1 MB message (and took 4.6 s: a quadratic dedupe)."""
+    n = 20_000
+    message = _message({**B, "masses": [1.0] * n, "radii": [-0.001] * n})
+    lines = message.splitlines()
+    assert lines[1] == "  radii.0: Input should be greater than 0 (got -0.001)"
+    assert len(lines) == 12 and lines[-1] == f"  and {n - 10:,} more errors"
+    # below the cap every problem is listed, each once
+    few = _message({**B, "radii": [-1, -1], "dt": -1})
+    assert few.count("\n") == 3 and "more error" not in few
+
+
+def test_sets_are_refused_where_lists_belong(tmp_path):
+    """A set was read as a list in its own order: masses {2.0, 1.0} became [1.0, 2.0]."""
+    for override, key in (
+        ({"masses": {2.0, 1.0}, "radii": [0.2, 0.1]}, "masses"),
+        ({"walls": [{0.5, 1, 0}]}, "walls.0"),
+        ({"walls": frozenset({(1, 0, 0)})}, "walls"),
+        ({"mu": {0.1, 0.2}}, "mu"),
+        ({"mu": {"pairs": {0.1}, "walls": 0.1}}, "mu.pairs"),
+        ({"initial_conditions": {"position_low": {0.1, 0.2}}}, "initial_conditions.position_low"),
+    ):
+        assert f"{key}: a set has no order; give a list (got " in _message({**B, **override})
+    assert "mass: a set has no order" in _message("Rope", mass={0.1, 0.2})
+    assert "second_moments: a set has no order" in _message("Gyro", second_moments={1, 2, 3})
+    path = tmp_path / "set.yaml"
+    path.write_text(
+        "type: bouncing_masses\nmasses: !!set {2.0, 1.0}\nradii: [0.2, 0.1]\n"
+        "walls: [[0, 1, 0]]\ndt: 0.01\nhorizon: 0.1\n"
+    )
+    with pytest.raises(ValueError, match=r"set\.yaml:\n  masses: a set has no order"):
+        dc.load_system(path)
+    assert load_config({**B, "masses": (2.0, 1.0)}).masses == [2.0, 1.0]  # a tuple is ordered
+
+
+def test_error_wording():
+    # nan is not finite (was "less than or equal to 1 (got nan)")
+    assert "penetration_fraction: Input should be a finite number (got nan)" in _message(
+        "BP5", penetration_fraction=float("nan")
+    )
+    assert "max_angle: Input should be a finite number (got nan)" in _message(
+        "Rope", max_angle=float("nan")
+    )
+    # the key once (was "initial_conditions: initial_conditions.position_low must be ...")
+    low_high = {"position_low": [1, 1], "position_high": [0, 0]}
+    assert "\n  initial_conditions: position_low must be below position_high" in _message(
+        {**B, "initial_conditions": low_high}
+    )
+    assert "\n  initial_conditions: angle_low must be below angle_high" in _message(
+        "CP3", initial_conditions={"angle_low": 1, "angle_high": 0}
+    )
+    # one pair, one value, one wall (was "1 pairs", "1 values", "1 walls")
+    one = {**B, "masses": [1.0], "radii": [0.1], "walls": [[0, 1, 0]]}
+    assert "second_moments: expected 1 pair (one per body), got 2" in _message(
+        {**one, "type": "bouncing_disks", "second_moments": [[1, 1], [1, 1]]}
+    )
+    assert "mu: expected one number or 1 value (one per contact: 1 wall), got a list of 2" in (
+        _message({**one, "mu": [0.1, 0.2]})
+    )
+    assert "radii: expected 1 value (one per mass), got 2" in _message({**one, "radii": [1, 1]})
+    two = {**B, "walls": [[0, 1, 0]]}
+    assert "(one per contact: 1 pair, 2 walls)" in _message({**two, "cor": [0.1]})

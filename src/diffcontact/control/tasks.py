@@ -31,6 +31,7 @@ from torch import Tensor
 from diffcontact.control.optimize import ControlError, OptimizeResult, optimize
 from diffcontact.control.planner import Planner, as_planner
 from diffcontact.control.variables import Spin, Velocity
+from diffcontact.geometry.base import unit_normal_planes
 from diffcontact.systems.config import ALLOW_LARGE_ENV, MAX_STATES, large_allowed
 
 __all__ = [
@@ -108,8 +109,7 @@ def _circle_system(planner: Planner, task: str) -> Any:
 
 def _walls(cfg: Any) -> Tensor:
     """``(W, 3)`` unit-normal walls ``n . x + c >= 0``."""
-    w = torch.tensor(cfg.walls, dtype=torch.float64).reshape(-1, 3)
-    return w / w[:, :2].norm(dim=-1, keepdim=True)
+    return unit_normal_planes(torch.tensor(cfg.walls, dtype=torch.float64).reshape(-1, 3), 2)
 
 
 def _check_ball(planner: Planner, name: str, index: int) -> None:

@@ -44,6 +44,7 @@ __all__ = [
     "jacobian_matvec",
     "jacobian_rmatvec",
     "take_rows",
+    "unit_normal_planes",
 ]
 
 
@@ -84,6 +85,16 @@ class Geometry(Protocol):
     def to(self, device: torch.device | str) -> Geometry:
         """A copy with its static tensors on ``device``."""
         ...
+
+
+def unit_normal_planes(w: Tensor, n_normal: int) -> Tensor:
+    """Lines or planes ``(..., n_normal + 1)`` (normal, offset) scaled so that the normal
+    part is a unit vector, without overflow or underflow: divided by the normal's largest
+    ``|component|`` first (``[1e160, 0, 0]`` had a norm of inf, hence a zero normal, and
+    ``[1e-170, 0, 0]`` one of 0). A zero normal gives NaN rows; callers refuse them."""
+    largest = w[..., :n_normal].abs().amax(dim=-1, keepdim=True)
+    w = w / largest
+    return w / w[..., :n_normal].norm(dim=-1, keepdim=True)
 
 
 def broadcast_batch(x: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:

@@ -39,7 +39,14 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from .base import ContactGeometry, GeometryBase, SparseJacobian, broadcast_batch, gather_points
+from .base import (
+    ContactGeometry,
+    GeometryBase,
+    SparseJacobian,
+    broadcast_batch,
+    gather_points,
+    unit_normal_planes,
+)
 from .frames import material_point_weights, safe_norm, safe_normalize, tangent_basis
 
 __all__ = ["BODY_KINDS", "CirclePairs", "CircleWalls", "circles_2d"]
@@ -278,10 +285,9 @@ class CircleWalls(GeometryBase):
             w = w.reshape(0, 3)
         if w.ndim != 2 or w.shape[1] != 3:
             raise ValueError(f"walls must be [a, b, c] lines, got shape {tuple(w.shape)}")
-        scale = w[:, :2].norm(dim=-1, keepdim=True)
-        if bool((scale == 0).any()):
+        if bool((w[:, :2] == 0).all(dim=-1).any()):
             raise ValueError(f"wall normals (a, b) must be non-zero, got {w.tolist()}")
-        return cls(body_points, is_disk, r, w / scale)
+        return cls(body_points, is_disk, r, unit_normal_planes(w, 2))
 
     @property
     def n_walls(self) -> int:

@@ -29,7 +29,13 @@ from torch import Tensor
 
 from diffcontact.fastops import dot_last
 
-from .base import GeometryBase, SparseJacobian, broadcast_batch, gather_points
+from .base import (
+    GeometryBase,
+    SparseJacobian,
+    broadcast_batch,
+    gather_points,
+    unit_normal_planes,
+)
 from .frames import material_point_weights, safe_norm, safe_normalize, tangent_basis
 
 __all__ = ["RimPlane", "closest_rim_point"]
@@ -107,11 +113,11 @@ class RimPlane(GeometryBase):
         w = torch.tensor([[float(v) for v in pl] for pl in planes], dtype=torch.float64)
         if w.ndim != 2 or w.shape[0] == 0 or w.shape[1] != 4:
             raise ValueError(f"planes must be [nx, ny, nz, c] rows, got shape {tuple(w.shape)}")
-        scale = w[:, :3].norm(dim=-1, keepdim=True)
-        if bool((scale == 0).any()):
+        if bool((w[:, :3] == 0).all(dim=-1).any()):
             raise ValueError(f"plane normals must be non-zero, got {w.tolist()}")
+        w = unit_normal_planes(w, 3)
         body_points = torch.tensor(starts, dtype=torch.long)[:, None] + torch.arange(4)
-        return cls(body_points, torch.tensor(radii, dtype=torch.float64), w / scale)
+        return cls(body_points, torch.tensor(radii, dtype=torch.float64), w)
 
     @property
     def n_planes(self) -> int:

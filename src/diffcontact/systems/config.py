@@ -23,6 +23,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -34,6 +35,8 @@ from pydantic import (
 
 __all__ = [
     "ALLOW_LARGE_ENV",
+    "MAX_LENGTH",
+    "MAX_NODES",
     "MAX_STATES",
     "MAX_STATE_BYTES",
     "SYSTEM_TYPES",
@@ -57,9 +60,28 @@ Real = Annotated[float, Field(strict=True)]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False, strict=True)]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False, strict=True)]
 Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
-Line = tuple[Finite, Finite, Finite]
-Plane = tuple[Finite, Finite, Finite, Finite]
-Pair = tuple[Finite, Finite]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False, strict=True)]
+
+MAX_LENGTH = 1e150
+"""Largest length a config may give (``link_lengths``, ``rest_length``, ``radii``,
+``rim_radius``, ``com_distance``): the systems square lengths (a link's constraint is
+its squared length, a disk's default second moment ``r^2 / 4``), and the square of
+1e300 is not a float64 (``load_system`` failed inside with "target must be finite")."""
+Length = Annotated[float, Field(gt=0, le=MAX_LENGTH, allow_inf_nan=False, strict=True)]
+
+
+def _ordered(value: Any) -> Any:
+    """Refuse a set where a list belongs: pydantic reads one as a list in its iteration
+    order (``{2.0, 1.0}`` gave masses ``[1.0, 2.0]``)."""
+    if isinstance(value, (set, frozenset)):
+        raise ValueError(f"a set has no order; give a list (got {value!r})")
+    return value
+
+
+_ORDERED = BeforeValidator(_ordered)
+Line = Annotated[tuple[Finite, Finite, Finite], _ORDERED]
+Plane = Annotated[tuple[Finite, Finite, Finite, Finite], _ORDERED]
+Pair = Annotated[tuple[Finite, Finite], _ORDERED]
 
 
 # A key that takes one number or a list (or, per contact, a mapping of groups) is
@@ -72,17 +94,18 @@ _NUMBER, _LIST, _GROUPS = "<number>", "<list>", "<groups>"
 
 
 def _number_or_list(value: Any) -> str:
-    """The branch of a number-or-list key that ``value`` is validated as."""
-    return _LIST if isinstance(value, (list, tuple)) else _NUMBER
+    """The branch of a number-or-list key that ``value`` is validated as (a set as the
+    list, which refuses it as unordered)."""
+    return _LIST if isinstance(value, (list, tuple, set, frozenset)) else _NUMBER
 
 
 RealOrList = Annotated[
-    Annotated[Real, Tag(_NUMBER)] | Annotated[list[Real], Tag(_LIST)],
+    Annotated[Real, Tag(_NUMBER)] | Annotated[list[Real], _ORDERED, Tag(_LIST)],
     Discriminator(_number_or_list),
 ]
 """One number or a list of numbers."""
 PositiveOrList = Annotated[
-    Annotated[PositiveFloat, Tag(_NUMBER)] | Annotated[list[PositiveFloat], Tag(_LIST)],
+    Annotated[PositiveFloat, Tag(_NUMBER)] | Annotated[list[PositiveFloat], _ORDERED, Tag(_LIST)],
     Discriminator(_number_or_list),
 ]
 """One positive finite number or a list of them."""
@@ -113,7 +136,7 @@ def _per_contact(value: Any) -> str:
 
 PerContact = Annotated[
     Annotated[Real, Tag(_NUMBER)]
-    | Annotated[list[Real], Tag(_LIST)]
+    | Annotated[list[Real], _ORDERED, Tag(_LIST)]
     | Annotated[ContactGroups, Tag(_GROUPS)],
     Discriminator(_per_contact),
 ]
@@ -132,7 +155,7 @@ class BallInitialConditions(_Strict):
     def _box(self) -> BallInitialConditions:
         if not all(lo < hi for lo, hi in zip(self.position_low, self.position_high, strict=True)):
             raise ValueError(
-                "initial_conditions.position_low must be below position_high in every "
+                "position_low must be below position_high in every "
                 f"coordinate; got {list(self.position_low)} and {list(self.position_high)}"
             )
         return self
@@ -155,7 +178,7 @@ class ChainInitialConditions(_Strict):
     @model_validator(mode="after")
     def _range(self) -> ChainInitialConditions:
         if not self.angle_low < self.angle_high:
-            raise ValueError("initial_conditions.angle_low must be below angle_high")
+            raise ValueError("angle_low must be below angle_high")
         return self
 
 
@@ -173,11 +196,11 @@ class GyroscopeInitialConditions(_Strict):
     @model_validator(mode="after")
     def _ranges(self) -> GyroscopeInitialConditions:
         if not self.euler_low < self.euler_high:
-            raise ValueError("initial_conditions.euler_low must be below euler_high")
+            raise ValueError("euler_low must be below euler_high")
         for key in ("precession_rate_range", "nutation_rate_range"):
             lo, hi = getattr(self, key)
             if not lo < hi:
-                raise ValueError(f"initial_conditions.{key} must be [low, high] with low < high")
+                raise ValueError(f"{key} must be [low, high] with low < high")
         return self
 
 
@@ -191,7 +214,7 @@ class RopeInitialConditions(_Strict):
     @model_validator(mode="after")
     def _range(self) -> RopeInitialConditions:
         if not self.first_angle_low < self.first_angle_high:
-            raise ValueError("initial_conditions.first_angle_low must be below first_angle_high")
+            raise ValueError("first_angle_low must be below first_angle_high")
         return self
 
 
@@ -272,7 +295,7 @@ class _SystemBase(_Strict):
     gravity: NonNegFloat = 0.0
     mu: PerContact = 0.0
     cor: PerContact = 1.0
-    penetration_fraction: Annotated[float, Field(ge=0, le=1, strict=True)] = 0.125
+    penetration_fraction: Fraction = 0.125
     # the metric of the pseudo-inverse that lifts the penetration target to Cartesian
     # space where equality constraints exist: the constrained inverse inertia ("mass",
     # tangential targets stay zero), or appendix G's Euclidean one as written (S.24)
@@ -370,16 +393,26 @@ class _SystemBase(_Strict):
             )
 
 
+def _count(n: int, word: str) -> str:
+    """``n`` and ``word``, plural unless ``n`` is 1 ("1 value", "2 values")."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def _group(n: int, group: str) -> str:
+    """``n`` contacts of ``group`` ("1 pair", "10 pairs", "9 bending")."""
+    return f"{n} {group[:-1] if n == 1 and group in ('pairs', 'walls') else group}"
+
+
 def _expand(key: str, value: PerContact, groups: list[tuple[str, int]]) -> list[float]:
     total = sum(n for _, n in groups)
-    layout = ", ".join(f"{n} {g}" for g, n in groups)
+    layout = ", ".join(_group(n, g) for g, n in groups)
     if isinstance(value, (int, float)):
         return [float(value)] * total
     if isinstance(value, list):
         if len(value) != total:
             raise ValueError(
-                f"{key}: expected one number or {total} values (one per contact: {layout}), "
-                f"got a list of {len(value)}"
+                f"{key}: expected one number or {_count(total, 'value')} (one per contact: "
+                f"{layout}), got a list of {len(value)}"
             )
         return [float(v) for v in value]
     names = [g for g, _ in groups]
@@ -397,7 +430,8 @@ def _expand(key: str, value: PerContact, groups: list[tuple[str, int]]) -> list[
         if isinstance(v, list):
             if len(v) != n:
                 raise ValueError(
-                    f"{key}.{g}: expected one number or {n} values, got a list of {len(v)}"
+                    f"{key}.{g}: expected one number or {_count(n, 'value')}, "
+                    f"got a list of {len(v)}"
                 )
             out.extend(float(x) for x in v)
         else:
@@ -406,16 +440,27 @@ def _expand(key: str, value: PerContact, groups: list[tuple[str, int]]) -> list[
 
 
 def _check_lines(key: str, lines: list[tuple[float, ...]], n_normal: int) -> None:
+    """A line or plane needs a non-zero normal, and an offset that stays finite once the
+    normal is made a unit vector (the geometry divides by the normal's largest component
+    first, so any finite non-zero normal can be normalised)."""
     for j, line in enumerate(lines):
-        if all(c == 0 for c in line[:n_normal]):
-            where = key if key == "wall" else f"{key}[{j}]"
+        where = key if key == "wall" else f"{key}[{j}]"
+        largest = max(abs(c) for c in line[:n_normal])
+        if largest == 0:
             raise ValueError(f"{where}: the normal part of {list(line)} must be non-zero")
+        scaled = [c / largest for c in line]
+        offset = scaled[-1] / math.hypot(*scaled[:n_normal])
+        if not math.isfinite(offset):
+            raise ValueError(
+                f"{where}: {list(line)} lies too far from the origin: its offset divided by "
+                "the length of its normal part is not a finite number"
+            )
 
 
 class _CircleBodies(_SystemBase):
-    masses: list[PositiveFloat] = Field(min_length=1)
-    radii: list[PositiveFloat] = Field(min_length=1)
-    walls: list[Line] = Field(default_factory=list)
+    masses: Annotated[list[PositiveFloat], _ORDERED] = Field(min_length=1)
+    radii: Annotated[list[Length], _ORDERED] = Field(min_length=1)
+    walls: Annotated[list[Line], _ORDERED] = Field(default_factory=list)
 
     @property
     def n_bodies(self) -> int:
@@ -433,7 +478,8 @@ class _CircleBodies(_SystemBase):
     def _check_sizes(self) -> None:
         if len(self.radii) != len(self.masses):
             raise ValueError(
-                f"radii: expected {len(self.masses)} values (one per mass), got {len(self.radii)}"
+                f"radii: expected {_count(len(self.masses), 'value')} (one per mass), "
+                f"got {len(self.radii)}"
             )
         _check_lines("walls", self.walls, 2)
 
@@ -452,14 +498,16 @@ class BouncingDisksConfig(_CircleBodies):
     """Uniform rigid disks (3-point extended bodies) in 2D."""
 
     type: Literal["bouncing_disks"]
-    second_moments: list[tuple[PositiveFloat, PositiveFloat]] | None = None
+    second_moments: (
+        Annotated[list[Annotated[tuple[PositiveFloat, PositiveFloat], _ORDERED]], _ORDERED] | None
+    ) = None
     initial_conditions: DiskInitialConditions = Field(default_factory=DiskInitialConditions)
 
     def _check_sizes(self) -> None:
         super()._check_sizes()
         if self.second_moments is not None and len(self.second_moments) != len(self.masses):
             raise ValueError(
-                f"second_moments: expected {len(self.masses)} pairs (one per body), "
+                f"second_moments: expected {_count(len(self.masses), 'pair')} (one per body), "
                 f"got {len(self.second_moments)}"
             )
 
@@ -477,10 +525,12 @@ class ChainPendulumConfig(_SystemBase):
     """Planar chain pendulum with point masses at the joints and circular joints."""
 
     type: Literal["chain_pendulum"]
-    masses: list[PositiveFloat] = Field(min_length=1)
-    link_lengths: list[PositiveFloat] = Field(min_length=1)
-    radii: list[PositiveFloat] = Field(min_length=1)
-    walls: list[Line] = Field(default_factory=lambda: [(0.0, 1.0, 1.0)], min_length=1)
+    masses: Annotated[list[PositiveFloat], _ORDERED] = Field(min_length=1)
+    link_lengths: Annotated[list[Length], _ORDERED] = Field(min_length=1)
+    radii: Annotated[list[Length], _ORDERED] = Field(min_length=1)
+    walls: Annotated[list[Line], _ORDERED] = Field(
+        default_factory=lambda: [(0.0, 1.0, 1.0)], min_length=1
+    )
     pivot: Pair = (0.0, 0.0)
     initial_conditions: ChainInitialConditions = Field(default_factory=ChainInitialConditions)
 
@@ -499,7 +549,7 @@ class ChainPendulumConfig(_SystemBase):
         for key in ("link_lengths", "radii"):
             got = len(getattr(self, key))
             if got != n:
-                raise ValueError(f"{key}: expected {n} values (one per mass), got {got}")
+                raise ValueError(f"{key}: expected {_count(n, 'value')} (one per mass), got {got}")
         _check_lines("walls", self.walls, 2)
 
 
@@ -508,9 +558,9 @@ class GyroscopeConfig(_SystemBase):
 
     type: Literal["gyroscope"]
     mass: PositiveFloat
-    second_moments: tuple[PositiveFloat, PositiveFloat, PositiveFloat]
-    com_distance: PositiveFloat = 0.5
-    rim_radius: PositiveFloat = 0.3
+    second_moments: Annotated[tuple[PositiveFloat, PositiveFloat, PositiveFloat], _ORDERED]
+    com_distance: Length = 0.5
+    rim_radius: Length = 0.3
     wall: Plane
     initial_conditions: GyroscopeInitialConditions = Field(
         default_factory=GyroscopeInitialConditions
@@ -532,10 +582,11 @@ class RopeConfig(_SystemBase):
     type: Literal["rope"]
     n_points: int = Field(ge=2, strict=True)
     mass: PositiveOrList
-    rest_length: PositiveFloat
+    rest_length: Length
     stiffness: NonNegFloat
-    max_angle: Annotated[float, Field(gt=0, le=math.pi, strict=True)] = 0.2
-    min_ratio: NonNegFloat = 0.8
+    max_angle: Annotated[float, Field(gt=0, le=math.pi, allow_inf_nan=False, strict=True)] = 0.2
+    # > 0: at 0 a segment may collapse to a point, where its direction (and bending) is undefined
+    min_ratio: PositiveFloat = 0.8
     max_ratio: PositiveFloat = 1.2
     anchor: Pair = (0.0, 0.0)
     cor: PerContact = 0.0
@@ -557,7 +608,7 @@ class RopeConfig(_SystemBase):
     def _check_sizes(self) -> None:
         if isinstance(self.mass, list) and len(self.mass) != self.n_points:
             raise ValueError(
-                f"mass: expected one number or {self.n_points} values (one per point), "
+                f"mass: expected one number or {_count(self.n_points, 'value')} (one per point), "
                 f"got {len(self.mass)}"
             )
         if not self.min_ratio < 1.0 < self.max_ratio:
@@ -626,10 +677,19 @@ _RANGE_ERRORS = {
 }
 
 
+# pydantic's errors where a number belongs (a string or a boolean given there gets the hint)
+_NUMBER_ERRORS = {"float_type", "int_type"}
+_NOT_FROM_STRINGS = "numbers are not read from strings or booleans"
+MAX_ERROR_LINES = 10
+"""The most problems one error message lists; the rest are counted ("and 19,990 more errors")."""
+
+
 def _format_error(err: ValidationError, source: str) -> str:
-    lines = []
+    lines: list[str] = []
+    seen: set[str] = set()  # (a set: a config with 200,000 bad entries took minutes)
     typed: set[str] = set()
-    for e in err.errors():
+    more = 0
+    for e in err.errors(include_url=False):
         loc = [str(p) for p in e["loc"]]
         # drop the system type (the config's discriminator) and the union branches' tags
         if loc and loc[0] in SYSTEM_TYPES:
@@ -662,31 +722,59 @@ def _format_error(err: ValidationError, source: str) -> str:
             if key in typed:  # one wrong-type message per key
                 continue
             typed.add(key)
-            msg = f"{msg} (got {e['input']!r}; numbers are not read from strings or booleans)"
+            got = e["input"]
+            if e["type"] in _NUMBER_ERRORS and isinstance(got, (str, bool)):
+                msg = f"{msg} (got {got!r}; {_NOT_FROM_STRINGS})"
+            else:
+                msg = f"{msg} (got {got!r})"
         elif e["type"] in _RANGE_ERRORS:
+            bound = next((v for k, v in ctx.items() if k in ("gt", "ge", "lt", "le")), None)
+            if isinstance(bound, float) and abs(bound) >= 1e16:  # 1e150, not 1000...0
+                msg = f"{msg.rsplit(' ', 1)[0]} {bound:g}"
             msg = f"{msg} (got {e['input']!r})"
         line = f"{key}: {msg}" if key else msg
-        if line not in lines:
+        if line in seen:
+            continue
+        seen.add(line)
+        if len(lines) < MAX_ERROR_LINES:
             lines.append(line)
+        else:
+            more += 1
+    if more:
+        lines.append(f"and {more:,} more error{'s' if more > 1 else ''}")
     return f"invalid system config{source}:\n  " + "\n  ".join(lines)
 
 
 MAX_DEPTH = 16
 """Deepest nesting of mappings and lists a config may have (the schema needs 4)."""
+MAX_NODES = 1_000_000
+"""Most values (numbers, strings, lists, mappings and their keys, each alias of a YAML
+file counted as what it stands for) a config may hold. The largest within the size
+limits hold tens of thousands; YAML aliases of aliases made a 600-byte file stand for
+10^8 values, which took minutes to check before this limit."""
 
 
-def _depth(data: Any, stop: int) -> int:
-    """Nesting depth of dicts and lists in ``data`` (iterative; stops counting at ``stop``)."""
-    deepest, todo = 0, [(data, 0)]
+def _shape(data: Any, max_depth: int, max_nodes: int) -> tuple[int, int]:
+    """``(depth, nodes)``: the nesting depth of dicts and lists in ``data`` and the number
+    of values (shared ones counted each time they appear); iterative, it stops counting
+    once either passes its limit."""
+    deepest, nodes, todo = 0, 0, [(data, 0)]
     while todo:
         item, level = todo.pop()
-        if isinstance(item, (dict, list, tuple)):
-            level += 1
-            deepest = max(deepest, level)
-            if deepest >= stop:
-                return deepest
-            todo.extend((v, level) for v in (item.values() if isinstance(item, dict) else item))
-    return deepest
+        nodes += 1
+        if nodes > max_nodes:
+            break
+        if isinstance(item, dict):
+            nodes += len(item)  # the keys
+            todo.extend((v, level + 1) for v in item.values())
+        elif isinstance(item, (list, tuple, set, frozenset)):
+            todo.extend((v, level + 1) for v in item)
+        else:
+            continue
+        deepest = max(deepest, level + 1)
+        if deepest > max_depth:
+            break
+    return deepest, nodes
 
 
 STORED_BEFORE: dict[str, Any] = {
@@ -739,10 +827,17 @@ def parse_config(
         raise ValueError(
             f"invalid system config{source}: expected a mapping of keys, got {type(data).__name__}"
         )
-    if _depth(data, MAX_DEPTH + 1) > MAX_DEPTH:
+    depth, nodes = _shape(data, MAX_DEPTH, MAX_NODES)
+    if depth > MAX_DEPTH:
         raise ValueError(
             f"invalid system config{source}: nested more than {MAX_DEPTH} levels deep "
             "(a config is a mapping of numbers, lists and small mappings)"
+        )
+    if nodes > MAX_NODES:
+        raise ValueError(
+            f"invalid system config{source}: more than {MAX_NODES:,} values (numbers, "
+            "strings, lists and keys, a shared or aliased value counted where it appears; "
+            "the largest configs within the size limits hold tens of thousands)"
         )
     try:
         return _ADAPTER.validate_python(data)

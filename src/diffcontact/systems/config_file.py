@@ -10,6 +10,12 @@ what its author wrote:
   them strings, which the config's validation then refused as "not a number"), ``010``
   is ten (YAML 1.1: eight, octal), and only ``true`` / ``false`` are booleans (YAML 1.1
   also read ``yes``, ``no``, ``on`` and ``off``, so a typo passed as a setting).
+
+Two more refusals keep a hostile or mistyped YAML file from costing more than reading it:
+a key that is a list or a mapping (``? [1, 2]``, ``{a: 1}: 2``) is an error naming its
+line, and so is a file whose aliases stand for more than
+:data:`~diffcontact.systems.config.MAX_NODES` values once expanded (nested anchors make a
+600-byte file stand for 10^8 values, which took minutes to check).
 """
 
 from __future__ import annotations
@@ -44,6 +50,12 @@ def _loader():
     def mapping(loader: StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
         seen: dict[Any, Any] = {}
         for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode):
+                what = "list" if isinstance(key_node, yaml.SequenceNode) else "mapping"
+                raise ValueError(
+                    f"line {key_node.start_mark.line + 1}: a key is a {what}; keys must be "
+                    "strings (names such as masses)"
+                )
             key = loader.construct_object(key_node, deep=deep)
             if key in seen:
                 mark = key_node.start_mark
@@ -75,6 +87,66 @@ def _loader():
     return StrictLoader
 
 
+def _expanded_size(root: Any, limit: int) -> int | None:
+    """How many nodes (scalars, lists, mappings; keys included) a composed YAML document
+    stands for with every alias expanded, or ``None`` where an alias lies inside the
+    node it names (a recursive structure). Each node is sized once (an alias shares its
+    anchor's node), so this takes time linear in the file however far aliases expand;
+    sizes past ``limit`` are kept as ``limit + 1``."""
+    import yaml
+
+    def children(node: Any) -> list[Any]:
+        if isinstance(node, yaml.SequenceNode):
+            return list(node.value)
+        if isinstance(node, yaml.MappingNode):
+            return [part for pair in node.value for part in pair]
+        return []
+
+    sizes: dict[int, int] = {}
+    entered: set[int] = set()  # the nodes on the path from the root, not yet sized
+    todo: list[tuple[Any, bool]] = [(root, False)]
+    while todo:
+        node, finish = todo.pop()
+        key = id(node)
+        if finish:
+            entered.discard(key)
+            size = 1 + sum(sizes[id(child)] for child in children(node))
+            sizes[key] = min(size, limit + 1)
+        elif key not in sizes:
+            if key in entered:
+                return None
+            entered.add(key)
+            todo.append((node, True))
+            todo.extend((child, False) for child in children(node))
+    return sizes[id(root)]
+
+
+def _load_yaml(text: str) -> Any:
+    """The data of a YAML document, refusing one whose aliases expand past
+    :data:`~diffcontact.systems.config.MAX_NODES` values before constructing it."""
+    from diffcontact.systems.config import MAX_NODES
+
+    loader = _loader()(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node, MAX_NODES)
+        if size is None:
+            raise ValueError(
+                "an alias lies inside the value it names (a recursive structure); a config "
+                "is a mapping of numbers, lists and small mappings"
+            )
+        if size > MAX_NODES:
+            raise ValueError(
+                f"with its aliases (*name) expanded it holds more than {MAX_NODES:,} values, "
+                "the most a config may hold (an alias repeats the whole value it names)"
+            )
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in pairs:
@@ -88,8 +160,10 @@ def read_config_file(path: Path) -> Any:
     """The data of a ``.json`` (JSON) or any other (YAML) config file.
 
     Raises:
-        ValueError: unreadable, unparsable, a duplicate key, or nested too deeply; the
-            message names the file.
+        ValueError: unreadable, unparsable, a duplicate key, a YAML key that is a list
+            or a mapping, YAML aliases expanding past
+            :data:`~diffcontact.systems.config.MAX_NODES` values, or nested too deeply;
+            the message names the file.
     """
     try:
         text = path.read_text()
@@ -105,7 +179,7 @@ def read_config_file(path: Path) -> Any:
         import yaml
 
         try:
-            return yaml.load(text, Loader=_loader())  # a SafeLoader
+            return _load_yaml(text)  # a SafeLoader
         except yaml.YAMLError as err:
             raise ValueError(f"cannot parse {path} as YAML: {err}") from None
     except RecursionError:

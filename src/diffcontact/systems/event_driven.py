@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffcontact.geometry.base import unit_normal_planes
 from diffcontact.systems.system import System
 
 __all__ = ["simulate_event_driven"]
@@ -97,7 +98,7 @@ def simulate_event_driven(system: System, z0: Tensor, steps: int | None = None) 
     dev = z0.device
     f64 = torch.float64
     walls = torch.tensor(walls_l, dtype=f64, device=dev)
-    walls = walls / walls[:, :2].norm(dim=-1, keepdim=True)  # unit normals, as the geometry
+    walls = unit_normal_planes(walls, 2)  # unit normals, as the geometry
     mu = system.mu.to(dev, f64)
     cor = system.cor.to(dev, f64)
     r = float(system.config.radii[0])

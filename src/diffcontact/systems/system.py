@@ -237,6 +237,11 @@ def load_config(spec: Any, **overrides: Any):
         path = Path(name)
         if builtin.is_file() and "/" not in name and "\\" not in name:
             data, source = read_config_file(builtin), f" of built-in task {name!r}"
+        elif path.is_dir():  # ("does not exist" for dir.yaml, "unknown task" for others)
+            raise ValueError(
+                f"{str(path)!r} is a directory, not a config file (a .yaml, .yml or .json "
+                "file, a built-in task name, or a dict)"
+            )
         elif path.suffix.lower() in (".yaml", ".yml", ".json"):
             if not path.is_file():
                 raise ValueError(f"config file {str(path)!r} does not exist")

@@ -184,7 +184,10 @@ def _line_in_rect(w: Sequence[float], xlim, ylim) -> np.ndarray | None:
 
 
 def _normalized_walls(walls) -> np.ndarray:
+    """Unit-normal walls, scaled first by the larger ``|a|, |b|`` (as
+    ``geometry.base.unit_normal_planes``: no overflow for ``[1e160, 0, 0]``)."""
     w = np.asarray(walls, dtype=np.float64).reshape(-1, 3)
+    w = w / np.abs(w[:, :2]).max(axis=1, keepdims=True)
     return w / np.hypot(w[:, 0], w[:, 1])[:, None]
 
 
