@@ -185,8 +185,13 @@ MODELS_NOTES = (
     "(reproduce.py's notes, `python experiments/cmr_mass_scale.py runs/repro/data/BP5-e`).",
     "LCP-CD-CLNN is Newton's restitution with a polyhedral friction cone trained on data of "
     "CM (Poisson's hypothesis). The two coincide for frictionless point masses (BP5-e, "
-    'docs/contact-models.md, "Where LCP and CM agree"), where its error is of the order of '
-    "CM's; with friction and rigid bodies (CP3, Gyro) they differ and no LCP parameters "
+    'docs/contact-models.md, "Where LCP and CM agree"), where both fit the data; in the '
+    "run of 2026-11-28 LCP-CD-CLNN fit it closer (training loss 1.1e-7 against CM-CD-CLNN's "
+    "1.0e-6, mass ratios within 2.4e-6 of the truth against 8.7e-5: "
+    "`runs/compare-28/runs/BP5-e/*/learned.json`), a difference of optimisation, which the "
+    "chaotic billiards amplify over 100 steps (CM-CD-CLNN's interval is nearly as wide as its "
+    "mean; in the run of 2026-11-24 the order was the other way round, 3.2e-3 against "
+    "1.4e-2). With friction and rigid bodies (CP3, Gyro) they differ and no LCP parameters "
     "reproduce the data. The paper's LCP never trained (NaN gradients, appendix J).",
     "CP3 is chaotic: errors over 100 steps grow with any error of the learned potential, "
     "the last part to converge under Adam; these 60-epoch runs are not refit. The "
@@ -195,10 +200,14 @@ MODELS_NOTES = (
     "In the run of 2026-11-24, CM-CD-CHNN on Gyro stalled in a local minimum (loss flat at "
     "0.14 from epoch 10; learned second moments 0.076, 0.121, 0.095 instead of 0.24, 0.24, "
     "0.04; 6 of its first 16 steps skipped as gradient spikes) while CMr-CD-CHNN from the "
-    "same initialisation converged (`runs/compare/runs/Gyro/*/learned.json`, "
-    "`logs/metrics.csv`): a failed optimisation, not a limit of the model.",
-    "IN-SP-CP on BP5-e took 26 s per epoch against 1-6 s for it on CP3 and Gyro (epoch "
-    "times in its `logs/metrics.csv`); its loss hardly moved (0.081 to 0.073).",
+    "same initialisation converged: a failed optimisation, not a limit of the model. In "
+    "the run of 2026-11-28 it converged (second moments 0.236, 0.236, 0.035, no step "
+    "skipped; `runs/compare-28/runs/Gyro/CM-CD-CHNN/learned.json`), on the simulator that "
+    "makes the velocities consistent with the constraints before each contact; that this "
+    "change is the reason was not isolated.",
+    "IN-SP-CP on BP5-e took 8-36 s per epoch (19 s on average) against 0.7-7.3 s for it on "
+    "CP3 and Gyro (epoch times in its `logs/metrics.csv`, run of 2026-11-28); its loss "
+    "hardly moved (0.081 to 0.073).",
 )
 
 MISMATCH_NOTES = (
@@ -210,9 +219,11 @@ MISMATCH_NOTES = (
     "(rim_radius^2 = 0.09 on every axis, against the truth 0.24, 0.24, 0.04), the loss flat "
     "from about epoch 10 while mu and e_P absorb what they can. In the runs of 2026-11-24 "
     "this happened to CM-CD-CLNN on the LCP data of Gyro (second moments 0.079, 0.110, "
-    "0.073; `runs/compare/runs/Gyro_LCP/CM-CD-CLNN/learned.json`) and to CM-CD-CHNN on "
-    "the CM data (models section), not to CM-CD-CLNN on the CM data: a failed "
-    "optimisation from the default initialisation, which the Gyro rows carry.",
+    "0.073) and to CM-CD-CHNN on the CM data (models section), not to CM-CD-CLNN on the "
+    "CM data: a failed optimisation from the default initialisation. In the runs of "
+    "2026-11-28 it happened to none (CM-CD-CLNN on the LCP data: 0.236, 0.236, 0.035; "
+    "`runs/compare-28/runs/Gyro_LCP/CM-CD-CLNN/learned.json`), and the Gyro LCP rows' "
+    "errors fell from 6.5e-1 / 6.2e-1 to those shown.",
 )
 
 SCALABILITY_NOTES = (
