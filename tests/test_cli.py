@@ -245,6 +245,54 @@ def test_output_names_must_say_what_they_hold(capsys, tmp_path, flag, name, want
 
 
 @needs_systems
+@pytest.mark.parametrize(
+    ("flag", "name"),
+    [("--gif", ".gif"), ("--energy-plot", ".png"), ("--gif", "sub/.gif"), ("--out", ".npz")],
+)
+def test_an_output_name_that_is_only_a_suffix_is_refused_up_front(capsys, tmp_path, flag, name):
+    """--gif .gif passed the CLI's check (the name ends in .gif) but not animate's (pathlib
+    reads no suffix in '.gif'): a traceback after the .npz had been written."""
+    (tmp_path / "sub").mkdir()
+    out = tmp_path / "x.npz"
+    args = ["simulate", "BP5", "--n", "1", "--steps", "3", "--quiet", "--out", str(out)]
+    code, _, err = run(capsys, *args, flag, str(tmp_path / name))
+    assert_usage_error(code, err, f"{flag} '{tmp_path / name}' has no file name before its suffix")
+    assert [p.name for p in tmp_path.rglob("*")] == ["sub"]  # nothing written
+
+
+@needs_systems
+def test_a_failed_write_says_which_outputs_were_written(capsys, tmp_path, monkeypatch):
+    """A full disk while the GIF was written: "writing output failed: [Errno 28] ..."
+    did not say that the .npz had been written (the Ctrl-C message did)."""
+    import diffcontact.io
+    import diffcontact.viz
+
+    def disk_full(path):
+        raise OSError(28, "No space left on device", str(path))
+
+    out, gif, png = tmp_path / "r.npz", tmp_path / "r.gif", tmp_path / "r.png"
+    argv = ["simulate", "BP5", "--n", "1", "--steps", "2", "--quiet", "--out", str(out)]
+    argv += ["--gif", str(gif), "--energy-plot", str(png)]
+    monkeypatch.setattr(diffcontact.viz, "plot_energy", lambda E, dt, path, **kw: disk_full(path))
+    code, _, err = run(capsys, *argv)
+    assert code == 1 and out.is_file() and gif.is_file() and not png.exists()
+    assert err.splitlines() == [
+        f"diffcontact simulate: error: writing {png} failed: [Errno 28] No space left on "
+        f"device: '{png}'; wrote {out}, {gif}; not written: {png} (a file of that name is "
+        "from an earlier run)"
+    ]
+    monkeypatch.setattr(diffcontact.viz, "animate", lambda traj, scene, path, **kw: disk_full(path))
+    code, _, err = run(capsys, *argv)
+    assert code == 1
+    assert f"writing {gif} failed: [Errno 28] " in err
+    assert f"; wrote {out}; not written: {gif}, {png} (a file of that name is " in err
+    monkeypatch.setattr(diffcontact.io, "atomic_save_npz", lambda path, **kw: disk_full(path))
+    code, _, err = run(capsys, *argv)
+    assert code == 1 and f"writing {out} failed: [Errno 28] " in err
+    assert err.rstrip().endswith("; nothing written")
+
+
+@needs_systems
 def test_a_simulation_too_large_is_refused_up_front(capsys, tmp_path, monkeypatch):
     """--steps 2e8 ran (a 25-hour estimate, 32 GB for 23 GB of memory), --n 1e8 sampled
     silently for minutes; billiards --time and config horizons had the limit already."""
@@ -266,7 +314,9 @@ def test_cuda_graph_on_the_cpu_is_a_usage_error(capsys, tmp_path):
     out = str(tmp_path / "x.npz")
     args = ("simulate", "BP5", "--n", "2", "--steps", "3", "--out", out, "--quiet")
     code, _, err = run(capsys, *args, "--cuda-graph", "on")
-    assert_usage_error(code, err, "cuda_graph=True, but the states are on cpu")
+    # the flag, not the Python argument (cuda_graph=True) of System.simulate
+    assert_usage_error(code, err, "--cuda-graph on needs --device cuda, not --device cpu")
+    assert "cuda_graph" not in err and not os.path.exists(out)
     code, _, _ = run(capsys, *args, "--cuda-graph", "off")
     assert code == 0
 

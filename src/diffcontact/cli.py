@@ -207,7 +207,13 @@ def _check_outputs(args: argparse.Namespace) -> None:
     for flag, path in paths:
         if path is None:
             continue
-        if not str(path).lower().endswith(suffixes[flag]):  # (an .npz was written as s3.txt)
+        # the suffix as pathlib reads it, as animate and plot_energy do: '.gif' (a hidden
+        # file's name) has none, and was refused there after the .npz had been written
+        name, suffix = Path(path).name, Path(path).suffix.lower()
+        if suffix not in suffixes[flag] and name.lower() in suffixes[flag]:
+            raise UsageError(f"{flag} {path!r} has no file name before its suffix")
+        if suffix not in suffixes[flag] or not str(path).lower().endswith(suffixes[flag]):
+            # (an .npz was written as s3.txt)
             raise UsageError(
                 f"{flag} {path!r}: the file name must end in {' or '.join(suffixes[flag])}"
             )
@@ -237,6 +243,12 @@ def _check_size(n: int, steps: int, system: Any) -> None:
         raise UsageError(too_large)
 
 
+def _not_written(wrote: list[str], outputs: list[str]) -> str:
+    """The ``outputs`` that a simulate stopped part-way did not write (after ``wrote``)."""
+    left = [p for p in outputs if p not in wrote]
+    return f"not written: {', '.join(left)} (a file of that name is from an earlier run)"
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     _check_outputs(args)
     import torch
@@ -247,6 +259,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         parse_device(args.device)
     except ValueError as err:
         raise UsageError(f"--device: {err}") from None
+    if args.cuda_graph == "on" and args.device != "cuda":  # (the error named cuda_graph=True)
+        raise UsageError(f"--cuda-graph on needs --device cuda, not --device {args.device}")
 
     import json
 
@@ -276,8 +290,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                 threads=args.threads,
                 cuda_graph={"auto": "auto", "on": True, "off": False}[args.cuda_graph],
             )
-    except ValueError as err:
-        raise UsageError(one_line(err)) from None
+    except ValueError as err:  # (simulate's own errors name its Python arguments)
+        message = one_line(err).replace("simulate: cuda_graph=True, but", "--cuda-graph on, but")
+        raise UsageError(message) from None
     except RuntimeError as err:  # e.g. the contact solver did not converge
         print(
             f"diffcontact simulate: error: simulation failed: {type(err).__name__}: "
@@ -292,6 +307,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     traj_np = traj.detach().cpu().numpy()
     energy_np = energy.detach().cpu().numpy()
     config = system.config.model_dump(mode="json")
+    outputs = [p for p in (args.out, args.gif, args.energy_plot) if p is not None]
     wrote: list[str] = []
     try:
         atomic_save_npz(
@@ -319,18 +335,24 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             if args.energy_plot is not None:
                 plot_energy(energy_np, system.dt, args.energy_plot, title=system.name)
                 wrote.append(args.energy_plot)
-    except OSError as err:
-        print(f"diffcontact simulate: error: writing output failed: {err}", file=sys.stderr)
+    except (OSError, ValueError) as err:  # e.g. a full disk
+        # as on Ctrl-C, say which outputs this run wrote (the error named none: the new
+        # .npz could be taken for a failed run's, or an earlier run's GIF for this one's)
+        said = f"wrote {', '.join(wrote)}; {_not_written(wrote, outputs)}" if wrote else ""
+        print(
+            f"diffcontact simulate: error: writing {outputs[len(wrote)]} failed: "
+            f"{one_line(err)}; {said or 'nothing written'}",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         if not wrote:
             raise  # (nothing written: main says "interrupted")
         # the outputs are written one after the other: say which ones this run replaced,
         # so that a new .npz is not taken for the partner of an earlier run's GIF
-        left = [p for p in (args.gif, args.energy_plot) if p is not None and p not in wrote]
         print(
-            f"diffcontact simulate: interrupted after writing {', '.join(wrote)}; not "
-            f"written: {', '.join(left)} (a file of that name is from an earlier run)",
+            f"diffcontact simulate: interrupted after writing {', '.join(wrote)}; "
+            f"{_not_written(wrote, outputs)}",
             file=sys.stderr,
         )
         return 130

@@ -410,3 +410,74 @@ def test_a_scene_knows_its_systems_points():
         dataclasses.replace(scene, n_points=1).check(n_points=7, dim=2)
     with pytest.raises(ValueError, match="n_points must be a positive integer"):
         Scene(dim=2, n_points=0)
+
+
+def test_a_name_that_is_only_a_suffix_is_named_so(tmp_path):
+    """``render_frame(..., 'v/.png')`` said "the file name must end in .png or .pdf or
+    .svg" of a name that does (pathlib reads '.png' as a hidden file without a suffix)."""
+    traj = bouncing_points(1, 5)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    (tmp_path / "v").mkdir()
+    for call, name in (
+        (lambda p: render_frame(traj, scene, p), ".png"),
+        (lambda p: animate(traj, scene, p), ".gif"),
+        (lambda p: plot_energy(np.ones((1, 5)), 0.01, p), ".SVG"),
+    ):
+        path = tmp_path / "v" / name
+        with pytest.raises(ValueError) as err:
+            call(path)
+        assert str(err.value) == f"{path}: '{name}' has no file name before its suffix"
+    assert not list((tmp_path / "v").iterdir())
+
+
+def test_frame_indices_of_no_state_is_an_error():
+    """``frame_indices(0, 5)`` and ``frame_indices(-5, 5)`` returned no frame at all."""
+    for n_steps in (0, -5):
+        with pytest.raises(ValueError, match=f"n_steps must be >= 1, got {n_steps}"):
+            frame_indices(n_steps, 5)
+    assert frame_indices(1, 5).tolist() == [0]
+
+
+def test_a_non_finite_overlay_is_warned_about(tmp_path):
+    """A prediction that diverged at once (all NaN) was left out of the GIF without a
+    word, its legend entry drawn all the same; NaN in traj was warned about."""
+    import warnings
+
+    traj = bouncing_points(2, 10)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    with pytest.warns(RuntimeWarning, match="overlay holds no finite position in the traj"):
+        animate(traj, scene, tmp_path / "nan.gif", overlay=traj * np.nan)
+    partly = traj.copy()
+    partly[1, 4:] = np.inf
+    with pytest.warns(RuntimeWarning, match="overlay holds NaN or infinite positions"):
+        render_frame(traj, scene, tmp_path / "nan.png", overlay=partly)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        animate(traj, scene, tmp_path / "fine.gif", overlay=traj)  # finite: nothing said
+        # only the trajectories shown count
+        animate(traj, scene, tmp_path / "one.gif", overlay=partly, max_trajectories=1)
+
+
+def test_frames_of_too_many_pixels_are_refused_before_drawing(tmp_path):
+    """``animate(..., dpi=100000)`` or ``panel_size=1000`` raised MemoryError
+    (std::bad_alloc) from Agg."""
+    from diffcontact.viz.animation import MAX_PIXELS, _build_figure
+
+    traj = bouncing_points(16, 3)
+    scene = Scene(dim=2, circles=tuple(Circle(i, 0.05) for i in range(3)), walls=BOX)
+    E = np.ones((2, 5))
+    cases = [
+        (lambda: animate(traj, scene, tmp_path / "a.gif", dpi=100_000), "dpi 100000 and"),
+        (lambda: animate(traj, scene, tmp_path / "a.gif", panel_size=10_000), "panel_size 10000"),
+        (lambda: render_frame(traj, scene, tmp_path / "f.png", dpi=100_000), "dpi 100000 and"),
+        (lambda: render_frame(traj, scene, tmp_path / "f.pdf", panel_size=10_000), "make"),
+        (lambda: plot_energy(E, 0.01, tmp_path / "e.png", dpi=100_000), "dpi 100000 makes"),
+    ]
+    for call, needle in cases:
+        with pytest.raises(ValueError, match=f"{needle}.* more than the {MAX_PIXELS} "):
+            call()
+    assert not list(tmp_path.iterdir())
+    # a 4 x 4 grid of the default panels at 300 dpi fits (the figure only: not drawn)
+    kw = dict(overlay=None, max_frames=3, labels=None, trail=0, panel_size=3.2)
+    fig, _, _ = _build_figure(traj, scene, max_trajectories=16, dpi=300, **kw)
+    assert np.prod(fig.get_size_inches() * 300) <= MAX_PIXELS

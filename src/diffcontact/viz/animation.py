@@ -2,15 +2,17 @@
 
 The drawing is driven by a :class:`~diffcontact.viz.scene.Scene`; artists are
 created once per panel and only their data changes from frame to frame.
-Frames are subsampled to at most ``max_frames``. Files are written atomically.
+Frames are subsampled to at most ``max_frames``, and written to the GIF one at a time
+(memory does not grow with their number). Files are written atomically.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import struct
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +30,7 @@ from diffcontact.io import atomic_path
 
 from .scene import Scene
 
-__all__ = ["MAX_PANELS", "animate", "frame_indices", "plot_energy", "render_frame"]
+__all__ = ["MAX_PANELS", "MAX_PIXELS", "animate", "frame_indices", "plot_energy", "render_frame"]
 
 # the bodies' colours: matplotlib's tab10 with its red replaced by indigo, since red
 # (_CONTACT) marks a body in contact (tab10's red was body 3's, and its contact outline
@@ -51,6 +53,11 @@ MAX_PANELS = 16
 panels makes frames of about 2000 x 2000 pixels, slow to render and too small to read."""
 MIN_WIDTH = 5.2
 """The figure's least width in inches: room for the title and the legend over one panel."""
+MAX_PIXELS = 4096 * 4096
+"""The most pixels of a frame (a GIF's, or an image that :func:`render_frame` or
+:func:`plot_energy` saves), ``dpi`` x ``dpi`` x its area in square inches: a 4 x 4 grid
+of 3.2-inch panels fits at 300 dpi. A ``dpi`` or ``panel_size`` typo that asks for more
+is refused before drawing (Agg ran out of memory with ``std::bad_alloc``)."""
 _OVERLAY = "#222222"
 
 
@@ -104,8 +111,11 @@ _FORMATS = {".png": "png", ".pdf": "pdf", ".svg": "svg", ".gif": "gif"}
 def _image_format(path: str | os.PathLike[str], allowed: tuple[str, ...]) -> str:
     """The file format of ``path`` from its suffix, one of ``allowed`` (e.g. ``".png"``);
     a ``ValueError`` naming the path otherwise (a ``.pdf`` had been given PNG bytes)."""
+    name = Path(path).name
     suffix = Path(path).suffix.lower()
     if suffix not in allowed:
+        if name.lower() in allowed:  # ".gif": a hidden file's name, without a suffix
+            raise ValueError(f"{path}: {name!r} has no file name before its suffix")
         raise ValueError(f"{path}: the file name must end in {' or '.join(allowed)}")
     if Path(path).is_dir():
         raise ValueError(f"{path} is a directory; give a file name")
@@ -125,9 +135,24 @@ def _positive(name: str, value: Any, integer: bool = False) -> None:
         raise ValueError(f"{name} must be {what}, got {value!r}")
 
 
+def _check_pixels(width: float, height: float, dpi: float, sizes: str) -> None:
+    """A ``ValueError`` if a ``width`` x ``height`` inch figure at ``dpi`` has more than
+    :data:`MAX_PIXELS` pixels; ``sizes`` names the arguments that set them, with the
+    verb (``"dpi 600 makes"``)."""
+    w, h = width * dpi, height * dpi
+    if w * h > MAX_PIXELS:
+        side = math.isqrt(MAX_PIXELS)
+        raise ValueError(
+            f"{sizes} frames of {w:.0f} x {h:.0f} pixels, more than the {MAX_PIXELS} "
+            f"pixels ({side} x {side}) that a frame may have"
+        )
+
+
 def frame_indices(n_steps: int, max_frames: int) -> np.ndarray:
     """Indices of the states shown: all of them, or ``max_frames`` evenly spaced
     ones including the first and the last."""
+    if n_steps < 1:  # (it returned no index: nothing to draw)
+        raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
     if n_steps <= max_frames:
@@ -600,6 +625,7 @@ def _build_figure(
     labels: Sequence[str] | None,
     trail: int,
     panel_size: float,
+    dpi: float | None = None,
 ):
     x = _as_batch(traj, "traj")[:, :, 0]  # (N, T, P, dim) positions
     n_total, n_steps, n_points, dim = x.shape
@@ -634,12 +660,24 @@ def _build_figure(
             RuntimeWarning,
             stacklevel=3,
         )
+    if xo is not None and not np.isfinite(xo[:n]).all():  # (the legend names it all the same)
+        warnings.warn(
+            "overlay holds no finite position in the trajectories shown: it is not drawn"
+            if not np.isfinite(xo[:n]).any()
+            else "overlay holds NaN or infinite positions; those bodies' dashed outlines are "
+            "not drawn in those frames",
+            RuntimeWarning,
+            stacklevel=3,
+        )
     idx = frame_indices(n_steps, max_frames)
     ncols = math.ceil(math.sqrt(n))
     nrows = math.ceil(n / ncols)
     # at least MIN_WIDTH wide: one panel is narrower than the title and the legend
     width = max(panel_size * ncols, MIN_WIDTH)
-    fig = Figure(figsize=(width, panel_size * nrows + 0.35), layout="constrained")
+    height = panel_size * nrows + 0.35
+    if dpi is not None:
+        _check_pixels(width, height, dpi, f"dpi {dpi} and panel_size {panel_size} make")
+    fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)
     # shared by all panels; from traj and the scene only: an overlay (a prediction) that
     # leaves them is drawn clipped, rather than shrinking the truth of every panel to a dot
@@ -696,7 +734,8 @@ def render_frame(
     panel_size: float = 3.2,
 ) -> Path:
     """Save one state (index ``frame`` of the time axis, negative from the end) as a
-    ``.png``, ``.pdf`` or ``.svg`` (by the suffix), drawn as in :func:`animate`."""
+    ``.png``, ``.pdf`` or ``.svg`` (by the suffix), drawn as in :func:`animate` (at most
+    :data:`MAX_PIXELS` pixels at ``dpi``)."""
     fmt = _image_format(path, (".png", ".pdf", ".svg"))
     _positive("dpi", dpi)
     fig, panels, _ = _build_figure(
@@ -708,6 +747,7 @@ def render_frame(
         labels=labels,
         trail=trail,
         panel_size=panel_size,
+        dpi=dpi,
     )
     n_steps = panels[0].x.shape[0]
     if isinstance(frame, bool) or not isinstance(frame, int) or not -n_steps <= frame < n_steps:
@@ -721,11 +761,14 @@ def render_frame(
     return Path(path)
 
 
-def _render_frames(fig, panels, idx, title, title_of, colors: int = 255) -> list:
-    """Draw every frame by blitting: static parts once, then only the moving artists.
+def _render_frames(fig, panels, idx, title, title_of, colors: int = 255):
+    """Draw the frames by blitting: static parts once, then only the moving artists.
 
-    Returns the frames as palette ("P" mode) Pillow images sharing one palette,
-    so that unchanged pixels stay identical and the GIF stores only changes.
+    Returns ``(palette, frames)``: the palette (``[r, g, b, ...]``, at most ``colors``
+    entries) and an iterator over the frames as palette ("P" mode) Pillow images of that
+    palette, so that unchanged pixels stay identical and the GIF stores only changes.
+    Each frame is drawn when it is taken: memory does not grow with the frames (all RGB
+    frames had been kept until the last was drawn: 1.2 GB for 1000 frames of 4 panels).
     """
     from PIL import Image
 
@@ -737,8 +780,8 @@ def _render_frames(fig, panels, idx, title, title_of, colors: int = 255) -> list
     title.set_text(title_of(int(idx[-1])))  # reserve its room in the layout
     canvas.draw()
     background = canvas.copy_from_bbox(fig.bbox)
-    rgb_frames = []
-    for k, step in enumerate(idx):
+
+    def draw(k: int) -> np.ndarray:  # frame k in RGB (it depends on k alone)
         canvas.restore_region(background)
         for p in panels:
             p.update(k)
@@ -746,9 +789,10 @@ def _render_frames(fig, panels, idx, title, title_of, colors: int = 255) -> list
             if hasattr(a, "do_3d_projection"):
                 a.do_3d_projection()
             ax.draw_artist(a)
-        title.set_text(title_of(int(step)))
+        title.set_text(title_of(int(idx[k])))
         fig.draw_artist(title)
-        rgb_frames.append(np.array(canvas.buffer_rgba())[..., :3])
+        return np.array(canvas.buffer_rgba())[..., :3]
+
     # one palette: the drawing colours exactly (each body's colour, its filled shade over
     # white and over a wall's grey), the rest median-cut from a few frames
     body = np.array([_hex_rgb(c) for c in _PALETTE], dtype=np.float64)
@@ -757,32 +801,103 @@ def _render_frames(fig, panels, idx, title, title_of, colors: int = 255) -> list
     for under in (255.0, 227.0):  # fills have alpha 0.75 (_Panel2D)
         fixed += [tuple(c) for c in (0.75 * body + 0.25 * under).round().astype(int).tolist()]
     fixed = list(dict.fromkeys(fixed))[: max(colors - 2, 1)]
-    picks = sorted({0, len(rgb_frames) // 2, len(rgb_frames) - 1})
-    sample = np.concatenate([rgb_frames[i] for i in picks], axis=0)
+    picks = sorted({0, len(idx) // 2, len(idx) - 1})
+    sample = np.concatenate([draw(k) for k in picks], axis=0)
     rest = max(colors - len(fixed), 2)
     cut = Image.fromarray(sample).quantize(colors=rest, method=Image.Quantize.MEDIANCUT)
+    del sample
     entries = [c for row in fixed for c in row] + list(cut.getpalette()[: 3 * rest])
     palette = Image.new("P", (1, 1))
     palette.putpalette(entries)
-    return [
-        Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in rgb_frames
-    ]
+
+    def frames():
+        for k in range(len(idx)):
+            image = Image.fromarray(draw(k))
+            yield image.quantize(palette=palette, dither=Image.Dither.NONE)
+
+    return entries, frames()
 
 
 def _hex_rgb(color: str) -> tuple[int, int, int]:
     return tuple(int(color[i : i + 2], 16) for i in (1, 3, 5))  # type: ignore[return-value]
 
 
-def _save_gif(frames: list, path: str | os.PathLike[str], fps: float) -> None:
-    """Write Pillow frames as a looping GIF, atomically."""
-    duration = max(20, round(1000.0 / fps))
+def _save_gif(
+    palette: Sequence[int], frames: Iterable[Any], path: str | os.PathLike[str], fps: float
+) -> None:
+    """Write palette ("P" mode) Pillow frames of ``palette`` (``[r, g, b, ...]``, 1 to
+    255 colours) as a looping GIF, atomically, each frame as it comes (Pillow's writer
+    keeps them all until the last).
+
+    As Pillow's: after the first frame only the rectangle that changed is stored, its
+    unchanged pixels transparent (an index after the palette's colours), and a frame
+    equal to the one before lengthens that one.
+    """
+    from PIL import GifImagePlugin, Image
+
+    if not hasattr(GifImagePlugin, "getdata"):  # (a Pillow without its frame encoder)
+        _save_gif_all_at_once(list(frames), path, fps)
+        return
+    n_colors = len(palette) // 3
+    if not 1 <= n_colors <= 255:
+        raise ValueError(f"a GIF palette has 1 to 255 colours here, got {n_colors}")
+    clear = n_colors  # the transparent index, no colour of the frames
+    bits = n_colors.bit_length()  # a colour table of 2**bits entries, clear included
+    table = bytes(palette[: 3 * n_colors]) + bytes(3 * ((1 << bits) - n_colors))
+    duration = max(20, round(1000.0 / fps))  # milliseconds; GIF counts 1/100 s
+
+    def write(fh, pixels: np.ndarray, offset: tuple[int, int], ms: int, first: bool) -> None:
+        params: dict[str, int] = {"duration": min(ms, 655_350), "disposal": 1}  # 1: kept
+        if not first:
+            params["transparency"] = clear
+        height, width = pixels.shape
+        image = Image.frombytes("P", (width, height), np.ascontiguousarray(pixels).tobytes())
+        for chunk in GifImagePlugin.getdata(image, offset, **params):
+            fh.write(chunk)
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        previous = None  # the last frame's indices
+        pending: list[Any] = []  # [pixels, offset, ms, first]: written once the next differs
+        for image in frames:
+            now = np.asarray(image, dtype=np.uint8)
+            if now.max() >= clear:  # (would be drawn transparent)
+                raise ValueError(f"a frame has colour indices past the palette's {n_colors}")
+            if previous is None:
+                height, width = now.shape
+                fh.write(b"GIF89a" + struct.pack("<HHBBB", width, height, 0x80 | (bits - 1), 0, 0))
+                fh.write(table)
+                fh.write(b"!\xff\x0bNETSCAPE2.0\x03\x01\x00\x00\x00")  # loop forever
+                pending = [now, (0, 0), duration, True]
+            else:
+                changed = now != previous
+                if not changed.any():
+                    pending[2] += duration
+                    continue
+                write(fh, *pending)
+                rows = np.flatnonzero(changed.any(axis=1))
+                cols = np.flatnonzero(changed.any(axis=0))
+                box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+                part = np.where(changed[box], now[box], np.uint8(clear))
+                pending = [part, (int(cols[0]), int(rows[0])), duration, False]
+            previous = now
+        if not pending:
+            raise ValueError("no frame to write")
+        write(fh, *pending)
+        fh.write(b";")
+
+
+def _save_gif_all_at_once(frames: list[Any], path: str | os.PathLike[str], fps: float) -> None:
+    """Pillow's own GIF writer, which keeps every frame until the last: where
+    ``GifImagePlugin.getdata``, which :func:`_save_gif` encodes each frame with, is gone."""
+    if not frames:
+        raise ValueError("no frame to write")
     with atomic_path(path) as tmp:
         frames[0].save(
             tmp,
             format="GIF",
             save_all=True,
             append_images=frames[1:],
-            duration=duration,
+            duration=max(20, round(1000.0 / fps)),
             loop=0,
         )
 
@@ -828,7 +943,8 @@ def animate(
         trail: length (in shown frames) of the faded path behind each body; 0
             for none.
         dpi: resolution (a 3.2 inch panel at 60 dpi is 192 pixels).
-        panel_size: inches per trajectory panel.
+        panel_size: inches per trajectory panel. A frame has at most
+            :data:`MAX_PIXELS` pixels (more is a ``ValueError``, before drawing).
         colors: palette size (2 to 256; fewer colours, smaller files).
 
     Returns:
@@ -856,13 +972,14 @@ def animate(
         labels=labels,
         trail=trail,
         panel_size=panel_size,
+        dpi=dpi,
     )
     fig.set_dpi(dpi)
     title = fig.suptitle("", fontsize=9)
-    frames = _render_frames(
+    palette, frames = _render_frames(
         fig, panels, idx, title, lambda step: _title(scene, step, dt), colors=min(colors, 255)
     )
-    _save_gif(frames, path, fps)
+    _save_gif(palette, frames, path, fps)
     return Path(path)
 
 
@@ -883,11 +1000,14 @@ def plot_energy(
         path: output ``.png``, ``.pdf`` or ``.svg`` (by the suffix; written atomically).
         max_lines: at most this many trajectories are drawn (the title says when
             there were more).
+        dpi: resolution; at most :data:`MAX_PIXELS` pixels (an 8 x 3.2 inch figure).
     """
     fmt = _image_format(path, (".png", ".pdf", ".svg"))
     _positive("dt", dt)
     _positive("dpi", dpi)
     _positive("max_lines", max_lines, integer=True)
+    figsize = (8.0, 3.2)
+    _check_pixels(*figsize, dpi, f"dpi {dpi} makes")
     e = _to_numpy(E)
     if e.ndim == 1:
         e = e[None]
@@ -898,7 +1018,7 @@ def plot_energy(
     n_given = len(e)
     e = e[:max_lines]
     t = np.arange(e.shape[1]) * float(dt)
-    fig = Figure(figsize=(8.0, 3.2))
+    fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(1, 2)
     alpha = 1.0 if len(e) <= 4 else 0.6
