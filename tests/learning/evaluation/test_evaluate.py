@@ -61,7 +61,8 @@ def test_evaluate_truth_as_model(tmp_path, dataset):
     )
     # the truth's step from an observed pre-impact state is the observed post-impact state
     impacts = metrics["impacts"]
-    assert impacts["n"] >= 1 and impacts["ratio_error_abs_mean"] == pytest.approx(0, abs=1e-9)
+    assert impacts["n_found"] >= 1 and impacts["n_predicted"] == impacts["n_found"]
+    assert impacts["ratio_error_abs_mean"] == pytest.approx(0, abs=1e-9)
     for name in ("rel_error.png", "energy.png", "training.png", "impacts.png"):
         with Image.open(out / name) as im:
             assert im.format == "PNG" and im.width >= 400 and im.height >= 200
@@ -315,10 +316,21 @@ def test_an_evaluation_stopped_midway_can_run_again_in_its_folder(tmp_path, data
             ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5)
     assert (out / ev.STARTED).is_file() and not (out / "metrics.json").exists()
     assert ev.evaluate(None, out, model=system, data_dir=dataset, n_gif=0, steps=5) == metrics
-    # another data set in that folder is still refused
-    other = shutil.copytree(dataset, tmp_path / "other")
+    # another data set in that folder is still refused (a copy of this one is this one)
+    other = _resigned_copy(dataset, tmp_path / "other")
     with pytest.raises(ev.EvaluationInputError, match="of another evaluation"):
         ev.evaluate(None, out, model=system, data_dir=other, n_gif=0, steps=5)
+
+
+def _resigned_copy(dataset: Path, folder: Path) -> Path:
+    """A copy of ``dataset`` that is another data set: its metadata (seed) changed and
+    signed again, so that its checksum differs."""
+    shutil.copytree(dataset, folder)
+    meta = json.loads((folder / "metadata.json").read_text())
+    meta["seed"] = meta["seed"] + 1
+    meta["metadata_sha256"] = metadata_checksum(meta)
+    (folder / "metadata.json").write_text(json.dumps(meta))
+    return folder
 
 
 def test_the_error_plot_says_when_no_rollout_is_finite(tmp_path):
@@ -359,3 +371,20 @@ def test_recorded_states_that_penetrate_are_evaluated(tmp_path, first):
     metrics = evaluate(None, tmp_path / "ev", model=create_model("CM-CD-CLNN", cfg),
                        data_dir=data, n_gif=0)  # fmt: skip
     assert metrics["n_nonfinite"] == 0 and np.isfinite(metrics["rel_err_mean"])
+
+
+@pytest.mark.parametrize("cut", ["truncated header", "no plottable column"])
+def test_a_log_with_nothing_to_draw_is_said(tmp_path, dataset, cut):
+    """A truncated logs/metrics.csv (``head -c 100``) dropped training.png without a word
+    (log_note null), while an unreadable one was said."""
+    run = run_dir(tmp_path, dataset)
+    log = next((run / "logs").rglob("metrics.csv"))
+    if cut == "truncated header":
+        log.write_bytes(log.read_bytes()[:50])  # part of the header, no row
+        what = "holds no row"
+    else:
+        log.write_text("epoch,step\n0,0\n1,5\n")
+        what = "holds no loss or learned parameter per epoch"
+    m = evaluate(run, model=SystemModel(TINY), steps=5, n_gif=0, uncertainty=False)
+    assert "training.png" not in m["files"]
+    assert m["log_note"] == f"training.png not drawn: {log} {what} (truncated or empty?)"

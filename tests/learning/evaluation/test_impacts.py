@@ -60,7 +60,8 @@ def test_cm_overshoots_the_textbook_rebound_by_its_sliding_lift(tmp_path):
     np.testing.assert_allclose(r["ratio_predicted"], 0.745 + lift, atol=1e-6)
     assert r["ratio_predicted"][3] == pytest.approx(1.349038, abs=1e-6)
     summary = impact_summary(r)
-    assert summary["n"] == 4 and summary["ratio_observed_mean"] == pytest.approx(0.745)
+    assert summary["n_found"] == summary["n_predicted"] == 4
+    assert summary["ratio_observed_mean"] == pytest.approx(0.745)
     assert summary["ratio_error_mean"] == pytest.approx(lift.mean(), abs=1e-6)
     png = plot_impacts(r, tmp_path / "impacts.png", "floor: CM")
     with Image.open(png) as im:
@@ -76,3 +77,48 @@ def test_no_impact_no_flag():
     cp = dc.load_system("CP3", walls=[[0.0, 1.0, 10.0]])
     z0 = cp.sample_initial_conditions(4, seed=0)
     assert first_impacts(cp, cp.simulate(z0, 99, progress=False).numpy()).trajectory.size == 0
+
+
+def _ratios(predicted):
+    """Four observed impacts (ratios 0.5 ... 0.8) and the model's ``predicted`` ratios."""
+    observed = np.array([0.5, 0.6, 0.7, 0.8])
+    return {
+        "trajectory": np.arange(4), "step": np.full(4, 3), "contact": np.zeros(4, dtype=int),
+        "u_n_pre": -np.ones(4), "u_n_post": observed, "u_n_pred": np.asarray(predicted),
+        "u_t_pre": np.array([0.0, 0.5, 1.0, 2.0]), "ratio_observed": observed,
+        "ratio_predicted": np.asarray(predicted, dtype=float),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("n_nan", [0, 3, 4])
+def test_impact_counts_are_explicit_and_the_observed_mean_is_the_models_no_matter(
+    tmp_path, monkeypatch, n_nan
+):
+    """With diverged predictions ``n`` counted the impacts with a finite prediction (all of
+    them when none was), the observed mean dropped the impacts the model failed on, and
+    impacts.png said "no impact found" for impacts found."""
+    import diffcontact.learning.evaluation.plots as plots
+
+    predicted = [np.nan] * n_nan + [0.9] * (4 - n_nan)
+    s = impact_summary(_ratios(predicted))
+    assert s["n_found"] == 4 and s["n_predicted"] == 4 - n_nan
+    assert s["ratio_observed_mean"] == pytest.approx(0.65)  # all four, whatever the model
+    if n_nan == 4:
+        assert s["ratio_predicted_mean"] is None and s["ratio_error_mean"] is None
+    else:
+        assert s["ratio_predicted_mean"] == pytest.approx(0.9)
+        ok = np.array([0.5, 0.6, 0.7, 0.8])[n_nan:]
+        assert s["ratio_error_mean"] == pytest.approx(float(np.mean(0.9 - ok)))
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, dpi=110: figures.append(fig) or path)
+    plot_impacts(_ratios(predicted), tmp_path / "impacts.png", "t")
+    left = figures[0].axes[0]
+    said = " ".join([left.get_title(), *(t.get_text() for t in left.texts)])
+    assert "no impact found" not in said and "4 first impacts" in said
+    if n_nan:
+        assert f"{4 - n_nan} with a finite prediction" in said
+    if n_nan == 4:
+        assert "4 impacts found; the model's step diverged" in said
+    # the right panel shows every observed impact
+    observed = figures[0].axes[1].collections[0]
+    assert len(observed.get_offsets()) == 4

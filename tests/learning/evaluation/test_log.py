@@ -36,3 +36,30 @@ def test_the_training_plot_names_e_p_and_marks_the_refit(tmp_path):
     assert all(after is None for *_, after in _training_series(log, None, 2)["cor"])
     path = plot_training(log, None, 2, tmp_path / "training.png", "t", refit=final)
     assert path is not None and path.stat().st_size > 5000
+
+
+def test_the_training_plot_of_one_epoch_has_dots_and_integer_epochs(tmp_path, monkeypatch):
+    """A one-epoch run drew lines through one point (nothing visible) over epoch ticks
+    -0.045, -0.030, ... (MaxNLocator(integer=True) found no integer in +-0.05)."""
+    import diffcontact.learning.evaluation.plots as plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path, dpi=110: figures.append(fig) or path)
+    log = {"epoch": np.array([0.0]), "train/loss_epoch": np.array([0.02]),
+           "val/loss": np.array([0.03]), "param/mass_ratio_1": np.array([1.06]),
+           "param/mu": np.array([0.5])}  # fmt: skip
+    assert plots.plot_training(log, None, 2, tmp_path / "training.png", "t") is not None
+    (fig,) = figures
+    fig.canvas.draw()
+    for ax in fig.axes:
+        lines = [line for line in ax.get_lines() if len(line.get_xdata()) == 1]
+        assert lines and all(line.get_marker() not in (None, "", "None") for line in lines)
+        lo, hi = ax.get_xlim()
+        ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+        assert ticks == [0.0], ticks
+    # many epochs: lines without dots, as before
+    figures.clear()
+    many = {k: np.linspace(1, 2, 40) for k in log}
+    many["epoch"] = np.arange(40.0)
+    plots.plot_training(many, None, 2, tmp_path / "training.png", "t")
+    assert all(line.get_marker() in (None, "", "None") for line in figures[0].axes[0].get_lines())

@@ -146,3 +146,18 @@ def test_rollout_steps_is_max_of_horizon_and_100_dt():
     assert rollout_steps(dc.load_system("BP5")) == 99  # horizon 1 s = 100 dt
     assert rollout_steps(dc.load_system("Rope")) == 99  # horizon 20 dt < 100 dt
     assert rollout_steps(dc.load_system(TINY, horizon=2.0)) == 199
+
+
+def test_energy_drift_of_model_and_truth_over_the_same_trajectories():
+    """A diverged prediction left its trajectory out of the model's mean only: the truth's
+    was over all trajectories, the two compared over different sets."""
+    system, true = _free_flight()
+    pred = true.clone()
+    pred[:, :, 1] *= math.sqrt(2.0)  # drift exactly 1 where finite
+    pred[0, 5:] = float("nan")  # the first rollout diverges
+    lossy = true.clone()
+    lossy[:, :, 1] *= torch.linspace(1.0, 0.5, true.shape[1], dtype=torch.float64)[:, None, None]
+    lossy[1:, :, 1] = true[1:, :, 1]  # only the first true trajectory loses energy
+    drift = energy_rel_drift(system, pred, lossy)
+    assert drift["n"] == 2
+    assert drift["true"] == pytest.approx(0.0, abs=1e-12)  # the lossy one is left out

@@ -57,7 +57,7 @@ def test_recorded_data_without_declared_truth(tmp_path, recorded_dataset, monkey
         assert metrics[key]["true"] is None and metrics[key][err] is None
         assert metrics[key]["learned"] is not None
     assert metrics["mass_ratios"]["learned"] == pytest.approx([2.0])
-    assert metrics["energy_rel_drift"] == {"pred": None, "true": None}
+    assert metrics["energy_rel_drift"] == {"pred": None, "true": None, "n": None}
     assert metrics["energy_rel_error"] is None
     assert "placeholders" in metrics["unknown"]["parameters"]
     assert "true masses" in metrics["unknown"]["energy"]

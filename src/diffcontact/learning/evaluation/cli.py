@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -154,6 +155,13 @@ def _param_rows_plain(
     ]
 
 
+def _unfinished(out: Path) -> bool:
+    """Whether ``out`` holds an unfinished evaluation: its marker and no ``metrics.json``."""
+    from diffcontact.learning.evaluation.evaluate import STARTED
+
+    return (out / STARTED).is_file() and not (out / "metrics.json").exists()
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from diffcontact.learning.evaluation.evaluate import EvaluationInputError
 
@@ -175,21 +183,31 @@ def _evaluate(args: argparse.Namespace) -> int:
             "(2 rollouts of the training chunks per parameter; --no-uncertainty skips it)",
             flush=True,
         )
-    with warnings.catch_warnings():  # said by the WARNING line below, not twice
-        warnings.simplefilter("ignore", DivergedRolloutsWarning)
-        m = evaluate(
-            args.run_dir,
-            args.out,
-            data_dir=args.data,
-            n_gif=args.n_gif,
-            gif_frames=args.gif_frames,
-            device=args.device,
-            steps=args.steps,
-            n_test=args.n_test,
-            force=args.force,
-            uncertainty=not args.no_uncertainty,
-        )
     out = Path(args.out) if args.out else Path(args.run_dir) / "evaluation"
+    try:
+        with warnings.catch_warnings():  # said by the WARNING line below, not twice
+            warnings.simplefilter("ignore", DivergedRolloutsWarning)
+            m = evaluate(
+                args.run_dir,
+                args.out,
+                data_dir=args.data,
+                n_gif=args.n_gif,
+                gif_frames=args.gif_frames,
+                device=args.device,
+                steps=args.steps,
+                n_test=args.n_test,
+                force=args.force,
+                uncertainty=not args.no_uncertainty,
+            )
+    except KeyboardInterrupt:
+        if not _unfinished(out):
+            raise  # (the folder is untouched or finished: main says "interrupted")
+        print(
+            f"diffcontact evaluate: interrupted: {out}{os.sep} is now an unfinished evaluation "
+            "(no metrics.json); run the same command again to replace its files",
+            file=sys.stderr,
+        )
+        return 130
     n = m["n_test"]
     print(
         f"{m['task']}: {m['model']}, {n} test {'trajectory' if n == 1 else 'trajectories'} x "
@@ -221,9 +239,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     if "energy" in m.get("unknown", {}):
         print("  energy drift     unknown (the true masses of the recorded system are unknown)")
     else:
+        used = drift.get("n")
+        over = "" if used is None or used == n else f"; both over the {used} of {n} finite rollouts"
         print(
             f"  energy drift     model {_fmt(drift['pred'])}, ground truth "
-            f"{_fmt(drift['true'])} (true energy, per mean kinetic energy)"
+            f"{_fmt(drift['true'])} (true energy, per mean kinetic energy{over})"
         )
     unc = m.get("uncertainty")
     if unc and "error" in unc:

@@ -26,11 +26,14 @@ evaluation (of another run or data set) without ``force``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import hashlib
 import inspect
 import json
 import math
 import os
+import tempfile
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -43,6 +46,7 @@ from diffcontact import __version__
 from diffcontact.io import (
     atomic_save_npz,
     atomic_write_json,
+    check_writable_folder,
     jsonable,
     parse_device,
     read_json_object,
@@ -52,16 +56,17 @@ from diffcontact.learning.evaluation.impacts import impact_ratios, impact_summar
 from diffcontact.learning.evaluation.log import find_training_log, read_training_log
 from diffcontact.learning.evaluation.metrics import (
     as_numpy,
+    energy_drifts,
     energy_scale,
     finite_mean,
     mean_ci95,
-    relative_drift,
     relative_error,
     rollout_steps,
     true_energy,
     true_parameters,
 )
 from diffcontact.learning.evaluation.plots import plot_energy, plot_rel_error, plot_training
+from diffcontact.systems.config import rollout_size_error
 
 __all__ = [
     "METRICS_FORMAT_VERSION",
@@ -71,7 +76,9 @@ __all__ = [
     "evaluate",
 ]
 
-METRICS_FORMAT_VERSION = 1
+METRICS_FORMAT_VERSION = 2
+"""2 (2026-11-28): ``impacts.n`` became ``n_found`` and ``n_predicted``,
+``energy_rel_drift`` gained ``n``, and ``identity`` was added."""
 OUTPUT_FILES = (
     "metrics.json", "rollout.npz", "rel_error.png", "energy.png", "training.png", "rollout.gif",
     "impacts.png",
@@ -193,17 +200,30 @@ def _unfinished_checkpoint(run_path: Path, run: Mapping[str, Any]) -> tuple[Path
             f"{folder}{skipped}"
         )
     done = epochs_done(ckpt)
-    of = f" of {run['epochs']}" if isinstance(run.get("epochs"), int) else ""
+    total = run.get("epochs") if isinstance(run.get("epochs"), int) else None
+    of = "" if total is None else f" of {total}"
     when = "" if done is None else f" after {done}{of} epochs"
     if path.name == LAST:
         what = f"its last checkpoint{when}"
     else:
         gone = "; ".join(notes) if notes else f"no {folder.name}/{LAST}"
         what = f"its newest epoch checkpoint, {folder.name}/{path.name}{when} ({gone})"
-    note = (
-        f"{run_path} has no model.pt (its training did not finish): this is {what}, not a "
-        "final model"
-    )
+    if done is not None and total is not None and done >= total:
+        # every epoch ran: model.pt was written, then deleted or moved
+        refit = (
+            ", before its refit (refit.json): not the refit's model"
+            if (run_path / "refit.json").is_file()
+            else ""
+        )
+        note = (
+            f"{run_path} has no model.pt although its training finished: the file is missing "
+            f"(deleted or moved?); this is {what}, the weights at the end of its training{refit}"
+        )
+    else:
+        note = (
+            f"{run_path} has no model.pt (its training did not finish): this is {what}, not a "
+            "final model"
+        )
     return path, note
 
 
@@ -238,6 +258,11 @@ def _model_label(model: Any, run: Mapping[str, Any]) -> str:
 def _load_test(data_path: Path) -> tuple[np.ndarray, Any, Any]:
     """The test trajectories ``(N, T, 2, P, dim)``, the system and the dataset
     (its ``contact_model``, ``parameters_known`` and ``metadata["source"]``)."""
+    if data_path.is_file():  # (it said "test data not found: DIR/test.npz/test.npz")
+        raise EvaluationInputError(
+            f"{data_path} is a file: pass the dataset folder that holds it (--data "
+            f"{data_path.parent}); evaluate reads its test.npz and metadata.json"
+        )
     if not data_path.is_dir():
         raise EvaluationInputError(
             f"test data not found: {data_path / 'test.npz'} (missing data directory; if the "
@@ -271,12 +296,83 @@ STARTED = ".evaluation-started.json"
 """Written (run and data) before an evaluation's first output file, removed after its
 ``metrics.json``: an evaluation stopped in between can be run again in its folder."""
 
+_RESUME_FIELDS = ("data_dir", "data_checksum", "epochs", "resumed")
+"""The fields of ``run.json`` a resume may rewrite (a moved dataset, more epochs)."""
 
-def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -> None:
+
+def _relative(path: Path, out: Path) -> str:
+    """``path`` relative to the output folder ``out`` (both resolved: independent of the
+    working directory, and unchanged when a folder holding both moves)."""
+    try:
+        return Path(os.path.relpath(path.resolve(), out.resolve())).as_posix()
+    except ValueError:  # (another drive)
+        return path.resolve().as_posix()
+
+
+def _identity(
+    out: Path, run_path: Path | None, run: Mapping[str, Any], data_path: Path, dataset: Any
+) -> dict[str, Any]:
+    """What makes an evaluation in ``out`` the same as another (``metrics.json["identity"]``).
+
+    ``run`` and ``data``: the run and data folders relative to ``out``; ``run_id``: a
+    digest of ``run.json`` without the fields a resume rewrites (its ``created`` time
+    stamp makes it the run's own; ``None`` for a ``run.json`` without one, or no run);
+    ``data_checksum``: the dataset's metadata checksum (``metadata_sha256``, which covers
+    its files).
+    """
+    from diffcontact.learning.data.format import METADATA_CHECKSUM, metadata_checksum
+
+    run_id = None
+    if run_path is not None and run.get("created"):
+        fixed = {k: v for k, v in run.items() if k not in _RESUME_FIELDS}
+        text = json.dumps(fixed, sort_keys=True, default=str)
+        run_id = hashlib.sha256(text.encode()).hexdigest()
+    meta = dataset.metadata
+    return {
+        "run": None if run_path is None else _relative(run_path, out),
+        "run_id": run_id,
+        "data": _relative(data_path, out),
+        "data_checksum": meta.get(METADATA_CHECKSUM) or metadata_checksum(dict(meta)),
+    }
+
+
+def _same_evaluation(
+    old: Mapping[str, Any], identity: Mapping[str, Any], run_path: Path | None, data_path: Path
+) -> bool:
+    """Whether ``old`` (a ``metrics.json`` or the marker) is an evaluation of the same run
+    and data set: each the same folder (relative to the output folder) or the same run
+    (``run_id``) and data (``data_checksum``), wherever they lie now."""
+    then = old.get("identity")
+    if not isinstance(then, Mapping):  # written before 2026-11-28: the paths as given
+        return _same_path(old.get("run_dir"), run_path) and _same_path(
+            old.get("data_dir"), data_path
+        )
+
+    def same(where: str, which: str) -> bool:
+        if then.get(where) == identity[where]:  # (both None: no run directory)
+            return True
+        return then.get(which) is not None and then.get(which) == identity[which]
+
+    no_run = then.get("run") is None or identity["run"] is None
+    if no_run:
+        run_ok = then.get("run") is None and identity["run"] is None
+    else:
+        run_ok = same("run", "run_id")
+    return run_ok and same("data", "data_checksum")
+
+
+def _check_out(
+    out: Path,
+    identity: Mapping[str, Any],
+    run_path: Path | None,
+    data_path: Path,
+    force: bool,
+) -> None:
     """Refuse to replace another evaluation's files in ``out`` (unless ``force``).
 
-    Files of an evaluation of the same run and data set (re-evaluating) are
-    replaced; so is everything with ``force``.
+    Files of an evaluation of the same run and data set (re-evaluating, from any working
+    directory, also after the folders moved: :func:`_same_evaluation`) are replaced; so
+    is everything with ``force``.
     """
     present = [n for n in OUTPUT_FILES if (out / n).exists() or (out / n).is_symlink()]
     if not present or force:
@@ -290,16 +386,85 @@ def _check_out(out: Path, run_path: Path | None, data_path: Path, force: bool) -
                 old = json.loads(found.read_text())
             except (OSError, UnicodeDecodeError, json.JSONDecodeError):
                 old = None
-    if (
-        isinstance(old, dict)
-        and _same_path(old.get("run_dir"), run_path)
-        and _same_path(old.get("data_dir"), data_path)
-    ):
+    if isinstance(old, dict) and _same_evaluation(old, identity, run_path, data_path):
         return
     raise EvaluationInputError(
         f"{out} already holds {', '.join(present)} of another evaluation (or files not "
         "written by one): pass --force to replace them, or choose another --out"
     )
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse an output folder where no file can be written, before anything is: tried
+    with a file made and removed in ``out`` where it exists (permission bits say nothing
+    for root or on read-only file systems), else checked on its nearest existing folder
+    (made by :func:`_start`, which undoes it when the first file fails)."""
+    try:
+        check_writable_folder(out)
+    except NotADirectoryError as err:  # "DIR exists and is not a folder", ...
+        raise EvaluationInputError(f"output folder {err}") from None
+    except OSError as err:
+        raise EvaluationInputError(f"cannot write to the output folder {out}: {err}") from None
+    try:
+        if out.is_dir():
+            fd, probe = tempfile.mkstemp(dir=out, prefix=".diffcontact-probe-")
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as err:
+        why = err.strerror if isinstance(err.strerror, str) else str(err)
+        raise EvaluationInputError(f"cannot write to the output folder {out}: {why}") from None
+
+
+def _start(out: Path, started: Mapping[str, Any]) -> None:
+    """Make ``out`` and write the marker :data:`STARTED`; a failure is bad input and
+    leaves no folder behind that this call made."""
+    made = []
+    folder = out
+    while not folder.exists() and folder != folder.parent:
+        made.append(folder)
+        folder = folder.parent
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(out / STARTED, started)
+    except OSError as err:
+        for folder in made:  # (innermost first; only while empty)
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        why = err.strerror if isinstance(err.strerror, str) else str(err)
+        raise EvaluationInputError(f"cannot write to the output folder {out}: {why}") from None
+
+
+def _check_model_fits(
+    model: Any,
+    dataset: Any,
+    traj: np.ndarray,
+    data_path: Path,
+    run_model: tuple[Path, Mapping[str, Any], Path] | None = None,
+) -> None:
+    """Refuse a model that cannot be scored on the data (``Dataset.mismatch``).
+
+    ``run_model``: ``(run directory, its run.json, the model file)`` for a model read from
+    a run. When ``run.json`` says the run trained on these very data (their checksum),
+    the model file is blamed: it is not the run's (copied from another run), rather than
+    the run's own data being "data of another system".
+    """
+    from diffcontact.learning.data.format import METADATA_CHECKSUM, metadata_checksum
+
+    why = dataset.mismatch(model, torch.as_tensor(traj[:64, 0, 0]))  # the test states, read
+    if why is None:
+        return
+    name = getattr(model, "model_name", None) or type(model).__name__
+    if run_model is not None:
+        run_path, run, model_file = run_model
+        meta = dataset.metadata
+        checksum = meta.get(METADATA_CHECKSUM) or metadata_checksum(dict(meta))
+        if run.get("data_checksum") == checksum:
+            raise EvaluationInputError(
+                f"{model_file} is not the model of the run {run_path} (copied from another "
+                f"run?): run.json says the run trained on {data_path} ({dataset.task}), but "
+                f"the model does not fit those data: {why} ({name})"
+            )
+    raise EvaluationInputError(f"{data_path}: {why} ({name}): data of another system")
 
 
 # ---------------------------------------------------------------------------
@@ -456,10 +621,14 @@ def evaluate(
         EvaluationInputError: missing run directory, checkpoint, test data or
             config; a model or data file that cannot be read, fails its
             checksum or would run code to load; ``out_dir`` holding another
-            evaluation (without ``force``); bad arguments (``steps`` beyond
-            the recorded states); CUDA requested but unavailable; a ``model``
-            without ``simulate``, whose rollouts have the wrong shape, or whose
-            ``learned_parameters()`` is not a dict of numbers.
+            evaluation (without ``force``), or where no file can be written;
+            bad arguments (``steps`` beyond the recorded states or beyond
+            ``simulate``'s size limits); CUDA requested but unavailable; a model
+            of another system than the data's (or, read from the run, not the
+            run's own); a ``model`` without ``simulate``, whose rollouts have
+            the wrong shape, or whose ``learned_parameters()`` is not a dict of
+            numbers. All but the last two are raised before anything is written
+            (the output folder is made only after these checks).
     """
     # ---- arguments and files
     from diffcontact.viz.animation import MAX_PANELS
@@ -516,41 +685,6 @@ def evaluate(
             f"states, so at most {T_data - 1} steps can be compared (recorded data has no "
             "ground truth beyond the recording; nothing is simulated)"
         )
-    if out_dir is None:
-        if run_path is None:
-            raise EvaluationInputError("give out_dir when there is no run directory")
-        out_dir = run_path / "evaluation"
-    out = Path(out_dir)
-    _check_out(out, run_path, data_path, force)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise EvaluationInputError(f"cannot create output folder {out}: {err}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise EvaluationInputError(f"output folder {out} is not writable")
-    started = {"run_dir": None if run_path is None else str(run_path), "data_dir": str(data_path)}
-    atomic_write_json(out / STARTED, started)
-
-    # ---- model
-    model_note = None
-    if model is None:
-        from diffcontact.learning.models.storage import load_model
-
-        model_file = run_path
-        if not (run_path / "model.pt").is_file():  # a run still training, or interrupted
-            model_file, model_note = _unfinished_checkpoint(run_path, run)
-        try:
-            model = load_model(model_file)
-        except (FileNotFoundError, ValueError) as err:
-            raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
-    if isinstance(model, torch.nn.Module):
-        model = model.to(dev).eval()
-    why = dataset.mismatch(model, torch.as_tensor(traj[:64, 0, 0]))  # the test states, read
-    if why is not None:
-        name = getattr(model, "model_name", None) or type(model).__name__
-        raise EvaluationInputError(f"{data_path}: {why} ({name}): data of another system")
-
-    # ---- rollouts
     dt = system.dt
     rollout_note = None
     if steps is None and recorded:
@@ -563,6 +697,38 @@ def evaluate(
     if n_test is not None:
         traj = traj[:n_test]
     N = traj.shape[0]
+    too_large = rollout_size_error(N, steps, system.state_shape, names=("steps=", "n_test="))
+    if too_large:  # (simulate's limit, which stopped the rollout with exit status 1)
+        raise EvaluationInputError(too_large)
+    if out_dir is None:
+        if run_path is None:
+            raise EvaluationInputError("give out_dir when there is no run directory")
+        out_dir = run_path / "evaluation"
+    out = Path(out_dir)
+    identity = _identity(out, run_path, run, data_path, dataset)
+    _check_out(out, identity, run_path, data_path, force)
+    _check_writable(out)
+
+    # ---- model (read before the output folder is made: a bad one leaves nothing behind)
+    model_note, from_run = None, None
+    if model is None:
+        from diffcontact.learning.models.storage import load_model
+
+        model_file = run_path / "model.pt"
+        if not model_file.is_file():  # a run still training, or interrupted
+            model_file, model_note = _unfinished_checkpoint(run_path, run)
+        try:
+            model = load_model(model_file)
+        except (FileNotFoundError, ValueError) as err:
+            raise EvaluationInputError(f"cannot load the model of {run_path}: {err}") from None
+        from_run = (run_path, run, model_file)
+    if isinstance(model, torch.nn.Module):
+        model = model.to(dev).eval()
+    _check_model_fits(model, dataset, traj, data_path, from_run)
+    _start(out, {"run_dir": None if run_path is None else str(run_path),
+                 "data_dir": str(data_path), "identity": identity})  # fmt: skip
+
+    # ---- rollouts
     z0 = torch.as_tensor(traj[:, 0], dtype=torch.float64, device=dev)
     with torch.no_grad():
         if traj.shape[1] >= steps + 1:
@@ -593,12 +759,17 @@ def evaluate(
     unknown: dict[str, str] = {}
     if known:
         E_pred, E_true = true_energy(system, pred), true_energy(system, true)
-        E0, scale = E_true[:, 0], energy_scale(system, true)
-        drift_pred = relative_drift(E_pred, E0, scale)
-        drift_true = relative_drift(E_true, E0, scale)
+        scale = energy_scale(system, true)
+        # the model's and the truth's drift over the same trajectories (those whose
+        # rollout stayed finite; the truth's over all of them had been compared before)
+        drift_pred, drift_true, rows = energy_drifts(E_pred, E_true, scale)
         gap = np.abs(E_pred - E_true) / scale if scale > 0 else np.full(E_pred.shape, np.nan)
-        drift = {"pred": finite_mean(drift_pred), "true": finite_mean(drift_true)}
-        energy_error: float | None = finite_mean(gap)
+        drift = {
+            "pred": finite_mean(drift_pred[rows]),
+            "true": finite_mean(drift_true[rows]),
+            "n": int(rows.sum()),
+        }
+        energy_error: float | None = finite_mean(gap[rows])
         truth: dict[str, Any] | None = true_parameters(system)
     else:
         unknown["parameters"] = (
@@ -610,7 +781,8 @@ def evaluate(
             "the true energy needs the true masses (and potential) of the recorded system, "
             "which are unknown"
         )
-        drift, energy_error, truth = {"pred": None, "true": None}, None, None
+        drift = {"pred": None, "true": None, "n": None}
+        energy_error, truth = None, None
     impacts = impact_ratios(  # the first impact of each trajectory
         system, model, true, dev, simulate=lambda z, n: _rollouts(model, z, n)[0]
     )
@@ -652,6 +824,7 @@ def evaluate(
         "device": str(device),
         "run_dir": None if run_path is None else str(run_path),
         "data_dir": str(data_path),
+        "identity": identity,
         "diffcontact_version": __version__,
     }
 
@@ -694,6 +867,11 @@ def evaluate(
         path = out / "training.png"
         if log and plot_training(log, truth, system.n_bodies, path, title, refit=refit):
             files.append("training.png")
+        elif log is not None:  # read, but nothing to draw (it was left out without a word)
+            what = "no row" if not log else "no loss or learned parameter per epoch"
+            metrics["log_note"] = (
+                f"training.png not drawn: {log_path} holds {what} (truncated or empty?)"
+            )
     if n_gif > 0:
         from diffcontact.viz import animate, scene_from_system
 

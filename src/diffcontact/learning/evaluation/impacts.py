@@ -161,55 +161,74 @@ def impact_ratios(
 
 
 def impact_summary(ratios: dict[str, np.ndarray]) -> dict[str, Any]:
-    """``metrics.json``'s ``impacts``: count, means and the mean predicted - observed gap."""
+    """``metrics.json``'s ``impacts``: counts, means and the mean predicted - observed gap.
+
+    ``n_found``: the impacts found in the data (first impacts of the test trajectories);
+    ``n_predicted``: those where the model's step from the pre-impact state is finite.
+    ``ratio_observed_mean`` is over every impact found, whatever the model; the predicted
+    mean and the errors (each prediction against its own observation) are over the
+    ``n_predicted`` impacts. Means without an impact to average are ``None``.
+    """
     obs, pred = ratios["ratio_observed"], ratios["ratio_predicted"]
-    ok = np.isfinite(obs) & np.isfinite(pred)
-    n = int(ok.sum())
-    if n == 0:
-        return {"n": int(obs.size), "ratio_observed_mean": None, "ratio_predicted_mean": None,
-                "ratio_error_mean": None, "ratio_error_abs_mean": None}  # fmt: skip
+    seen = np.isfinite(obs)
+    ok = seen & np.isfinite(pred)
     diff = pred[ok] - obs[ok]
+
+    def mean(x: np.ndarray) -> float | None:
+        return float(x.mean()) if x.size else None
+
     return {
-        "n": n,
-        "ratio_observed_mean": float(obs[ok].mean()),
-        "ratio_predicted_mean": float(pred[ok].mean()),
-        "ratio_error_mean": float(diff.mean()),
-        "ratio_error_abs_mean": float(np.abs(diff).mean()),
+        "n_found": int(obs.size),
+        "n_predicted": int(ok.sum()),
+        "ratio_observed_mean": mean(obs[seen]),
+        "ratio_predicted_mean": mean(pred[ok]),
+        "ratio_error_mean": mean(diff),
+        "ratio_error_abs_mean": mean(np.abs(diff)),
     }
 
 
 def plot_impacts(ratios: dict[str, np.ndarray], path: Path, title: str) -> Path:
-    """Left: predicted against observed normal velocity ratio, one point per impact.
-    Right: both against the slip ratio ``|u_t| / |u_n|`` before the impact."""
+    """Left: predicted against observed normal velocity ratio, one point per impact with a
+    finite prediction. Right: both against the slip ratio ``|u_t| / |u_n|`` before the
+    impact (every observed impact; the model's where finite). The titles count the impacts
+    found and those the model predicted (a diverged step is left out and said so)."""
     from diffcontact.learning.evaluation.plots import _figure, _save
 
     obs, pred = ratios["ratio_observed"], ratios["ratio_predicted"]
-    ok = np.isfinite(obs) & np.isfinite(pred)
-    obs, pred = obs[ok], pred[ok]
-    slip = (ratios["u_t_pre"] / -ratios["u_n_pre"])[ok]
+    slip = ratios["u_t_pre"] / -ratios["u_n_pre"]
+    seen = np.isfinite(obs)
+    ok = seen & np.isfinite(pred)
+    n_found, n_ok = int(obs.size), int(ok.sum())
     fig = _figure(10.0, 4.0)
     ax1, ax2 = fig.subplots(1, 2)
-    ax1.scatter(obs, pred, s=14, color="#1f77b4", alpha=0.8, lw=0)
-    if obs.size:
-        lo = min(0.0, float(obs.min()), float(pred.min()))
-        hi = max(1.0, float(obs.max()), float(pred.max()))
+    ax1.scatter(obs[ok], pred[ok], s=14, color="#1f77b4", alpha=0.8, lw=0)
+    if n_ok:
+        lo = min(0.0, float(obs[ok].min()), float(pred[ok].min()))
+        hi = max(1.0, float(obs[ok].max()), float(pred[ok].max()))
         ax1.plot([lo, hi], [lo, hi], color="#555555", lw=1.0, ls="--", label="predicted = observed")
         ax1.legend(fontsize=8, loc="upper left")
     ax1.set_xlabel(r"observed $u_n^+ / |u_n^-|$")
     ax1.set_ylabel(r"predicted $u_n^+ / |u_n^-|$")
-    ax1.set_title(
-        f"first impacts of the test trajectories ({obs.size}); model: one step", fontsize=10
-    )
-    ax2.scatter(slip, obs, s=16, color="#444444", label="observed", lw=0)
-    ax2.scatter(slip, pred, s=22, facecolors="none", edgecolors="#d62728", label="model")
+    found = f"{n_found} first {'impact' if n_found == 1 else 'impacts'} of the test trajectories"
+    if n_ok < n_found:
+        found += f", {n_ok} with a finite prediction"
+    ax1.set_title(f"{found}; model: one step", fontsize=10)
+    ax2.scatter(slip[seen], obs[seen], s=16, color="#444444", label="observed", lw=0)
+    ax2.scatter(slip[ok], pred[ok], s=22, facecolors="none", edgecolors="#d62728", label="model")
     ax2.set_xlabel(r"slip ratio $|u_t^-| / |u_n^-|$ before the impact")
     ax2.set_ylabel(r"normal velocity ratio $u_n^+ / |u_n^-|$")
     ax2.set_title("restitution against sliding", fontsize=10)
     ax2.legend(fontsize=8)
     for ax in (ax1, ax2):
         ax.grid(True, lw=0.3, alpha=0.6)
-    if not obs.size:
+    if not n_found:
         ax1.text(0.5, 0.5, "no impact found in the test trajectories", ha="center",
                  va="center", transform=ax1.transAxes)  # fmt: skip
+    elif not n_ok:
+        ax1.text(
+            0.5, 0.5, f"{n_found} {'impact' if n_found == 1 else 'impacts'} found; the model's "
+            "step diverged\n(non-finite) for every one", ha="center", va="center",
+            transform=ax1.transAxes, color="#b00000",
+        )  # fmt: skip
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)

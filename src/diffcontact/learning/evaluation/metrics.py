@@ -7,7 +7,7 @@ Pure functions, numpy in and numpy out (torch tensors are accepted):
 - :func:`mean_ci95`: mean and the half-width of a Student-t 95% confidence
   interval over independent samples (the per-trajectory mean errors);
 - :func:`energy_rel_drift`: the *true* energy along predicted and true
-  trajectories, relative to the true initial energy;
+  trajectories, relative to the true initial energy (both over the same trajectories);
 - :func:`true_parameters`: mass ratios ``m_i / m_1`` (i >= 2), ``mu`` and ``e_P``
   per contact (contact numbering of ``docs/conventions.md``);
 - :func:`rollout_steps`: the length of an evaluation rollout.
@@ -25,9 +25,11 @@ import numpy as np
 __all__ = [
     "MIN_EVAL_STATES",
     "as_numpy",
+    "energy_drifts",
     "energy_rel_drift",
     "energy_scale",
     "finite_mean",
+    "finite_rows",
     "mean_ci95",
     "relative_drift",
     "relative_error",
@@ -196,7 +198,32 @@ def finite_mean(curves: np.ndarray) -> float:
     return float(curves[ok].mean()) if ok.any() else math.nan
 
 
-def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, float]:
+def finite_rows(*curves: np.ndarray) -> np.ndarray:
+    """``(N,)``: the rows finite at every step in every one of ``curves`` (each ``(N, T)``).
+
+    The model's and the truth's energy metrics are means over these same rows: a
+    diverged rollout leaves its trajectory out of both, not only of the model's.
+    """
+    ok = np.ones(len(curves[0]), dtype=bool)
+    for c in curves:
+        ok &= np.isfinite(c).all(-1)
+    return ok
+
+
+def energy_drifts(
+    E_pred: np.ndarray, E_true: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(drift_pred, drift_true, rows)``: the relative drifts ``(N, T)`` of the true energy
+    along predicted and true trajectories (:func:`relative_drift` from ``E_true[:, 0]``),
+    and the ``(N,)`` trajectories where both are finite (:func:`finite_rows`), over which
+    both are averaged."""
+    E0 = E_true[:, 0]
+    drift_pred = relative_drift(E_pred, E0, scale)
+    drift_true = relative_drift(E_true, E0, scale)
+    return drift_pred, drift_true, finite_rows(drift_pred, drift_true)
+
+
+def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, Any]:
     """Relative drift of the true energy along predicted and true trajectories.
 
     With ``E`` the true system's energy, ``E0[n] = E(true[n, 0])`` and
@@ -205,8 +232,8 @@ def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, float]:
         drift_X[n, t] = |E(X[n, t]) - E0[n]| / scale,   X in {pred, true}
         result[X]     = mean over n of (mean over t = 0..T-1 of drift_X[n, t])
 
-    Trajectories with a non-finite value (a diverged prediction) are left out
-    of the mean. For an
+    Both means are over the same trajectories: those where both drifts are finite (a
+    diverged prediction leaves its trajectory out of both), ``n`` of them. For an
     energy-conserving task both numbers should be ~0 (``true`` measures the
     simulator's own drift); for a dissipative task ``true`` is the real energy
     loss and ``pred`` should match it.
@@ -216,16 +243,17 @@ def energy_rel_drift(system: Any, pred: Any, true: Any) -> dict[str, float]:
         pred, true: ``(N, T, 2, P, dim)``.
 
     Returns:
-        ``{"pred": float, "true": float}``.
+        ``{"pred": float, "true": float, "n": int}`` (NaN means when ``n`` is 0).
     """
     p, t = as_numpy(pred), as_numpy(true)
     if p.shape != t.shape or p.ndim != 5:
         raise ValueError(f"pred and true must both be (N, T, 2, P, dim), got {p.shape}, {t.shape}")
     E_pred, E_true = true_energy(system, p), true_energy(system, t)
-    E0, scale = E_true[:, 0], energy_scale(system, t)
+    drift_pred, drift_true, rows = energy_drifts(E_pred, E_true, energy_scale(system, t))
     return {
-        "pred": finite_mean(relative_drift(E_pred, E0, scale)),
-        "true": finite_mean(relative_drift(E_true, E0, scale)),
+        "pred": finite_mean(drift_pred[rows]),
+        "true": finite_mean(drift_true[rows]),
+        "n": int(rows.sum()),
     }
 
 

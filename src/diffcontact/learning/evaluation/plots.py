@@ -19,7 +19,7 @@ from matplotlib.ticker import MaxNLocator
 
 from diffcontact.io import atomic_path
 from diffcontact.learning.evaluation.log import classify_columns
-from diffcontact.learning.evaluation.metrics import mean_ci95, relative_drift
+from diffcontact.learning.evaluation.metrics import energy_drifts, mean_ci95
 
 __all__ = ["plot_energy", "plot_rel_error", "plot_training"]
 
@@ -103,7 +103,9 @@ def plot_energy(
     E_pred: np.ndarray, E_true: np.ndarray, scale: float, dt: float, path: Path, title: str
 ) -> Path:
     """Left: true energy along a few true (solid) and predicted (dashed) rollouts.
-    Right: mean relative drift from the initial energy, with 95% bands."""
+    Right: mean relative drift from the initial energy, with 95% bands, of the truth and
+    the model over the same trajectories (:func:`~.metrics.energy_drifts`: those whose
+    predicted energy is finite; the title says how many when some are left out)."""
     palette = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
     fig = _figure(10.0, 3.8)
     ax1, ax2 = fig.subplots(1, 2)
@@ -118,13 +120,13 @@ def plot_energy(
     )
     ax1.set_ylabel("true energy E (J)")
     ax1.set_title("true energy along trajectories", fontsize=10)
-    E0 = E_true[:, 0]
-    for E, label, color, ls in (
-        (E_true, "ground truth", "#444444", "-"),
-        (E_pred, "model", "#d62728", "--"),
+    drift_pred, drift_true, rows = energy_drifts(E_pred, E_true, scale)
+    n, N = int(rows.sum()), len(rows)
+    for d, label, color, ls in (
+        (drift_true, "ground truth", "#444444", "-"),
+        (drift_pred, "model", "#d62728", "--"),
     ):
-        d = relative_drift(E, E0, scale)
-        d = d[np.isfinite(d).all(-1)]
+        d = d[rows]
         if len(d) == 0:
             continue
         mean, half = mean_ci95(d, axis=0)
@@ -136,8 +138,22 @@ def plot_energy(
         )  # fmt: skip
         ax2.plot(t, mean, color=color, lw=1.8, ls=ls, label=label)
     ax2.set_ylabel(r"$|E(t) - E_{true}(0)| \,/\, \overline{T_{true}}$")
-    ax2.set_title("energy change from E(0): contacts and drift (mean, 95% CI)", fontsize=10)
-    ax2.legend(fontsize=8)
+    what = "energy change from E(0): contacts and drift (mean, 95% CI)"
+    if n < N:  # both curves over the trajectories whose rollout stayed finite
+        what += f"\nover the {n} of {N} trajectories whose predicted energy is finite"
+    ax2.set_title(what, fontsize=10)
+    if n:
+        ax2.legend(fontsize=8)
+    else:
+        why = (
+            f"no trajectory to compare: all {N} predicted energies diverged"
+            if np.isfinite(drift_true).all()
+            else "no drift: the true trajectories hold no kinetic energy (the unit)"
+        )
+        ax2.text(
+            0.5, 0.5, why, ha="center", va="center", transform=ax2.transAxes, fontsize=10,
+            color="#b00000",
+        )  # fmt: skip
     for ax in (ax1, ax2):
         ax.set_xlabel("time (s)")
         ax.grid(True, lw=0.3, alpha=0.6)
@@ -154,6 +170,9 @@ _PANEL_TITLES = {
     "eps": r"CMr $\epsilon$",
 }
 
+
+FEW_EPOCHS = 20
+"""Training curves of at most this many epochs mark each epoch's value with a dot."""
 
 _SHOWN = {"mu": "mu", "cor": "e_P"}
 """The learned-parameter columns' names as the docs write them (``cor`` is e_P)."""
@@ -255,7 +274,11 @@ def plot_training(
         for k, (label, values, ref, after) in enumerate(series):
             color = cmap(k / max(len(series) - 1, 1)) if many else cmap(k % 10)
             ok = np.isfinite(values)
-            ax.plot(epochs[ok], values[ok], color=color, lw=1.0 if many else 1.5, label=label)
+            # few epochs: a marker at each (one epoch drew a line through one point: nothing)
+            dots = {"marker": "o", "ms": 2.5 if many else 3.5} if ok.sum() <= FEW_EPOCHS else {}
+            ax.plot(
+                epochs[ok], values[ok], color=color, lw=1.0 if many else 1.5, label=label, **dots
+            )
             if after is not None and len(epochs):
                 ax.plot([epochs[-1] + 0.5], [after], marker="D", ms=4, color=color, ls="none")
             refs = [] if ref is None else ref if isinstance(ref, list) else [ref]
@@ -281,7 +304,11 @@ def plot_training(
             )  # fmt: skip
         ax.set_title(_PANEL_TITLES.get(cat, cat), fontsize=10)
         ax.set_xlabel("epoch")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        # integer epochs, also for one epoch (min_n_ticks=1: the default 2 found no
+        # integer in the +-0.05 around a single point and fell back to -0.045, -0.030 ...)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
+        if len(epochs) and epochs[-1] - epochs[0] < 1:  # one epoch: room around its point
+            ax.set_xlim(epochs[0] - 0.5, epochs[-1] + (1.0 if refit is not None else 0.5))
         ax.grid(True, lw=0.3, alpha=0.6)
     note = "dashed: true values" if true is not None else "true values unknown: recorded data"
     if refit is not None:
