@@ -768,7 +768,7 @@ def _render_frames(fig, panels, idx, title, title_of, colors: int = 255):
     entries) and an iterator over the frames as palette ("P" mode) Pillow images of that
     palette, so that unchanged pixels stay identical and the GIF stores only changes.
     Each frame is drawn when it is taken: memory does not grow with the frames (all RGB
-    frames had been kept until the last was drawn: 1.2 GB for 1000 frames of 4 panels).
+    frames had been kept until the last was drawn).
     """
     from PIL import Image
 

@@ -40,6 +40,14 @@ def test_simulated_data_drift_far_below_the_tolerance(task):
     assert constraint_violation(system, traj[:, :, 0].numpy()) is None
 
 
+def test_the_data_check_refuses_what_simulate_warns_about():
+    """One tolerance for recorded data off their constraints and simulated rollouts that
+    drift off them (two constants: the data checks import no torch)."""
+    from diffcontact.systems.system import CONSTRAINT_DRIFT_TOL
+
+    assert CONSTRAINT_TOL == CONSTRAINT_DRIFT_TOL
+
+
 def test_relative_residual_of_a_link_an_axis_and_a_pivot():
     """``|u . w - c| / max(|u| |w|, |c|)`` for dot rows, ``|x_p - anchor|`` over the state's
     extent for linear ones."""

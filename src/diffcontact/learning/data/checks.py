@@ -7,8 +7,6 @@ from typing import Any
 
 import numpy as np
 
-from diffcontact.systems.system import CONSTRAINT_DRIFT_TOL
-
 __all__ = [
     "CONSTRAINT_TOL",
     "DT_RTOL",
@@ -69,7 +67,7 @@ def check_seed(seed: Any) -> int:
     return seed
 
 
-CONSTRAINT_TOL = CONSTRAINT_DRIFT_TOL  # 0.25
+CONSTRAINT_TOL = 0.25  # = systems.system.CONSTRAINT_DRIFT_TOL (not imported: no torch here)
 """Recorded positions whose equality constraints are off by more than this (relative,
 :meth:`~diffcontact.mechanics.EqualityConstraints.relative_residual`) do not belong to the
 config: its link lengths, pivot, rigid bodies' axis points or units differ from the data
