@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shlex
 import sys
 import time
 from collections.abc import Sequence
@@ -135,9 +136,9 @@ def render(results: dict[str, Any], meta: dict[str, Any], out: Path | None = Non
         BEGIN,
         "## Planning through learned simulators (billiards, throwing)",
         "",
-        f"Produced by `python experiments/control.py --out runs/control --doc docs/results.md` "
-        f"({meta['date']}; torch {meta['torch']}, {meta['cpu']}, one torch thread; other work "
-        "shared the CPU at times, so times are upper bounds). Targets: "
+        f"Produced by `{meta['command']}` ({meta['date']}; torch {meta['torch']}, "
+        f"{meta['cpu']}, one torch thread; other work shared the CPU at times, so times are "
+        "upper bounds). Targets: "
         f"{meta['targets']} random ones per task (seed 0); each planner plans all of them in "
         "one batched `diffcontact.optimize` call (8 starts per target, Adam, at most "
         f"{meta['iterations']} iterations); every plan is judged by the ground-truth "
@@ -285,8 +286,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
             results[f"{task}/{key}"] = plan_row(task, spec, args.targets, args.radius,
                                                 args.iterations)  # fmt: skip
             save()
+    given = sys.argv[1:] if argv is None else list(argv)
     meta = {
         **settings,
+        "command": shlex.join(["python", "experiments/control.py", *given]),
         "date": datetime.now(timezone.utc).date().isoformat(),
         "torch": torch.__version__,
         "cpu": f"{platform.machine()} CPU",
