@@ -359,3 +359,49 @@ def test_convert_cli_errors(tmp_path, capsys):
     assert main(["convert", "positions", str(tmp_path / "bad.npz"), "--config", "CP3",
                  "--out", out]) == 2  # fmt: skip
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_recordings_of_no_sample_are_named_and_nothing_is_written(tmp_path, capsys):
+    """``q``, ``qdot`` of shape ``(N, 0, ...)`` gave exit 1 "RuntimeError: max(): Expected
+    reduction dim ..." (from the checks after the conversion), and the output was written."""
+    with pytest.raises(ValueError, match=r"q needs T >= 1 sample per trajectory; got 0 \(shape "
+                       r"\(2, 0, 5, 2\)\)"):  # fmt: skip
+        trajectories_from_coordinates("BP5", np.zeros((2, 0, 5, 2)), np.zeros((2, 0, 5, 2)))
+    with pytest.raises(ValueError, match=r"q needs T >= 1 sample per trajectory; got 0"):
+        trajectories_from_coordinates("Gyro", np.zeros((2, 0, 4)), np.zeros((2, 0, 3)))
+    with pytest.raises(ValueError, match=r"q holds no trajectory \(shape \(0, 5, 4\)\)"):
+        trajectories_from_coordinates("Gyro", np.zeros((0, 5, 4)), np.zeros((0, 5, 3)))
+    with pytest.raises(ValueError, match=r"finite differences \(qdot=None\) need T >= 3 samples "
+                       r"per trajectory; got 2"):  # fmt: skip
+        trajectories_from_coordinates("CP3", np.zeros((1, 2, 3)))
+    with pytest.raises(ValueError, match=r"trajectories hold no state \(shape \(2, 0, 2, 5, 2\)\)"):
+        trajectory_checks("BP5", np.zeros((2, 0, 2, 5, 2)))
+    out = tmp_path / "o.npz"
+    for config, q, qdot in (
+        ("BP5", np.zeros((2, 0, 5, 2)), np.zeros((2, 0, 5, 2))),
+        ("Gyro", np.zeros((2, 0, 4)), np.zeros((2, 0, 3))),
+    ):
+        np.savez(tmp_path / "q.npz", q=q, qdot=qdot)
+        argv = ["convert", "coordinates", str(tmp_path / "q.npz"), "--config", config]
+        assert main([*argv, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert "error: q needs T >= 1 sample per trajectory; got 0" in err, err
+        assert not out.exists()
+
+
+def test_convert_says_what_to_fix_when_generate_would_refuse_the_file(tmp_path, capsys):
+    """After warning that ``generate --from-arrays`` refuses the data (positions off the
+    config's constraints), ``convert`` advised "next: diffcontact generate ..."."""
+    _, traj = _simulate("CP3", 2, 19, seed=0, horizon=0.2)
+    np.savez(tmp_path / "x.npz", x=traj[:, :, 0] + np.array([0.0, 0.6]), dt=0.01)
+    out = tmp_path / "o.npz"
+    assert main(["convert", "positions", str(tmp_path / "x.npz"), "--config", "CP3", "--out",
+                 str(out)]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "break the config's equality constraints" in text and "refuses such data" in text
+    assert "next: diffcontact generate" not in text
+    assert "next: fix the config (link lengths, pivot, axis points) or the data's origin or " in (
+        text
+    )
+    assert main(["generate", "--from-arrays", str(out), "--out", str(tmp_path / "d")]) == 2
+    assert "break the config's equality constraints" in capsys.readouterr().err

@@ -237,6 +237,30 @@ def test_convert_cli_mujoco_then_generate(tmp_path, capsys):
                  "--val-fraction", "0.25", "--test-fraction", "0.25"]) == 0  # fmt: skip
 
 
+def test_mujoco_recordings_of_no_sample_are_named(tmp_path, capsys):
+    """``qpos``/``qvel`` of shape ``(2, 0, nq)`` gave exit 1 "RuntimeError: max(): Expected
+    reduction dim ..." (from the out-of-plane check)."""
+    mujoco = pytest.importorskip("mujoco")
+    from diffcontact.learning.data.mujoco import trajectories_from_mujoco
+
+    m = mujoco.MjModel.from_xml_string(SCENE_2D)
+    q, v = np.zeros((2, 0, m.nq)), np.zeros((2, 0, m.nv))
+    with pytest.raises(ValueError, match=rf"qpos needs T >= 1 sample per trajectory; got 0 "
+                       rf"\(shape \(2, 0, {m.nq}\)\)"):  # fmt: skip
+        trajectories_from_mujoco(m, q, v, DISKS, bodies=["d1", "d2"], plane="xz")
+    xml = tmp_path / "scene.xml"
+    xml.write_text(SCENE_2D)
+    np.savez(tmp_path / "mj.npz", qpos=q, qvel=v)
+    cfg = tmp_path / "chain.json"
+    cfg.write_text(json.dumps(load_config(CHAIN).model_dump(mode="json")))
+    out = tmp_path / "o.npz"
+    assert main(["convert", "mujoco", str(tmp_path / "mj.npz"), "--model", str(xml), "--config",
+                 str(cfg), "--out", str(out), "--bodies", "site:tip_a", "site:tip_b", "--plane",
+                 "xz"]) == 2  # fmt: skip
+    assert "error: qpos needs T >= 1 sample per trajectory; got 0" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_mujoco_body_ids_and_a_body_given_twice(tmp_path, capsys):
     """``--bodies 1 2`` said "the model has no body '1' (its bodys: ...)"; ``--bodies d1 d1``
     mapped one MuJoCo body to two diffcontact bodies."""

@@ -289,3 +289,22 @@ def test_a_refit_killed_before_model_pt_leaves_the_run_as_it_was(cp3_data, tmp_p
     assert not (run / refit_module.PENDING).exists()
     assert (run / "model.pt").read_bytes() == before
     assert not (run / "learned.json").exists() and not (run / "refit.json").exists()
+
+
+def test_refit_on_a_dataset_without_a_validation_split_says_so(cp3_data, tmp_path, capsys):
+    """A dataset made with ``val_fraction=0`` made ``refit --iterations 1 --data DS`` say
+    "val_chunks: no chunk without NaN or infinite values": there is no NaN, the split is
+    empty (``train`` says so)."""
+    from diffcontact.learning.data.arrays import dataset_from_arrays
+
+    traj = load_dataset(cp3_data).split("train").traj.numpy()
+    data = dataset_from_arrays(traj, load_dataset(cp3_data).metadata["config"],
+                               tmp_path / "noval", val_fraction=0, progress=False)  # fmt: skip
+    run = _fake_run(tmp_path / "run", data)
+    code, out, err = _refit_cli(capsys, run, 1)
+    assert code == 2 and out == "", err
+    assert f"error: {data}: its validation split is empty, and refit chooses the damping " in err
+    assert "--val-fraction (or --n-val) above 0" in err and "NaN" not in err
+    chunks = _chunks(cp3_data, "train")
+    with pytest.raises(ValueError, match=r"val_chunks holds no chunk \(shape \(0, 5, 2, 3, 2\)\)"):
+        refit(_model(), chunks, chunks[:0])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from diffcontact.io import jsonable, read_npz
 from diffcontact.learning.data.checks import (
     DT_RTOL,
     check_seed,
+    check_stride,
     constraint_violation,
     float_arg,
     int_arg,
@@ -27,6 +29,7 @@ from diffcontact.learning.data.chunks import (
     contact_cues,
     merge_cues,
 )
+from diffcontact.learning.data.convert import VELOCITY_MISMATCH_WARN, velocity_mismatch
 from diffcontact.learning.data.format import SPLITS, STREAM_SPLIT, split_seeds
 from diffcontact.learning.data.write import output_folder, prepare_folder, write_dataset
 from diffcontact.systems import System, load_system
@@ -104,7 +107,8 @@ def dataset_from_arrays(
             ``generate_dataset``). A warning says when it cannot be met.
         progress: print messages (e.g. that an existing dataset was reused).
         stride: states between the starts of the windows cut from every
-            trajectory (1: all windows); ``None``: one chunk per trajectory.
+            trajectory (1: all windows; ``T - chunk_length + 1`` or more: the
+            window at state 0 only); ``None``: one chunk per trajectory.
         true_parameters: declare the config's masses, mu and e_P the true
             values of the recorded system, so that evaluation compares the
             learned ones with them (default: unknown, nothing is compared).
@@ -124,9 +128,17 @@ def dataset_from_arrays(
     Raises:
         ValueError: a message naming the problem: wrong shape (expected vs
             got), NaN/inf (which trajectory and state), dt different from the
-            config's, fewer states than ``chunk_length``, trajectories in
-            contact at every possible chunk start, bad fractions, or an output
+            config's, fewer states than ``chunk_length``, trajectories in contact
+            at every possible chunk start, a train or val split in contact at every start the
+            stride uses (it would get no chunk), bad fractions, or an output
             folder as in ``generate_dataset``.
+
+    Warns:
+        RuntimeWarning: velocities that do not match the positions' motion
+        (``velocity_mismatch`` above 0.25, as ``diffcontact convert`` warns:
+        other units, frame or order of points, or data sampled at another step
+        than the config's ``dt``), and trajectories that get no chunk at the
+        starts the stride uses.
     """
     system = load_system(config)
     seed = check_seed(seed)
@@ -169,6 +181,13 @@ def dataset_from_arrays(
     N, T = arr.shape[:2]
     if N == 0:
         raise ValueError(f"trajectories hold no trajectory (shape {arr.shape})")
+    if T < chunk_length:  # (before the checks below: T = 0 broke their reshape)
+        raise ValueError(
+            f"trajectories hold {T} states, fewer than chunk_length={chunk_length}: each "
+            f"trajectory needs at least {chunk_length} states"
+        )
+    if stride is not None:
+        stride = check_stride(stride, T, chunk_length)
     arr = np.ascontiguousarray(arr, dtype=np.float64)
     bad = ~np.isfinite(arr).reshape(N, T, -1).all(-1)
     if bad.any():
@@ -182,11 +201,6 @@ def dataset_from_arrays(
     broken = constraint_violation(system, arr[:, :, 0])
     if broken is not None:
         raise ValueError(broken)
-    if T < chunk_length:
-        raise ValueError(
-            f"trajectories hold {T} states, fewer than chunk_length={chunk_length}: each "
-            f"trajectory needs at least {chunk_length} states"
-        )
     n_val = math.floor(vf * N + 0.5) if vf > 0 else 0
     n_test = math.floor(tf * N + 0.5) if tf > 0 else 0
     n_val, n_test = (max(n_val, 1) if vf > 0 else 0), (max(n_test, 1) if tf > 0 else 0)
@@ -207,6 +221,17 @@ def dataset_from_arrays(
     stuck = contact[:, :S].all(1)
     if stuck.any():
         raise ValueError(_stuck_message(system, arr, cues, np.flatnonzero(stuck), S, gap_tol))
+    perm = np.random.default_rng([seed, STREAM_SPLIT]).permutation(N)
+    index = {
+        "test": np.sort(perm[:n_test]),
+        "val": np.sort(perm[n_test : n_test + n_val]),
+        "train": np.sort(perm[n_test + n_val :]),
+    }
+    if stride is not None and stride > 1:
+        _check_stride_starts(cues, contact, index, stride, S, gap_tol)
+    mismatch = _velocity_mismatch_message(system, arr)  # (after the refusals: one line each)
+    if mismatch is not None:
+        warnings.warn(mismatch, RuntimeWarning, stacklevel=2)
 
     digest = hashlib.sha256(repr(arr.shape).encode() + arr.tobytes()).hexdigest()
     arguments = {
@@ -234,12 +259,6 @@ def dataset_from_arrays(
     if prepare_folder(folder, arguments, progress):
         return folder
 
-    perm = np.random.default_rng([seed, STREAM_SPLIT]).permutation(N)
-    index = {
-        "test": np.sort(perm[:n_test]),
-        "val": np.sort(perm[n_test : n_test + n_val]),
-        "train": np.sort(perm[n_test + n_val :]),
-    }
     seeds = split_seeds(seed)
     splits = {
         name: chunk_split(
@@ -265,11 +284,32 @@ def dataset_from_arrays(
 
 # what flags a state (contact_cues), and where to look when it flags too many
 _CUE_WORDS = {
-    "gap": ("a gap below gap_tol={tol:g}", "the config's geometry (radii, walls, limits)"),
+    "gap": (
+        "a gap below gap_tol={tol:g}",
+        "the config's geometry (radii, walls, limits) and the units of the positions (mm "
+        "where the config has m?)",
+    ),
     "impact": ("a velocity jump before it", "impact_tol (inf: off)"),
     "given": ("the contact flags given", "the contact flags"),
     "events": ("an event time before it", "the event times"),
 }
+
+
+def _flagged_by(
+    cues: dict[str, np.ndarray], r: int, states: slice | np.ndarray, gap_tol: float
+) -> tuple[str, str]:
+    """Which cues flag trajectory ``r``'s ``states``, with how many of them each (most
+    first), and where to look: ``(by, where)``, parts of one-line messages."""
+    counts = {name: int(flags[r, states].sum()) for name, flags in cues.items()}
+    named = sorted((name for name in counts if counts[name]), key=lambda c: -counts[c])
+    by = ", ".join(
+        f"{_CUE_WORDS[name][0].format(tol=gap_tol)} at {counts[name]} of them" for name in named
+    )
+    return by, ", ".join(_CUE_WORDS[name][1] for name in named)
+
+
+def _listed(rows: np.ndarray) -> str:
+    return ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
 
 
 def _stuck_message(
@@ -287,13 +327,7 @@ def _stuck_message(
     """
     N = arr.shape[0]
     r = int(rows[0])
-    listed = ", ".join(map(str, rows[:10].tolist())) + (" ..." if rows.size > 10 else "")
-    counts = {name: int(flags[r, :S].sum()) for name, flags in cues.items()}
-    named = sorted((name for name in counts if counts[name]), key=lambda c: -counts[c])
-    by = ", ".join(
-        f"{_CUE_WORDS[name][0].format(tol=gap_tol)} at {counts[name]} of them" for name in named
-    )
-    where = ", ".join(_CUE_WORDS[name][1] for name in named)
+    by, where = _flagged_by(cues, r, slice(0, S), gap_tol)
     with torch.no_grad():
         gaps = system.gaps(torch.from_numpy(arr[r, 0, 0]))
     nearest = ""
@@ -306,10 +340,82 @@ def _stuck_message(
             f"(candidate {system.contact_names[k]!r})"
         )
     return (
-        f"{rows.size} of {N} trajectories ({listed}) are flagged in contact at every state "
-        f"that could start a chunk (states 0..{S - 1}), so they cannot be chunked (a chunk "
-        f"must start out of contact); trajectory {r}'s states 0..{S - 1} are flagged by "
+        f"{rows.size} of {N} trajectories ({_listed(rows)}) are flagged in contact at every "
+        f"state that could start a chunk (states 0..{S - 1}), so they cannot be chunked (a "
+        f"chunk must start out of contact); trajectory {r}'s states 0..{S - 1} are flagged by "
         f"{by}{nearest}. Drop them, or check {where}"
+    )
+
+
+def _states_text(states: np.ndarray) -> str:
+    """``"state 0"``, ``"states 0, 10, 20"``, ``"states 0, 4, 8, 12, ..., 32"``."""
+    if states.size == 1:
+        return f"state {states[0]}"
+    shown = states[:4].tolist() + (["...", states[-1]] if states.size > 5 else states[4:].tolist())
+    return "states " + ", ".join(map(str, shown))
+
+
+def _check_stride_starts(
+    cues: dict[str, np.ndarray],
+    contact: np.ndarray,
+    index: dict[str, np.ndarray],
+    stride: int,
+    S: int,
+    gap_tol: float,
+) -> None:
+    """Refuse a stride at whose starts ``0, stride, ...`` no chunk of the train or val
+    split can start out of contact (the split would be written empty); warn about the
+    trajectories that get no chunk there while their split has some. (Every trajectory
+    has an unflagged start among ``0..S-1``: checked before.)"""
+    starts = np.arange(0, S, min(stride, S))  # (a stride beyond S: start 0 alone)
+    chunkless = contact[:, starts].all(1)  # (N,)
+    if not chunkless.any():
+        return
+    at = _states_text(starts)
+    for name in ("train", "val"):
+        rows = index[name]
+        if rows.size and chunkless[rows].all():
+            r = int(rows[0])
+            by, where = _flagged_by(cues, r, starts, gap_tol)
+            n = f"{rows.size} {'trajectory' if rows.size == 1 else 'trajectories'}"
+            raise ValueError(
+                f"stride={stride} leaves the {name} split without a chunk: its {n} "
+                f"({_listed(rows)}) {'is' if rows.size == 1 else 'are'} flagged in contact "
+                f"at every state the stride lets a chunk start at ({at}; a chunk must start "
+                f"out of contact); trajectory {r}'s are flagged by {by}. Use a smaller "
+                f"stride (1: every window; other states are out of contact), or check {where}"
+            )
+    rows = np.flatnonzero(chunkless)
+    warnings.warn(
+        f"stride={stride}: {rows.size} of {len(contact)} trajectories ({_listed(rows)}) give "
+        f"no chunk: they are flagged in contact at every state the stride lets a chunk start "
+        f"at ({at}); a smaller stride takes other starts (1: every window)",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+
+
+def _velocity_mismatch_message(system: System, arr: np.ndarray) -> str | None:
+    """The warning for velocities that do not match the positions' motion, as ``diffcontact
+    convert`` measures it (:func:`~diffcontact.learning.data.convert.velocity_mismatch`
+    above :data:`~diffcontact.learning.data.convert.VELOCITY_MISMATCH_WARN`); ``None``
+    when they do, or for fewer than 3 states."""
+    if arr.shape[1] < 3:
+        return None
+    x, v = torch.from_numpy(arr[:, :, 0]), torch.from_numpy(arr[:, :, 1])
+    mismatch = velocity_mismatch(x, v, system.dt)
+    if not mismatch > VELOCITY_MISMATCH_WARN:
+        return None
+    size = (
+        "more than the median speed, which is 0 (velocities all zero?)"
+        if math.isinf(mismatch)
+        else f"{mismatch:.2f} of the median speed"
+    )
+    return (
+        f"the velocities do not match the motion of the positions: they differ from the "
+        f"positions' finite differences (at the config's dt={system.dt:g}) by {size}; check "
+        "their units, frame and order of points, and that the data are sampled at the "
+        "config's dt (docs/own-data.md, 'What to check')"
     )
 
 
@@ -354,9 +460,18 @@ def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
             f"cannot read {path} as .npz or .npy (truncated or corrupted?): {one_line(err)}"
         ) from None
     if "traj" not in entries:
+        from diffcontact.learning.data.convert_cli import SOURCES
+
+        source = next((s for s, names in SOURCES.items() if names[0] in keys), None)
+        fix = (
+            f"it holds {SOURCES[source][0]!r}, an input of `diffcontact convert {source} "
+            f"{path} --config CONFIG --out OUT.npz`, which writes a file for --from-arrays"
+            if source is not None
+            else "save the trajectories with numpy.savez(FILE, traj=...), or convert "
+            "positions, coordinates or MuJoCo data with `diffcontact convert`"
+        )
         raise ValueError(
-            f"{path} has no array named 'traj' (found: {', '.join(keys) or 'nothing'}); "
-            "save the trajectories with numpy.savez(FILE, traj=...)"
+            f"{path} has no array named 'traj' (found: {', '.join(keys) or 'nothing'}); {fix}"
         )
     traj, dt, config = entries["traj"], None, None
     if "dt" in entries:
@@ -373,4 +488,12 @@ def read_arrays_file(path: str) -> tuple[np.ndarray, float | None, Any]:
             raise ValueError(f"{path}: entry 'config' is not JSON: {err}") from None
         except RecursionError:
             raise ValueError(f"{path}: entry 'config' is nested too deeply to be read") from None
+        if not isinstance(config, (dict, str)):
+            kind = {list: "an array", bool: "a boolean", type(None): "null"}.get(
+                type(config), "a number"
+            )
+            raise ValueError(
+                f"{path}: entry 'config' must be a JSON object (a config, as `diffcontact "
+                f"simulate` and `diffcontact convert` write it) or a task name, got {kind}"
+            )
     return traj, dt, config

@@ -11,6 +11,7 @@ __all__ = [
     "CONSTRAINT_TOL",
     "DT_RTOL",
     "check_seed",
+    "check_stride",
     "constraint_violation",
     "float_arg",
     "int_arg",
@@ -65,6 +66,21 @@ def check_seed(seed: Any) -> int:
     if seed * 1000 + 2 >= 2**63:
         raise ValueError(f"seed must be below {(2**63 - 3) // 1000}, got {seed}")
     return seed
+
+
+def check_stride(stride: Any, n_states: int, chunk_length: int) -> int:
+    """A stride of windows: an integer >= 1, returned as given.
+
+    The windows start at ``0, stride, 2 stride, ...`` up to state ``T - L``; a stride of
+    ``T - L + 1`` or more takes only the window at state 0 (one window per trajectory).
+    The functions that take the starts use ``min(stride, T - L + 1)``, so a stride beyond
+    int64 (``--stride 99999999999999999999``, which broke numpy's indexing after the
+    output folder was made) works as the largest one does. ``n_states`` and
+    ``chunk_length`` are those the stride will be applied to (kept for the callers'
+    symmetry with the other checks).
+    """
+    del n_states, chunk_length
+    return int_arg("stride", stride, 1)
 
 
 CONSTRAINT_TOL = 0.25  # = systems.system.CONSTRAINT_DRIFT_TOL (not imported: no torch here)

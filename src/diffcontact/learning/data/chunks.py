@@ -117,9 +117,27 @@ def event_states(event_times: Any, n_trajectories: int, n_states: int, dt: float
         n_trajectories, n_states, dt: ``N``, ``T`` and the time step.
 
     Raises:
-        ValueError: wrong shape, or a time outside ``[0, (T - 1) dt]``.
+        ValueError: not numbers, rows of different lengths, wrong shape, or a
+            time outside ``[0, (T - 1) dt]`` (by more than ``1e-6 dt``, at either end).
     """
-    ev = np.asarray(event_times, dtype=np.float64)
+    if isinstance(event_times, Tensor):
+        event_times = event_times.detach().cpu().numpy()
+    try:
+        ev = np.asarray(event_times)
+    except (TypeError, ValueError):  # numpy's "inhomogeneous shape"
+        raise ValueError(
+            "event_times must be an (N, E) array of times in seconds: rows of one length "
+            "(pad trajectories with fewer events with NaN)"
+        ) from None
+    try:  # numbers (None in a list of lists pads, as NaN), not strings or booleans
+        if ev.dtype.kind not in "fiuO":
+            raise TypeError
+        ev = ev.astype(np.float64)
+    except (TypeError, ValueError):
+        what = "strings" if ev.dtype.kind in "US" else str(ev.dtype)
+        raise ValueError(
+            f"event_times must be numbers (times in seconds, NaN-padded), got {what}"
+        ) from None
     if ev.ndim != 2 or ev.shape[0] != n_trajectories:
         raise ValueError(
             f"event_times must have shape (N, E) = ({n_trajectories}, E) (NaN-padded times in "
@@ -135,7 +153,8 @@ def event_states(event_times: Any, n_trajectories: int, n_states: int, dt: float
     n, e = np.nonzero(np.isfinite(ev))
     tau = ev[n, e]
     end = (n_states - 1) * dt
-    outside = (tau < 0) | (tau > end * (1 + 1e-9))
+    tol = 1e-6 * dt  # the same at both ends: an event this close to a sample is on it
+    outside = (tau < -tol) | (tau > end + tol)
     if outside.any():
         i = int(np.flatnonzero(outside)[0])
         raise ValueError(
@@ -201,7 +220,13 @@ def contact_cues(
     impact[:, 1:] = impact_intervals(traj, impact_tol)
     given = np.zeros((N, T), dtype=bool)
     if contact is not None:
-        c = np.asarray(contact)
+        try:
+            c = np.asarray(contact)
+        except (TypeError, ValueError):  # numpy's "inhomogeneous shape"
+            raise ValueError(
+                f"contact flags must be a boolean array of shape (N, T) = ({N}, {T}), got "
+                "rows of different lengths"
+            ) from None
         if c.shape != (N, T) or c.dtype.kind not in "biu":
             raise ValueError(
                 f"contact flags must be a boolean array of shape (N, T) = ({N}, {T}), got "
@@ -319,7 +344,8 @@ def window_chunks(
     T = contact.shape[1]
     if T < L:
         raise ValueError(f"trajectories hold {T} states, fewer than chunk_length={L}")
-    starts = np.arange(0, T - L + 1, stride)
+    # a stride beyond the last start takes start 0 only (and beyond int64, broke arange)
+    starts = np.arange(0, T - L + 1, min(stride, T - L + 1))
     windows = np.lib.stride_tricks.sliding_window_view(contact, L, axis=1)[:, starts]
     has = windows.any(-1)  # (N, S')
     n, k = np.nonzero(~contact[:, starts])

@@ -13,7 +13,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from diffcontact.cli_args import float_in, int_at_least, positive_float, report_errors
+from diffcontact.cli_args import (
+    float_in,
+    int_at_least,
+    one_line,
+    one_line_warnings,
+    positive_float,
+    report_errors,
+)
 from diffcontact.contact.registry import contact_models
 from diffcontact.learning.data.checks import DT_RTOL
 
@@ -83,7 +90,8 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
         metavar="K",
         type=_stride,
         default=None,
-        help="cut every window starting at states 0, K, 2K, ... into a chunk (default: 1 with "
+        help="cut every window starting at states 0, K, 2K, ... into a chunk (K at most "
+        "T - chunk length + 1; default: 1 with "
         "--from-arrays; 'none' (one chunk per trajectory, the paper's set-up) for simulated "
         "data); 'none' or 0: one chunk per trajectory",
     )
@@ -108,16 +116,16 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--val-fraction",
         metavar="F",
-        type=float_in(0.0, 1.0),
+        type=_fraction,
         default=None,
-        help="with --from-arrays: share for val (default 0.1)",
+        help="with --from-arrays: share for val, in [0, 1) (default 0.1)",
     )
     p.add_argument(
         "--test-fraction",
         metavar="F",
-        type=float_in(0.0, 1.0),
+        type=_fraction,
         default=None,
-        help="with --from-arrays: share for test (default 0.1)",
+        help="with --from-arrays: share for test, in [0, 1) (default 0.1)",
     )
     p.add_argument(
         "--dt",
@@ -154,6 +162,18 @@ def register_cli(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+def _fraction(text: str) -> float:
+    """``--val-fraction``/``--test-fraction``: a number in ``[0, 1)``, the range
+    ``dataset_from_arrays`` accepts (1 leaves nothing to train on)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value < 1.0:  # (NaN too)
+        raise argparse.ArgumentTypeError(f"must be a finite number in [0, 1), got {value:g}")
+    return value
+
+
 def _stride(text: str) -> int:
     """``--stride``: an integer >= 1, or ``none``/``0`` (0: one chunk per trajectory)."""
     if text.strip().lower() == "none":
@@ -175,8 +195,22 @@ def _config_differs(spec: Any, file_config: Any, traj: Any) -> str | None:
         return f"dt {given.dt!r} against the file's {stored.dt!r}"
     if tuple(given.state_shape) != tuple(stored.state_shape):
         return f"states of shape {tuple(given.state_shape)}, the file's {tuple(stored.state_shape)}"
+    if traj.ndim != 5 or 0 in traj.shape[:2]:  # dataset_from_arrays names the shape
+        return None
     x = torch.as_tensor(traj[:64, 0, 0], dtype=torch.float64)
     return structure_mismatch(given, stored, x, "--config", "the file's")
+
+
+def _check_file_config(path: str, config: Any) -> None:
+    """The config stored in an arrays file loads; a ``ValueError`` naming the file's entry."""
+    from diffcontact.systems import load_system
+
+    try:
+        load_system(config)
+    except ValueError as err:
+        raise ValueError(
+            f"{path}: entry 'config' is not a usable config: {one_line(err)}"
+        ) from None
 
 
 def _given(**options: Any) -> dict[str, Any]:
@@ -231,6 +265,8 @@ def _cli_generate(args: argparse.Namespace) -> int:
                 "(the recording's own step): leave --dt out, or fix the file"
             )
         contact, event_times = read_flag_entries(args.from_arrays)
+        if file_config is not None:
+            _check_file_config(args.from_arrays, file_config)
         if spec is None:
             if file_config is None:
                 raise ValueError(
@@ -248,22 +284,23 @@ def _cli_generate(args: argparse.Namespace) -> int:
                     file=sys.stderr,
                 )
         reused = (folder / METADATA).is_file()
-        dataset_from_arrays(
-            traj,
-            spec,
-            folder,
-            dt=args.dt if args.dt is not None else file_dt,
-            **_given(
-                val_fraction=args.val_fraction,
-                test_fraction=args.test_fraction,
-                impact_tol=args.impact_tol,
-                gap_tol=args.gap_tol,
-            ),
-            true_parameters=args.true_params,
-            contact=contact,
-            event_times=event_times,
-            **common,
-        )
+        with one_line_warnings("diffcontact generate"):  # velocities, chunkless trajectories
+            dataset_from_arrays(
+                traj,
+                spec,
+                folder,
+                dt=args.dt if args.dt is not None else file_dt,
+                **_given(
+                    val_fraction=args.val_fraction,
+                    test_fraction=args.test_fraction,
+                    impact_tol=args.impact_tol,
+                    gap_tol=args.gap_tol,
+                ),
+                true_parameters=args.true_params,
+                contact=contact,
+                event_times=event_times,
+                **common,
+            )
     else:
         from diffcontact.learning.data.generate import generate_dataset
 

@@ -129,6 +129,19 @@ def _check_shape(t: Tensor, name: str, tail: tuple[int, ...], meaning: str) -> N
         raise ValueError(f"{name} holds no trajectory (shape {tuple(t.shape)})")
 
 
+def _check_samples(t: Tensor, name: str, least: int) -> None:
+    """``t (N, T, ...)`` holds a trajectory and at least ``least`` samples in each (``T = 0``
+    gave torch's "max(): Expected reduction dim" in the checks after the conversion)."""
+    if t.shape[0] == 0:
+        raise ValueError(f"{name} holds no trajectory (shape {tuple(t.shape)})")
+    if t.shape[1] < least:
+        samples = "sample" if least == 1 else "samples"
+        raise ValueError(
+            f"{name} needs T >= {least} {samples} per trajectory; got {t.shape[1]} (shape "
+            f"{tuple(t.shape)})"
+        )
+
+
 def _check_dt(dt: float | None, system: Any) -> float:
     if dt is None:
         if system is None:
@@ -464,11 +477,16 @@ def trajectories_from_coordinates(
         _check_shape(qt, "q", (B, 3), meaning)
     elif kind == "chain_pendulum":
         _check_shape(qt, "q", (B,), meaning)
-    else:
+    if qt.dim() >= 2:  # (the gyroscope's q is checked by _rotations, once it holds samples)
+        _check_samples(qt, "q", 1)
+        if qdot is None and qt.shape[1] < 3:
+            raise ValueError(
+                "finite differences (qdot=None) need T >= 3 samples per trajectory; got "
+                f"{qt.shape[1]}"
+            )
+    if kind == "gyroscope":
         R = _rotations(qt)
     _check_finite(qt if qt.dim() > 2 else qt[..., None], "q")
-    if qdot is None and qt.shape[1] < 3:
-        raise ValueError("finite differences (qdot=None) need T >= 3 samples per trajectory")
 
     def rates(shape: tuple[int, ...], angles: Tensor | None = None) -> Tensor:
         """qdot checked against ``shape``, or finite differences of ``angles``/``q``."""
@@ -553,6 +571,8 @@ def trajectory_checks(config: Any, z: Any) -> dict[str, float]:
     t, _ = _tensor(z, "trajectories")
     P, d = system.n_points, system.dim
     _check_shape(t, "trajectories", (2, P, d), f"positions then velocities of {P} points")
+    if t.shape[1] == 0:  # (torch's "max(): Expected reduction dim" below)
+        raise ValueError(f"trajectories hold no state (shape {tuple(t.shape)})")
     t = t.detach().to(torch.float64)
     x, v = t[:, :, 0], t[:, :, 1]
     out: dict[str, float] = {"constraint_residual": 0.0, "velocity_constraint_residual": 0.0}

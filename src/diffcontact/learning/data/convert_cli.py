@@ -217,6 +217,11 @@ def _cli_convert(args: argparse.Namespace) -> int:
                 origin=args.origin,
             )
     extra = {k: v for k, v in extra.items() if v is not None}
+    checks = convert.trajectory_checks(system, z)  # (bad input found here writes nothing)
+    notes = [one_line(w.message) for w in caught]
+    broken = constraint_violation(system, np.asarray(z)[:, :, 0])
+    if broken is not None:
+        notes.append(f"{broken}; `diffcontact generate --from-arrays` refuses such data")
     atomic_save_npz(
         out,
         traj=z,
@@ -226,11 +231,6 @@ def _cli_convert(args: argparse.Namespace) -> int:
         diffcontact_version=np.str_(__version__),
         **extra,
     )
-    checks = convert.trajectory_checks(system, z)
-    notes = [one_line(w.message) for w in caught]
-    broken = constraint_violation(system, np.asarray(z)[:, :, 0])
-    if broken is not None:
-        notes.append(f"{broken}; `diffcontact generate --from-arrays` refuses such data")
     if checks["share_of_states_in_contact"] > CONTACT_SHARE_WARN:
         notes.append(
             f"{checks['share_of_states_in_contact']:.0%} of the states are in contact (min_gap "
@@ -248,7 +248,14 @@ def _cli_convert(args: argparse.Namespace) -> int:
                 "next to a velocity jump (saved as velocity_unreliable)"
             )
         print("  checks: " + ", ".join(f"{k} {v:.3g}" for k, v in checks.items()))
-        print(f"  next: diffcontact generate --from-arrays {out} --out DATASET_DIR")
+        if broken is not None:  # generate would refuse the file: say what to fix instead
+            print(
+                "  next: fix the config (link lengths, pivot, axis points) or the data's "
+                "origin or units as the warning says, and convert again; `diffcontact "
+                "generate --from-arrays` refuses this file"
+            )
+        else:
+            print(f"  next: diffcontact generate --from-arrays {out} --out DATASET_DIR")
     else:  # no summary, but the warnings still, one line each on stderr
         for note in notes:
             print(f"diffcontact convert: warning: {note}", file=sys.stderr)

@@ -20,7 +20,7 @@ import torch
 
 from diffcontact.contact.registry import create_contact_model
 from diffcontact.io import jsonable, parse_device, read_npz
-from diffcontact.learning.data.checks import check_seed, float_arg, int_arg
+from diffcontact.learning.data.checks import check_seed, check_stride, float_arg, int_arg
 from diffcontact.learning.data.chunks import chunk_split, contact_states
 from diffcontact.learning.data.format import ARRAYS, SPLITS, WINDOW_ARRAYS, split_seeds
 from diffcontact.learning.data.write import (
@@ -88,7 +88,8 @@ def generate_dataset(
             ``metadata.json``, and evaluation re-simulates with it.
         stride: ``None`` (default, the paper's set-up): one chunk per
             trajectory; an integer ``k``: every window starting at states
-            ``0, k, 2k, ...`` (out of contact) is a chunk, and
+            ``0, k, 2k, ...`` (out of contact) is a chunk (``k`` of
+            ``T - chunk_length + 1`` or more: the window at state 0 only), and
             ``contact_fraction`` becomes a sampling weight in training
             (``docs/data.md``, "Windows").
 
@@ -122,6 +123,8 @@ def generate_dataset(
             f"{system.name}'s trajectories hold {T} states (horizon / dt), fewer than "
             f"chunk_length={chunk_length}"
         )
+    if stride is not None:
+        stride = check_stride(stride, T, chunk_length)
     arguments = {
         "source": "simulated",
         "config": jsonable(system.config.model_dump(mode="json")),

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffcontact.learning.data.convert import _check_finite, _check_shape, _system
+from diffcontact.learning.data.convert import _check_finite, _check_samples, _check_shape, _system
 from diffcontact.mechanics.bodies import quaternion_to_matrix
 
 __all__ = ["MUJOCO_JOINTS", "load_mujoco_model", "trajectories_from_mujoco"]
@@ -290,6 +290,7 @@ def trajectories_from_mujoco(
                          else qvel.detach().cpu().to(_F))  # fmt: skip
     _check_shape(qp, "qpos", (model.nq,), f"nq = {model.nq} of the MuJoCo model")
     _check_shape(qv, "qvel", (model.nv,), f"nv = {model.nv} of the MuJoCo model")
+    _check_samples(qp, "qpos", 1)
     if qp.shape[:2] != qv.shape[:2]:
         raise ValueError(
             f"qpos and qvel must hold the same trajectories and samples: (N, T) = "

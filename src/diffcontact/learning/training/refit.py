@@ -186,7 +186,7 @@ def refit(
 
     Raises:
         ValueError: not a physical model with a potential network, parameters not float64,
-            bad chunk shapes, no finite chunk, or ``iterations < 0``.
+            bad chunk shapes, no chunk or no finite chunk, or ``iterations < 0``.
     """
     out_layer = _check_model(model)
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 0:
@@ -264,6 +264,8 @@ def _finite_chunks(chunks: Tensor, name: str) -> Tensor:
     if not isinstance(chunks, Tensor) or chunks.dim() != 5 or chunks.shape[1] < 2:
         shape = tuple(chunks.shape) if isinstance(chunks, Tensor) else type(chunks).__name__
         raise ValueError(f"{name} must have shape (N, L, 2, P, dim) with L >= 2, got {shape}")
+    if chunks.shape[0] == 0:  # (said "no chunk without NaN or infinite values")
+        raise ValueError(f"{name} holds no chunk (shape {tuple(chunks.shape)})")
     chunks = chunks.to(torch.float64)
     keep = torch.isfinite(chunks.flatten(1)).all(1)
     if not bool(keep.any()):
@@ -349,7 +351,8 @@ def refit_run(
         ValueError: no finished run in ``run_dir`` (no ``model.pt``), a run folder that
             cannot be written (checked before any work, e.g. read-only storage), an
             unreadable journal, a model without a potential network, an unreadable
-            dataset, or a bad ``iterations``.
+            dataset or one whose train or validation split holds no chunk, or a bad
+            ``iterations``.
     """
     from diffcontact.io import atomic_write_bytes, atomic_write_json, check_writable_folder
     from diffcontact.learning.data.format import load_dataset
@@ -382,6 +385,15 @@ def refit_run(
     dataset = load_dataset(source)
     train_chunks = dataset.split("train", dtype=torch.float64).chunks
     val_chunks = dataset.split("val", dtype=torch.float64).chunks
+    for name, chunks in (("train", train_chunks), ("val", val_chunks)):
+        if chunks.shape[0] == 0:  # train's wording (training.run._read_data)
+            raise ValueError(
+                f"{source}: its validation split is empty, and refit chooses the damping "
+                "and keeps a step by the validation MSE: generate the dataset with a "
+                "--val-fraction (or --n-val) above 0"
+                if name == "val"
+                else f"{source}: its train split is empty: nothing to refit to"
+            )
     why = dataset.mismatch(model, torch.cat([train_chunks[:64, 0, 0], val_chunks[:64, 0, 0]]))
     if why is not None:
         raise ValueError(f"{source}: {why}: data of another system, not refit to")
