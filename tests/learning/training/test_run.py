@@ -167,6 +167,37 @@ def test_an_epoch_without_an_optimiser_step_is_checkpointed(bp5_data, tmp_path):
     assert epochs_done(load_torch_file(run / "checkpoints" / "last.ckpt", "checkpoint")) == 3
 
 
+def test_a_split_of_trajectories_without_a_chunk_is_named(bp5_data, tmp_path):
+    """A dataset of windows whose stride left the train split no chunk (written by an
+    earlier version, which did not refuse it) was said to have an empty train split."""
+    import hashlib
+    import json
+    import shutil
+
+    from diffcontact.learning.data.format import metadata_checksum
+
+    folder = tmp_path / "data"
+    shutil.copytree(bp5_data, folder)
+    meta = json.loads((folder / "metadata.json").read_text())
+    for name in ("train", "val", "test"):
+        path = folder / f"{name}.npz"
+        with np.load(path) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        n = len(arrays["traj"])
+        keep = slice(0, 0) if name == "train" else slice(None)
+        for key in ("chunks", "chunk_start", "chunk_has_contact"):
+            arrays[key] = arrays[key][keep]
+        arrays["chunk_traj"] = np.arange(n, dtype=np.int64)[keep]
+        np.savez(path, **arrays)
+        meta["files"][path.name] = hashlib.sha256(path.read_bytes()).hexdigest()
+    meta["stride"] = 3
+    meta["metadata_sha256"] = metadata_checksum(meta)
+    (folder / "metadata.json").write_text(json.dumps(meta))
+    with pytest.raises(TrainingInputError, match=r"its train split holds 8 trajectories but no "
+                       r"chunk: .*stride \(3\).*smaller --stride"):  # fmt: skip
+        train(folder, tmp_path / "run", epochs=1, **SMALL)
+
+
 def test_callbacks_that_are_not_callbacks_are_named(bp5_data, tmp_path):
     """callbacks=[1] ended in Lightning's AttributeError (no on_exception) mid-setup."""
     with pytest.raises(TrainingInputError, match=r"callbacks must be Lightning callbacks.*1"):

@@ -219,10 +219,17 @@ def _read_data(data_dir: str | os.PathLike[str]) -> tuple[dict[str, Any], Tensor
         ds = load_dataset(folder)
         split = ds.split("train", dtype=torch.float64)
         train, has_contact = split.chunks, split.chunk_has_contact
-        val = ds.split("val", dtype=torch.float64).chunks
+        val_split = ds.split("val", dtype=torch.float64)
+        val = val_split.chunks
     except ValueError as err:
         raise TrainingInputError(str(err)) from None
-    for name, chunks in (("train", train), ("val", val)):
+    for name, chunks, n_traj in (("train", train, len(split)), ("val", val, len(val_split))):
+        if chunks.shape[0] == 0 and n_traj > 0:  # (a dataset of an earlier version)
+            raise TrainingInputError(
+                f"{folder}: its {name} split holds {n_traj} trajectories but no chunk: every "
+                f"state where its stride ({ds.stride}) lets a chunk start is flagged in contact;"
+                " generate the dataset again with a smaller --stride (1: every window)"
+            )
         if chunks.shape[0] == 0:
             raise TrainingInputError(
                 f"{folder}: its validation split is empty, and training reports the "
