@@ -120,6 +120,8 @@ def _record(mujoco, xml: str, n: int, T: int, every: int, seed: int) -> dict:
     return rec
 
 
+# (recorded every 0.005 s, converted with Gyro's dt of 0.02: the velocity check says so)
+@pytest.mark.filterwarnings("ignore:the velocities from qvel do not match:RuntimeWarning")
 def test_mujoco_3d_bodies_match_mujoco_kinematics():
     mujoco = pytest.importorskip("mujoco")
     from diffcontact.learning.data.mujoco import trajectories_from_mujoco
@@ -179,6 +181,27 @@ def test_mujoco_planar_disks_and_chain_sites():
     assert np.abs(zc - want).max() < 1e-12
 
 
+def test_mujoco_velocities_that_are_not_the_positions_motion_are_warned():
+    """qvel in other units (or a recording at another step than the config's dt) showed
+    only as a number in convert's checks line, where convert coordinates warns."""
+    import warnings
+
+    mujoco = pytest.importorskip("mujoco")
+    from diffcontact.learning.data.mujoco import trajectories_from_mujoco
+
+    rec = _record(mujoco, SCENE_2D, n=2, T=40, every=5, seed=1)  # samples 0.005 s apart
+    m, qpos, qvel = rec["model"], rec["qpos"], rec["qvel"]
+    args = {"bodies": ["d1", "d2"], "plane": "xz"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        trajectories_from_mujoco(m, qpos, qvel, DISKS, **args)
+    with pytest.warns(RuntimeWarning, match=r"the velocities from qvel do not match the "
+                      r"motion of qpos: .* by \d+\.\d\d of the median speed"):  # fmt: skip
+        trajectories_from_mujoco(m, qpos, 1000 * qvel, DISKS, **args)
+
+
+# (a body at rest given a velocity: the velocity check says so)
+@pytest.mark.filterwarnings("ignore:the velocities from qvel do not match:RuntimeWarning")
 def test_mujoco_errors_and_out_of_plane_warning(tmp_path):
     mujoco = pytest.importorskip("mujoco")
     from diffcontact.learning.data.mujoco import trajectories_from_mujoco

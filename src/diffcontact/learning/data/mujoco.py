@@ -44,7 +44,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffcontact.learning.data.convert import _check_finite, _check_samples, _check_shape, _system
+from diffcontact.learning.data.convert import (
+    VELOCITY_MISMATCH_WARN,
+    _check_finite,
+    _check_samples,
+    _check_shape,
+    _system,
+    velocity_mismatch,
+)
 from diffcontact.mechanics.bodies import quaternion_to_matrix
 
 __all__ = ["MUJOCO_JOINTS", "load_mujoco_model", "trajectories_from_mujoco"]
@@ -372,6 +379,17 @@ def trajectories_from_mujoco(
     if proj is not None:
         _check_planar(x, v, normal, on_out_of_plane)
         x, v = x[..., list(proj)], v[..., list(proj)]
+    if x.shape[1] >= 3:  # as convert coordinates warns (it showed only in the checks line)
+        mismatch = velocity_mismatch(x, v, float(system.dt))
+        if mismatch > VELOCITY_MISMATCH_WARN:
+            warnings.warn(
+                f"the velocities from qvel do not match the motion of qpos: the point "
+                f"velocities differ from the positions' finite differences (at the config's "
+                f"dt={system.dt:g}) by {mismatch:.2f} of the median speed; check that the "
+                "recording is sampled at the config's dt and that qvel is MjData.qvel",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     return torch.stack([x, v], dim=2).numpy()
 
 
