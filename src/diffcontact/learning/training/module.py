@@ -241,8 +241,8 @@ class RolloutModule(pl.LightningModule):
         self._epoch_skipped = dict.fromkeys(SKIP_REASONS, 0)
         self._epoch_first_error: str | None = None
         # batches whose rollouts warned (tunnelling, constraint drift)
-        self._tunnelled = {"train": 0, "val": 0}
-        self._tunnelled_first: str | None = None
+        self._warned = {"train": 0, "val": 0}
+        self._warned_first: str | None = None
         self._train_sum = 0.0
         self._train_count = 0
         self._reset_validation()
@@ -253,7 +253,7 @@ class RolloutModule(pl.LightningModule):
         self._val_sum = 0.0
         self._val_count = 0
         self._val_failed = 0
-        self._tunnelled["val"] = 0
+        self._warned["val"] = 0
 
     # --------------------------------------------------------------- optimisation
     def _optimizer_settings(self) -> OptimizerSettings:
@@ -351,8 +351,8 @@ class RolloutModule(pl.LightningModule):
         reason, message, loss = None, None, None
         norms: list[float] = []
         try:
-            loss, tunnelled = counted_rollout_loss(self.model, chunk)
-            self._count_tunnelled("train", tunnelled)
+            loss, warned = counted_rollout_loss(self.model, chunk)
+            self._count_warned("train", warned)
             if not bool(torch.isfinite(loss.detach())):
                 reason, message = "nonfinite_loss", f"loss {float(loss.detach())}"
         except ConeQPError as err:
@@ -404,11 +404,11 @@ class RolloutModule(pl.LightningModule):
         )  # fmt: skip
         return None
 
-    def _count_tunnelled(self, phase: str, message: str | None) -> None:
+    def _count_warned(self, phase: str, message: str | None) -> None:
         """Count a batch whose rollout warned (``message``: its warning, or None)."""
         if message is not None:
-            self._tunnelled[phase] += 1
-            self._tunnelled_first = self._tunnelled_first or message
+            self._warned[phase] += 1
+            self._warned_first = self._warned_first or message
 
     def _add_train_loss(self, value: Tensor, n: int) -> None:
         """Add a batch's loss to the epoch's train loss: every batch with a finite loss,
@@ -419,8 +419,8 @@ class RolloutModule(pl.LightningModule):
     def validation_step(self, batch: Any, batch_idx: int) -> None:
         chunk = self._chunk(batch)
         try:
-            loss, tunnelled = counted_rollout_loss(self.model, chunk)
-            self._count_tunnelled("val", tunnelled)
+            loss, warned = counted_rollout_loss(self.model, chunk)
+            self._count_warned("val", warned)
         except ConeQPError:
             self._val_failed += 1
             return None
@@ -500,12 +500,12 @@ class RolloutModule(pl.LightningModule):
             first = f"; first: {self._epoch_first_error}" if self._epoch_first_error else ""
             # (counted from 1, as the epoch's summary line that follows)
             log.warning("epoch %d: skipped %d step(s) (%s)%s", epoch + 1, n_skipped, detail, first)
-        tunnelled = self._reduce_sum(self._tunnelled["train"], self._tunnelled["val"])
-        if any(tunnelled) and self.trainer.is_global_zero:
+        warned = self._reduce_sum(self._warned["train"], self._warned["val"])
+        if any(warned) and self.trainer.is_global_zero:
             log.warning(
                 "epoch %d: the rollouts of %d training and %d validation batch(es) warned "
                 "(tunnelling, constraint drift); first: %s",
-                epoch + 1, *map(int, tunnelled), self._tunnelled_first,
+                epoch + 1, *map(int, warned), self._warned_first,
             )  # fmt: skip
         self.last_epoch_summary = {
             "epoch": epoch,
