@@ -297,6 +297,18 @@ def test_a_step_too_large_is_a_clear_error_naming_the_states():
     assert torch.equal(X[0], torch.ones(2, 1, dtype=torch.float64)) and X[1].isnan().all()
 
 
+def test_masses_float64_cannot_resolve_are_named_when_a_rollout_blows_up():
+    """Masses 1e300 and 1 blew up at every dt, and the message only said to try a
+    smaller one."""
+    cfg = dict(type="bouncing_masses", masses=[1e300, 1.0], radii=[0.1, 0.1],
+               walls=[[1, 0, 0], [0, 1, 0], [-1, 0, 1], [0, -1, 1]], dt=0.01, horizon=1.0,
+               gravity=9.8, mu=0.5, cor=0.5)  # fmt: skip
+    system = dc.load_system(cfg)
+    with pytest.raises(NonFiniteRolloutError, match=r"or the masses, from 1 to 1e\+300: a "
+                       r"spread or size float64 cannot resolve .*check their units"):  # fmt: skip
+        system.simulate(system.sample_initial_conditions(2, seed=0))
+
+
 def test_a_rollout_that_drifts_off_its_constraints_warns_naming_the_states():
     """A chain whose light inner link is whipped by a heavy outer one, at a step too large
     for it: RK4's error halved a link's length and quadrupled the energy, silently."""

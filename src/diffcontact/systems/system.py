@@ -1800,7 +1800,8 @@ class System:
                 drift = self._constraint_drift(traj)
                 drifted = drift is not None and bool((drift > CONSTRAINT_DRIFT_TOL).any())
         if nonfinite:
-            raise self._nonfinite_error(list(traj.unbind(1)), steps, z0)
+            mass = self.mass if params is None else params.mass
+            raise self._nonfinite_error(list(traj.unbind(1)), steps, z0, mass)
         if tunnelled:
             learned = getattr(model, "needs_contact_state", False)  # a learned contact model
             self._report_tunnelling(gaps, bad, traj.shape[0], on_tunnelling == "raise", learned)
@@ -1961,10 +1962,11 @@ class System:
         )
 
     def _nonfinite_error(
-        self, states: list[Tensor], at: int, z0: Tensor | None = None
+        self, states: list[Tensor], at: int, z0: Tensor | None = None, mass: Tensor | None = None
     ) -> NonFiniteRolloutError:
         """Which trajectories became NaN or infinite (or, given ``z0``, blew up past
-        :data:`BLOW_UP`), when, and the likely cause."""
+        :data:`BLOW_UP`), when, and the likely cause (``mass``: the masses simulated with,
+        named when their spread or size leaves float64 no room)."""
         with torch.no_grad():
             traj = torch.stack([s.detach() for s in states], dim=1)
             bad = ~torch.isfinite(traj).flatten(2).all(-1)  # (N, T)
@@ -1990,13 +1992,39 @@ class System:
             )
         else:
             cause = "the motion blew up"
+        advice = f"dt = {self.dt} may be too large for this system: try a smaller dt"
+        extreme = _extreme_masses(mass)
+        if extreme is not None:  # (masses of 1e300 had been told to try a smaller dt)
+            advice = f"{extreme}; if they are right, dt = {self.dt} may be too large"
         message = (
             f"simulate {self.name}: NaN, infinite or blown-up values (beyond {BLOW_UP:g} "
             f"times the initial state's) in {len(rows)} of "
             f"{traj.shape[0]} trajectories ({where}{more}; step {at} was reached). Likely "
-            f"cause: {cause}; dt = {self.dt} may be too large for this system: try a smaller dt"
+            f"cause: {cause}; {advice}"
         )
         return NonFiniteRolloutError(message, rows)
+
+
+MASS_SPREAD = 1e12
+"""Masses spread wider than this (largest over smallest), or beyond ``MASS_SPREAD**4`` /
+below its inverse in size, are named by :class:`NonFiniteRolloutError` as the likely
+cause rather than the step: float64 keeps 16 digits, and a rollout with masses 1e300 and
+1 failed at every dt."""
+
+
+def _extreme_masses(mass: Tensor | None) -> str | None:
+    """Why ``mass`` may be what broke the arithmetic, or ``None`` (plausible masses)."""
+    if mass is None or mass.numel() == 0:
+        return None
+    m = mass.detach().double().abs().flatten()
+    low, high = float(m.min()), float(m.max())
+    if low > 0 and high / low <= MASS_SPREAD and MASS_SPREAD**-4 <= low and high <= MASS_SPREAD**4:
+        return None
+    return (
+        f"or the masses, from {low:.3g} to {high:.3g}: a spread or size float64 cannot "
+        f"resolve (beyond {MASS_SPREAD:g} apart, or beyond {MASS_SPREAD**4:g} or below "
+        f"{MASS_SPREAD**-4:g}); check their units"
+    )
 
 
 def _blown_up(traj: Tensor, z0: Tensor, per_state: bool = False) -> Tensor:
