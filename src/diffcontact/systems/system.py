@@ -1819,8 +1819,8 @@ class System:
         state of ``traj`` (no read of the device), or ``None`` without constraints.
 
         Only the last state: nothing pulls positions back onto the constraints, so the
-        drift accumulates, and every state of a BD5 rollout cost about a sixth of the
-        rollout's time (``_report_drift`` reads them all where one has drifted)."""
+        drift accumulates, and one state costs a hundredth of a 100-step trajectory's
+        states (``_report_drift`` reads them all where one has drifted)."""
         constraints = self.constraints
         if constraints is None or constraints.num_equations == 0:
             return None
